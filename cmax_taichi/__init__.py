@@ -1,0 +1,43 @@
+"""cmax-taichi: Contrast Maximization for event cameras with the event-collapse regularizers of
+Shiba, Aoki and Gallego (Sensors 2022), as Taichi kernels that run on the CPU and the GPU.
+
+Public names only; see README.md for a worked example and docs/FORMULAS.md for every formula.
+"""
+
+from . import _kernels_path  # noqa: F401  (maps cmax_taichi.kernels in a source checkout)
+from .backend import BackendInfo, init
+from .backend import info as backend_info
+from .events import Camera, Events
+from .jacobians import event_jacobians
+from .objectives import OBJECTIVES, Objective, objective_names, register_objective
+from .problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
+from .regularizers import REGULARIZERS, Regularizer, regularizer_names, register_regularizer
+from .warps import WARPS, WarpModel, get_warp, register_warp, warp_names
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BackendInfo",
+    "Camera",
+    "ContrastMaximization",
+    "Evaluation",
+    "Events",
+    "OBJECTIVES",
+    "Objective",
+    "POLARITY_MODES",
+    "REGULARIZERS",
+    "Regularizer",
+    "WARPS",
+    "WarpModel",
+    "backend_info",
+    "dense_flow",
+    "event_jacobians",
+    "get_warp",
+    "init",
+    "objective_names",
+    "register_objective",
+    "register_regularizer",
+    "register_warp",
+    "regularizer_names",
+    "warp_names",
+]

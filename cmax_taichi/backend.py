@@ -1,0 +1,150 @@
+"""Taichi backend selection: architecture and floating-point precision.
+
+``init()`` may be called explicitly; any public API initialises the default backend (CPU, f64 unless
+``CMAX_TAICHI_PRECISION`` says otherwise, arch from ``CMAX_TAICHI_ARCH``) on first use. Calling
+``init()`` again with other settings resets Taichi: every problem built before becomes invalid and
+says so when used.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass
+
+import taichi as ti
+
+ARCH_ENV = "CMAX_TAICHI_ARCH"
+PRECISION_ENV = "CMAX_TAICHI_PRECISION"
+ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal")
+PRECISIONS = ("f32", "f64")
+
+
+@dataclass(frozen=True)
+class BackendInfo:
+    """What the running backend is.
+
+    Attributes
+    ----------
+    requested_arch : str
+        The arch that was asked for.
+    arch : str
+        The arch Taichi actually runs on (``"cpu"`` after a fallback).
+    precision : str
+        ``"f32"`` or ``"f64"``.
+    generation : int
+        Incremented at every (re-)initialisation; problems remember the generation they were built in.
+    """
+
+    requested_arch: str
+    arch: str
+    precision: str
+    generation: int
+
+
+_state: BackendInfo | None = None
+_reset_hooks: list = []
+
+
+def _arch_of(name: str):
+    return {
+        "cpu": ti.cpu,
+        "gpu": ti.gpu,
+        "cuda": ti.cuda,
+        "vulkan": ti.vulkan,
+        "metal": ti.metal,
+    }[name]
+
+
+def _running_arch_name() -> str:
+    arch = ti.lang.impl.current_cfg().arch
+    name = str(arch).split(".")[-1]
+    return "cpu" if name in ("x64", "arm64") else name
+
+
+def init(arch: str | None = None, precision: str | None = None, *, quiet: bool = True) -> BackendInfo:
+    """Initialise (or re-initialise) Taichi for cmax-taichi.
+
+    Parameters
+    ----------
+    arch : {"cpu", "gpu", "cuda", "vulkan", "metal"}, optional
+        Backend. Defaults to the environment variable ``CMAX_TAICHI_ARCH``, else ``"cpu"``. A GPU arch
+        that is not available falls back to the CPU with a warning.
+    precision : {"f32", "f64"}, optional
+        Floating-point type of every field and kernel. Defaults to ``CMAX_TAICHI_PRECISION``, else
+        ``"f64"`` on the CPU and ``"f32"`` on a GPU (GPUs are much faster in f32; Vulkan and Metal have
+        no f64 at all).
+    quiet : bool
+        Keep Taichi's start-up banner and info logs quiet.
+
+    Returns
+    -------
+    BackendInfo
+        The arch really used, the precision and the generation number.
+    """
+    global _state
+    arch = (arch or os.environ.get(ARCH_ENV) or "cpu").strip().lower()
+    if arch not in ARCHS:
+        raise ValueError(f"unknown arch {arch!r}; valid archs are {', '.join(ARCHS)}")
+    precision = (precision or os.environ.get(PRECISION_ENV) or "").strip().lower()
+    if not precision:
+        precision = "f64" if arch == "cpu" else "f32"
+    if precision not in PRECISIONS:
+        raise ValueError(f"unknown precision {precision!r}; valid precisions are f32, f64")
+    if arch in ("vulkan", "metal") and precision == "f64":
+        raise ValueError(f"arch {arch!r} has no f64 support; use precision='f32'")
+
+    if _state is not None:
+        for hook in list(_reset_hooks):
+            hook()
+        ti.reset()
+    generation = 1 if _state is None else _state.generation + 1
+    fp = ti.f64 if precision == "f64" else ti.f32
+    log_level = ti.WARN if quiet else ti.INFO
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        ti.init(
+            arch=_arch_of(arch),
+            default_fp=fp,
+            default_ip=ti.i32,
+            log_level=log_level,
+            offline_cache=True,
+        )
+    used = _running_arch_name()
+    if arch != "cpu" and used == "cpu":
+        warnings.warn(
+            f"cmax_taichi: arch {arch!r} is not available on this machine; running on the CPU",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    _state = BackendInfo(requested_arch=arch, arch=used, precision=precision, generation=generation)
+    return _state
+
+
+def ensure_initialized() -> BackendInfo:
+    """Initialise the default backend once; return the current backend."""
+    if _state is None:
+        return init()
+    return _state
+
+
+def info() -> BackendInfo:
+    """The current backend (initialising the default one if needed)."""
+    return ensure_initialized()
+
+
+def real():
+    """The Taichi float type of the current precision (``ti.f32`` or ``ti.f64``)."""
+    return ti.f64 if ensure_initialized().precision == "f64" else ti.f32
+
+
+def numpy_real():
+    """The NumPy float type matching :func:`real`."""
+    import numpy as np
+
+    return np.float64 if ensure_initialized().precision == "f64" else np.float32
+
+
+def on_reset(hook) -> None:
+    """Register a callable run before Taichi is reset by a later ``init()`` (clears kernel caches)."""
+    _reset_hooks.append(hook)

@@ -1,0 +1,294 @@
+"""Event containers: :class:`Events` (validated NumPy arrays) and :class:`Camera` (pinhole + distortion).
+
+Nothing here touches Taichi: events are plain NumPy until a problem copies them into fields.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Events", "Camera"]
+
+
+def _as_1d(name: str, values, dtype) -> np.ndarray:
+    arr = np.asarray(values)
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)
+    ):
+        raise TypeError(f"{name} must be a numeric array, got dtype {arr.dtype}")
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be one-dimensional, got shape {arr.shape}")
+    arr = arr.astype(dtype, copy=True)
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        raise ValueError(f"{name} has {bad} non-finite value(s) (NaN or inf)")
+    return arr
+
+
+class Events:
+    """A time-sorted set of events of one sensor.
+
+    Parameters
+    ----------
+    x, y : array_like
+        Pixel coordinates (column, row), px. Integers or (undistorted) floats.
+    t : array_like
+        Timestamps, seconds. Sorted on input, or sorted here with a warning.
+    p : array_like
+        Polarities, in {0, 1} or {-1, +1}; stored as -1 / +1.
+    sensor_size : (int, int)
+        ``(W, H)``, px. Events outside ``[0, W-1] x [0, H-1]`` are dropped with a warning giving the count.
+    undistorted : bool
+        Whether ``x, y`` are already undistorted (a problem then skips the camera's undistortion).
+
+    The arrays are copied: nothing the caller passed is modified.
+    """
+
+    __slots__ = ("x", "y", "t", "p", "sensor_size", "undistorted", "n_dropped")
+
+    def __init__(
+        self,
+        x,
+        y,
+        t,
+        p,
+        sensor_size: tuple[int, int],
+        *,
+        undistorted: bool = False,
+        _validated: bool = False,
+    ) -> None:
+        if _validated:
+            self.x, self.y, self.t, self.p = x, y, t, p
+            self.sensor_size = sensor_size
+            self.undistorted = undistorted
+            self.n_dropped = 0
+            return
+        try:
+            W, H = (int(v) for v in sensor_size)
+        except (TypeError, ValueError):
+            raise ValueError(f"sensor_size must be (W, H), got {sensor_size!r}") from None
+        if W <= 0 or H <= 0:
+            raise ValueError(f"sensor_size must be positive, got (W, H) = ({W}, {H})")
+        xs = _as_1d("x", x, np.float64)
+        ys = _as_1d("y", y, np.float64)
+        ts = _as_1d("t", t, np.float64)
+        ps = _as_1d("p", p, np.float64)
+        lengths = {len(xs), len(ys), len(ts), len(ps)}
+        if len(lengths) != 1:
+            raise ValueError(
+                f"x, y, t, p must have the same length, got {len(xs)}, {len(ys)}, {len(ts)}, {len(ps)}"
+            )
+        if not np.all(np.isin(ps, (-1.0, 0.0, 1.0))):
+            raise ValueError("p must hold polarities in {0, 1} or {-1, +1}")
+        ps = np.where(ps > 0, 1, -1).astype(np.int8)
+        if len(ts) > 1 and np.any(np.diff(ts) < 0):
+            warnings.warn("events were not sorted by time; sorting them", RuntimeWarning, stacklevel=2)
+            order = np.argsort(ts, kind="stable")
+            xs, ys, ts, ps = xs[order], ys[order], ts[order], ps[order]
+        inside = (xs >= 0) & (xs <= W - 1) & (ys >= 0) & (ys <= H - 1)
+        n_out = int(len(xs) - np.count_nonzero(inside))
+        if n_out:
+            warnings.warn(
+                f"dropped {n_out} event(s) outside the {W}x{H} sensor", RuntimeWarning, stacklevel=2
+            )
+            xs, ys, ts, ps = xs[inside], ys[inside], ts[inside], ps[inside]
+        self.x, self.y, self.t, self.p = xs, ys, ts, ps
+        self.sensor_size = (W, H)
+        self.undistorted = bool(undistorted)
+        self.n_dropped = n_out
+
+    # --- basic properties -------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def __repr__(self) -> str:
+        if len(self) == 0:
+            return f"Events(n=0, sensor={self.sensor_size[0]}x{self.sensor_size[1]})"
+        return (
+            f"Events(n={len(self)}, t=[{self.t[0]:.6f}, {self.t[-1]:.6f}] s, "
+            f"sensor={self.sensor_size[0]}x{self.sensor_size[1]})"
+        )
+
+    @property
+    def width(self) -> int:
+        return self.sensor_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.sensor_size[1]
+
+    @property
+    def duration(self) -> float:
+        """``t[-1] - t[0]`` in seconds (0 for fewer than two events)."""
+        return float(self.t[-1] - self.t[0]) if len(self) > 1 else 0.0
+
+    def _subset(self, index) -> Events:
+        return Events(
+            self.x[index],
+            self.y[index],
+            self.t[index],
+            self.p[index],
+            self.sensor_size,
+            undistorted=self.undistorted,
+            _validated=True,
+        )
+
+    def __getitem__(self, index) -> Events:
+        """Events by integer slice or boolean / integer index array (time order is kept)."""
+        if isinstance(index, (int, np.integer)):
+            index = slice(int(index), int(index) + 1 if int(index) != -1 else None)
+        if not isinstance(index, slice):
+            index = np.asarray(index)
+            if index.dtype != bool:
+                index = np.sort(index)
+        return self._subset(index)
+
+    # --- windows ----------------------------------------------------------------------------
+    def time_slice(self, t_start: float, t_end: float) -> Events:
+        """Events with ``t_start <= t < t_end`` (seconds)."""
+        i0, i1 = np.searchsorted(self.t, [t_start, t_end], side="left")
+        return self._subset(slice(int(i0), int(i1)))
+
+    def windows_by_count(self, n_events: int, stride: int | None = None) -> Iterator[Events]:
+        """Consecutive windows of ``n_events`` events, starting every ``stride`` events (default: no
+        overlap). The last, shorter window is dropped."""
+        n_events = int(n_events)
+        stride = n_events if stride is None else int(stride)
+        if n_events < 2:
+            raise ValueError(f"n_events must be at least 2, got {n_events}")
+        if stride < 1:
+            raise ValueError(f"stride must be at least 1, got {stride}")
+        for start in range(0, len(self) - n_events + 1, stride):
+            yield self._subset(slice(start, start + n_events))
+
+    def windows_by_duration(self, duration: float, stride: float | None = None) -> Iterator[Events]:
+        """Consecutive windows of ``duration`` seconds (start every ``stride`` s, default: no
+        overlap), from the first event's time; empty windows are skipped."""
+        duration = float(duration)
+        stride = duration if stride is None else float(stride)
+        if not (np.isfinite(duration) and duration > 0):
+            raise ValueError(f"duration must be a positive number of seconds, got {duration}")
+        if not (np.isfinite(stride) and stride > 0):
+            raise ValueError(f"stride must be a positive number of seconds, got {stride}")
+        if len(self) == 0:
+            return
+        t0, t_last = self.t[0], self.t[-1]
+        k = 0
+        while t0 + k * stride <= t_last:
+            start = t0 + k * stride
+            window = self.time_slice(start, start + duration)
+            if len(window):
+                yield window
+            k += 1
+
+    def undistort(self, camera: Camera) -> Events:
+        """Return new events with undistorted coordinates (those leaving the sensor are dropped)."""
+        if self.undistorted:
+            return self
+        xu, yu = camera.undistort_points(self.x, self.y)
+        W, H = self.sensor_size
+        inside = np.isfinite(xu) & np.isfinite(yu)
+        inside &= (xu >= 0) & (xu <= W - 1) & (yu >= 0) & (yu <= H - 1)
+        return Events(
+            xu[inside],
+            yu[inside],
+            self.t[inside],
+            self.p[inside],
+            self.sensor_size,
+            undistorted=True,
+            _validated=True,
+        )
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics with the radial-tangential distortion of OpenCV / the ECD ``calib.txt``.
+
+    Parameters
+    ----------
+    fx, fy : float
+        Focal lengths, px.
+    cx, cy : float
+        Principal point, px.
+    dist : tuple of float
+        ``(k1, k2, p1, p2, k3)``; all zero means no distortion.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def __post_init__(self) -> None:
+        values = [self.fx, self.fy, self.cx, self.cy]
+        if not all(np.isfinite(v) for v in values):
+            raise ValueError(f"camera intrinsics must be finite, got {values}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        dist = tuple(float(d) for d in self.dist)
+        if len(dist) < 5:
+            dist = dist + (0.0,) * (5 - len(dist))
+        if len(dist) != 5 or not all(np.isfinite(d) for d in dist):
+            raise ValueError(f"dist must be (k1, k2, p1, p2, k3) finite values, got {self.dist}")
+        object.__setattr__(self, "dist", dist)
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(d != 0.0 for d in self.dist)
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def distort_normalized(self, xn, yn) -> tuple[np.ndarray, np.ndarray]:
+        """Apply the distortion model to normalised coordinates (unitless)."""
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = xn * xn + yn * yn
+        radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+        xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+        return xd, yd
+
+    def undistort_points(self, x, y, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+        """Undistort pixel coordinates (px in, px out, same intrinsics).
+
+        Fixed-point iteration as in OpenCV's ``undistortPoints``; returns NaN where it diverges.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        xd = (x - self.cx) / self.fx
+        yd = (y - self.cy) / self.fy
+        if not self.has_distortion:
+            return x.copy(), y.copy()
+        k1, k2, p1, p2, k3 = self.dist
+        xn, yn = xd.copy(), yd.copy()
+        with np.errstate(all="ignore"):
+            for _ in range(iterations):
+                r2 = xn * xn + yn * yn
+                radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+                dx = 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+                dy = p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+                xn = (xd - dx) / radial
+                yn = (yd - dy) / radial
+            # keep only points that the distortion model maps back to where they came from
+            xr, yr = self.distort_normalized(xn, yn)
+            ok = np.isfinite(xn) & np.isfinite(yn) & (np.hypot(xr - xd, yr - yd) < 1e-6)
+        xu = np.where(ok, xn * self.fx + self.cx, np.nan)
+        yu = np.where(ok, yn * self.fy + self.cy, np.nan)
+        return xu, yu
+
+    @classmethod
+    def from_calib_line(cls, values) -> Camera:
+        """From ``fx fy cx cy [k1 k2 p1 p2 k3]`` (the ECD ``calib.txt`` layout)."""
+        values = [float(v) for v in values]
+        if len(values) not in (4, 8, 9):
+            raise ValueError(
+                f"calibration needs fx fy cx cy [k1 k2 p1 p2 [k3]], got {len(values)} numbers"
+            )
+        return cls(*values[:4], dist=tuple(values[4:]) or (0.0,) * 5)

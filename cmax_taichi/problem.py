@@ -1,0 +1,590 @@
+"""The Contrast Maximization problem: events + warp + objective + regularizers -> value and gradient.
+
+:class:`ContrastMaximization` owns the Taichi fields of one problem and runs the kernel chain
+
+    splat (warp, IWE votes, map votes) -> blur x -> blur y -> objective reduce -> maps reduce -> loss
+
+forward, then the same kernels' ``.grad`` in reverse order for dJ/dtheta. Fields are allocated once;
+repeated evaluations allocate nothing. Formulas: docs/FORMULAS.md.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from . import backend
+from .events import Camera, Events
+from .kernels import iwe as kiwe
+from .kernels import loss as kloss
+from .kernels import maps as kmaps
+from .kernels import warps as kwarps
+from .kernels import whitening as kwhite
+from .objectives import OBJECTIVES, Objective
+from .regularizers import REGULARIZERS, Regularizer
+from .warps import WarpModel, get_warp
+
+__all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
+
+POLARITY_MODES = ("ignore", "signed", "split")
+
+# Compiled kernels, keyed by everything that is static in them; cleared when Taichi is reset.
+_KERNELS: dict = {}
+backend.on_reset(_KERNELS.clear)
+
+
+def _cached(key, factory):
+    kernel = _KERNELS.get(key)
+    if kernel is None:
+        kernel = _KERNELS[key] = factory()
+    return kernel
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Everything one evaluation computed (all floats; R values dimensionless).
+
+    Attributes
+    ----------
+    J : float
+        Augmented objective ``G - sum lambda_r R_r``.
+    G : float
+        Objective used in J (normalised by ``G0`` when the problem normalises).
+    G_raw : float
+        Raw objective of the IWE.
+    G0 : float
+        Raw objective of the identity warp.
+    R : dict
+        Penalty of every registered regularizer (computed whether or not it is weighted in J).
+    """
+
+    J: float
+    G: float
+    G_raw: float
+    G0: float
+    R: dict
+
+
+def _check_theta(theta, n: int, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(theta, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise TypeError(f"theta must be a sequence of {n} numbers, got {theta!r}") from None
+    if arr.size != n:
+        raise ValueError(f"warp {name!r} takes {n} parameter(s), got theta of length {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"theta has non-finite values: {arr}")
+    return arr
+
+
+def _dummy(dtype, shape=(1,)):
+    return ti.field(dtype, shape=shape)
+
+
+class ContrastMaximization:
+    """A CMax problem on one window of events.
+
+    Parameters
+    ----------
+    events : Events
+        The window (at least 2 events spanning a positive time).
+    warp : str or WarpModel
+        Motion model; see :func:`cmax_taichi.warp_names`.
+    objective : str
+        Focus measure; see :func:`cmax_taichi.objective_names`.
+    regularizers : mapping of str to float, optional
+        Weights ``lambda`` of the regularizers, e.g. ``{"divergence": 1.0, "deformation": 1.0}``.
+        A weight of 0 keeps the map but not its penalty.
+    camera : Camera, optional
+        Intrinsics (required by ``rotation3``). Its principal point is the centre of the zoom /
+        rotation models; events are undistorted with it unless ``events.undistorted``.
+    t_ref : {"first", "middle", "last"} or float
+        Reference time (a float is seconds on the events' clock).
+    blur_sigma : float
+        Gaussian blur of the IWE, px (0 = none).
+    polarity : {"ignore", "signed", "split"}
+        How polarity enters the IWE.
+    weights : array_like, optional
+        Per-event vote weights (finite); default 1.
+    normalize : bool
+        Use ``G(theta) / G(0)`` (default) rather than the raw objective in J.
+    whitening : bool
+        Whitening baseline: build the IWE from whitened warped positions.
+
+    Notes
+    -----
+    ``value_and_grad(theta)`` returns ``(J, dJ/dtheta)`` for ``theta`` in the model's physical units.
+    """
+
+    def __init__(
+        self,
+        events: Events,
+        warp: str | WarpModel = "mitrokhin4",
+        objective: str = "variance",
+        regularizers: Mapping[str, float] | None = None,
+        camera: Camera | None = None,
+        t_ref: str | float = "first",
+        blur_sigma: float = 1.0,
+        polarity: str = "ignore",
+        weights: Sequence[float] | np.ndarray | None = None,
+        normalize: bool = True,
+        whitening: bool = False,
+    ) -> None:
+        self._backend = backend.ensure_initialized()
+        if not isinstance(events, Events):
+            raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
+        self.model: WarpModel = get_warp(warp)
+        self.objective: Objective = OBJECTIVES.get(objective)
+        if camera is not None and not isinstance(camera, Camera):
+            raise TypeError(f"camera must be cmax_taichi.Camera, got {type(camera).__name__}")
+        if self.model.needs_camera and camera is None:
+            raise ValueError(f"warp {self.model.name!r} needs a camera (intrinsics): pass camera=")
+        self.camera = camera
+        self.regularizer_weights = self._check_regularizers(regularizers)
+        if polarity not in POLARITY_MODES:
+            raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
+        self.polarity = polarity
+        blur_sigma = float(blur_sigma)
+        if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
+            raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
+        self.blur_sigma = blur_sigma
+        self.normalize = bool(normalize)
+        self.whitening = bool(whitening)
+
+        # --- events (NumPy, float64) ---------------------------------------------------------------
+        if len(events) < 2:
+            raise ValueError(f"a CMax problem needs at least 2 events, got {len(events)}")
+        user_weights = None
+        if weights is not None:
+            user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+            if user_weights.size != len(events):
+                raise ValueError(
+                    f"weights has {user_weights.size} values for {len(events)} events"
+                )
+            if not np.all(np.isfinite(user_weights)):
+                raise ValueError("weights has non-finite values")
+        if camera is not None and camera.has_distortion and not events.undistorted:
+            kept = camera.undistort_points(events.x, events.y)
+            inside = np.isfinite(kept[0]) & np.isfinite(kept[1])
+            inside &= (kept[0] >= 0) & (kept[0] <= events.width - 1)
+            inside &= (kept[1] >= 0) & (kept[1] <= events.height - 1)
+            events = events.undistort(camera)
+            if user_weights is not None:
+                user_weights = user_weights[inside]
+            if len(events) < 2:
+                raise ValueError("fewer than 2 events remain inside the sensor after undistortion")
+        self.events = events
+        duration = events.duration
+        if not duration > 0:
+            raise ValueError("the events span zero time: a CMax window needs a positive duration")
+        self.duration = duration
+        self.t_ref = self._resolve_t_ref(t_ref, events)
+        self.orientation = 1.0 if self.t_ref <= float(np.mean(events.t)) else -1.0
+        self.width, self.height = events.sensor_size
+        if camera is not None:
+            self.center = (camera.cx, camera.cy)
+            focal = (camera.fx, camera.fy)
+        else:
+            self.center = ((self.width - 1) / 2.0, (self.height - 1) / 2.0)
+            focal = (1.0, 1.0)
+        self.n_events = len(events)
+        self.n_channels = 2 if polarity == "split" else 1
+
+        vote_w = np.ones(self.n_events) if user_weights is None else user_weights
+        if polarity == "signed":
+            vote_w = vote_w * events.p
+        self._weighted = polarity == "signed" or user_weights is not None
+        self._allocate(vote_w, focal)
+        self._build_kernels()
+        self.G0 = 1.0
+        g0 = self._forward(np.zeros(self.model.n_params))[1]
+        if not (math.isfinite(g0) and g0 > 0):
+            raise ValueError(
+                f"the identity warp's {self.objective.name} is {g0}: the events give a flat image "
+                "(nothing to maximise)"
+            )
+        self.G0 = g0 if self.normalize else 1.0
+        self._identity_objective = g0
+
+    # --- validation helpers --------------------------------------------------------------------
+    @staticmethod
+    def _check_regularizers(regularizers) -> dict[str, float]:
+        if regularizers is None:
+            return {}
+        if not isinstance(regularizers, Mapping):
+            raise TypeError("regularizers must be a mapping name -> weight, e.g. {'divergence': 1.0}")
+        out = {}
+        for name, weight in regularizers.items():
+            REGULARIZERS.get(name)
+            try:
+                w = float(weight)
+            except (TypeError, ValueError):
+                raise TypeError(f"weight of regularizer {name!r} must be a number") from None
+            if not (math.isfinite(w) and w >= 0):
+                raise ValueError(f"weight of regularizer {name!r} must be finite and >= 0, got {w}")
+            out[name] = w
+        return out
+
+    @staticmethod
+    def _resolve_t_ref(t_ref, events: Events) -> float:
+        if isinstance(t_ref, str):
+            choices = {"first": events.t[0], "middle": 0.5 * (events.t[0] + events.t[-1]),
+                       "last": events.t[-1]}
+            if t_ref not in choices:
+                raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
+            return float(choices[t_ref])
+        try:
+            value = float(t_ref)
+        except (TypeError, ValueError):
+            raise TypeError(f"t_ref must be a string or a number, got {t_ref!r}") from None
+        if not math.isfinite(value):
+            raise ValueError(f"t_ref must be finite, got {value}")
+        return value
+
+    # --- fields and kernels ----------------------------------------------------------------------
+    def _allocate(self, vote_w: np.ndarray, focal) -> None:
+        real = backend.real()
+        npr = backend.numpy_real()
+        N, W, H, C = self.n_events, self.width, self.height, self.n_channels
+        ev = self.events
+        self._ex = ti.field(real, shape=N)
+        self._ey = ti.field(real, shape=N)
+        self._edt = ti.field(real, shape=N)
+        self._ex.from_numpy(ev.x.astype(npr))
+        self._ey.from_numpy(ev.y.astype(npr))
+        self._edt.from_numpy((ev.t - self.t_ref).astype(npr))
+        if self._weighted:
+            self._ew = ti.field(real, shape=N)
+            self._ew.from_numpy(vote_w.astype(npr))
+        else:
+            self._ew = _dummy(real)
+        if self.polarity == "split":
+            self._ech = ti.field(ti.i8, shape=N)
+            self._ech.from_numpy((ev.p < 0).astype(np.int8))
+        else:
+            self._ech = _dummy(ti.i8)
+
+        P = self.model.n_params
+        self._th = ti.Vector.field(P, real, shape=(), needs_grad=True)
+        self._ctx = ti.Vector.field(5, real, shape=())
+        self._ctx[None] = [self.center[0], self.center[1], focal[0], focal[1], self.duration]
+
+        self._vote = ti.field(real, shape=(C, H, W), needs_grad=True)
+        if self.blur_sigma > 0:
+            r = int(math.ceil(3 * self.blur_sigma))
+            taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * self.blur_sigma**2))
+            taps /= taps.sum()
+            self._radius = r
+            self._taps = ti.field(real, shape=2 * r + 1)
+            self._taps.from_numpy(taps.astype(npr))
+            self._tmp = ti.field(real, shape=(C, H, W), needs_grad=True)
+            self._img = ti.field(real, shape=(C, H, W), needs_grad=True)
+        else:
+            self._radius = 0
+            self._tmp = self._img = self._vote
+
+        self._reg_names = list(self.regularizer_weights)
+        n_r = len(self._reg_names)
+        if n_r:
+            self._count = ti.field(real, shape=(H, W), needs_grad=True)
+            self._numer = ti.field(real, shape=(n_r, H, W), needs_grad=True)
+            self._macc = ti.Vector.field(1 + n_r, real, shape=(), needs_grad=True)
+            self._lam = ti.Vector.field(n_r, real, shape=())
+            lam = []
+            for name in self._reg_names:
+                reg = REGULARIZERS.get(name)
+                lam.append(self.regularizer_weights[name] * reg.scale(self.duration, self.orientation))
+            self._lam[None] = lam
+        else:
+            self._count = _dummy(real, (1, 1))
+            self._numer = _dummy(real, (1, 1, 1))
+            self._macc = ti.Vector.field(1, real, shape=(), needs_grad=True)
+            self._lam = ti.Vector.field(1, real, shape=())
+        self._acc = ti.Vector.field(
+            self.objective.slots_per_channel * C, real, shape=(), needs_grad=True
+        )
+        self._loss = ti.field(real, shape=(), needs_grad=True)
+        self._diag = ti.Vector.field(1 + max(n_r, 1), real, shape=())
+
+        if self.whitening:
+            self._wmom = ti.Vector.field(kwhite.N_SLOTS, real, shape=(), needs_grad=True)
+            mu0 = np.array([ev.x.mean(), ev.y.mean()])
+            S0 = np.cov(np.stack([ev.x, ev.y]), bias=True)
+            evals, evecs = np.linalg.eigh(S0)
+            L0 = evecs @ np.diag(np.sqrt(np.maximum(evals, 0.0))) @ evecs.T
+            self._wconst = [float(N), mu0[0], mu0[1], L0[0, 0], L0[0, 1], L0[1, 1]]
+        else:
+            self._wmom = ti.Vector.field(1, real, shape=(), needs_grad=True)
+
+    def _build_kernels(self) -> None:
+        m, W, H, C = self.model, self.width, self.height, self.n_channels
+        regs: list[Regularizer] = [REGULARIZERS.get(n) for n in self._reg_names]
+        quantities = tuple(r.quantity(m) for r in regs)
+        penalties = tuple(r.penalty for r in regs)
+        reg_key = tuple((r.name, id(r)) for r in regs)
+        flags = dict(
+            width=W, height=H, n_channels=C, split_polarity=self.polarity == "split",
+            weighted=self._weighted, do_iwe=not self.whitening, whiten=False,
+        )
+        self._k_splat = _cached(
+            ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
+            lambda: kiwe.make_splat_kernel(m.warp, quantities, **flags),
+        )
+        if self.whitening:
+            wflags = dict(flags, do_iwe=True, whiten=True)
+            self._k_wsplat = _cached(
+                ("splat", m.name, id(m), (), tuple(sorted(wflags.items()))),
+                lambda: kiwe.make_splat_kernel(m.warp, (), **wflags),
+            )
+            self._k_moments = _cached(
+                ("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp)
+            )
+        if self.blur_sigma > 0:
+            r = self._radius
+            self._k_blur_x = _cached(("blur", r, 1, W, H, C),
+                                     lambda: kiwe.make_blur_kernel(r, 1, W, H, C))
+            self._k_blur_y = _cached(("blur", r, 0, W, H, C),
+                                     lambda: kiwe.make_blur_kernel(r, 0, W, H, C))
+        obj = self.objective
+        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, C),
+                                 lambda: obj.make_reduce(W, H, C))
+        if regs:
+            self._k_maps = _cached(("maps", reg_key, W, H),
+                                   lambda: kmaps.make_maps_reduce(penalties, W, H))
+        self._k_loss = _cached(
+            ("loss", obj.name, id(obj), C, W * H, len(regs)),
+            lambda: kloss.make_loss_kernel(obj.finalize, C, W * H, len(regs)),
+        )
+
+    # --- evaluation ------------------------------------------------------------------------------
+    def _check_alive(self) -> None:
+        if backend.info().generation != self._backend.generation:
+            raise RuntimeError(
+                "this problem was built before cmax_taichi.init() reset the backend; build it again"
+            )
+
+    def _args_splat(self, vote):
+        return (self.n_events, self._ex, self._ey, self._edt, self._ew, self._ech, self._th,
+                self._ctx, self._wmom, vote, self._count, self._numer)
+
+    def _kernel_chain(self):
+        """The forward kernels with their arguments, in order."""
+        chain = []
+        if self.whitening:
+            chain.append((self._k_moments, (self.n_events, self._ex, self._ey, self._edt,
+                                            self._th, self._ctx, self._wmom)))
+            chain.append((self._k_wsplat, self._args_splat(self._vote)))
+        chain.append((self._k_splat, self._args_splat(self._vote)))
+        if self.blur_sigma > 0:
+            chain.append((self._k_blur_x, (self._vote, self._tmp, self._taps)))
+            chain.append((self._k_blur_y, (self._tmp, self._img, self._taps)))
+        chain.append((self._k_reduce, (self._img, self._acc)))
+        if self._reg_names:
+            chain.append((self._k_maps, (self._count, self._numer, self._macc)))
+        chain.append((self._k_loss, (self._acc, self._macc, self._lam, float(self.G0),
+                                     self._loss, self._diag)))
+        return chain
+
+    def _buffers(self):
+        bufs = [self._vote, self._acc, self._macc, self._loss]
+        if self.blur_sigma > 0:
+            bufs += [self._tmp, self._img]
+        if self._reg_names:
+            bufs += [self._count, self._numer]
+        return bufs
+
+    def _forward(self, theta: np.ndarray) -> tuple[float, float]:
+        self._th[None] = theta.tolist()
+        for buf in self._buffers():
+            buf.fill(0)
+        if self.whitening:
+            self._wmom[None] = [0.0] * 5 + self._wconst
+        for kernel, args in self._kernel_chain():
+            kernel(*args)
+        return float(self._loss[None]), float(self._diag[None][0])
+
+    def _backward(self) -> np.ndarray:
+        for buf in self._buffers() + [self._th, self._wmom]:
+            buf.grad.fill(0)
+        self._loss.grad[None] = 1.0
+        for kernel, args in reversed(self._kernel_chain()):
+            kernel.grad(*args)
+        return self._th.grad.to_numpy().astype(np.float64).reshape(-1)
+
+    def value(self, theta) -> float:
+        """Augmented objective J at ``theta`` (physical units)."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        return self._forward(theta)[0]
+
+    def value_and_grad(self, theta) -> tuple[float, np.ndarray]:
+        """``(J, dJ/dtheta)`` at ``theta`` (physical units), by Taichi reverse-mode autodiff."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        value = self._forward(theta)[0]
+        return value, self._backward()
+
+    def evaluate(self, theta) -> Evaluation:
+        """J, G, G_raw, G0 and the penalty of every registered regularizer at ``theta``."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        value, g_raw = self._forward(theta)
+        penalties = self._all_penalties(theta)
+        return Evaluation(
+            J=value, G=g_raw / self.G0, G_raw=g_raw, G0=self._identity_objective, R=penalties
+        )
+
+    # --- images -----------------------------------------------------------------------------------
+    def iwe(self, theta) -> np.ndarray:
+        """The blurred IWE at ``theta``: (H, W), or (2, H, W) for per-polarity images."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        self._forward(theta)
+        img = self._img.to_numpy().astype(np.float64)
+        return img[0] if self.n_channels == 1 else img
+
+    def _map_fields(self, theta: np.ndarray):
+        """Vote every registered regularizer's quantity; return the (count, out) images as NumPy."""
+        names = REGULARIZERS.names()
+        regs = [REGULARIZERS.get(n) for n in names]
+        m, W, H = self.model, self.width, self.height
+        if getattr(self, "_mapf", None) is None or self._mapf[0] != names:
+            real = backend.real()
+            count = ti.field(real, shape=(H, W))
+            numer = ti.field(real, shape=(len(regs), H, W))
+            out = ti.field(real, shape=(2 * len(regs), H, W))
+            self._mapf = (names, count, numer, out)
+        _, count, numer, out = self._mapf
+        reg_key = tuple((r.name, id(r)) for r in regs)
+        flags = dict(width=W, height=H, n_channels=self.n_channels,
+                     split_polarity=self.polarity == "split", weighted=self._weighted,
+                     do_iwe=False, whiten=False)
+        splat = _cached(("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
+                        lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity(m) for r in regs),
+                                                       **flags))
+        images = _cached(("map_images", reg_key, W, H),
+                         lambda: kmaps.make_maps_image_kernel(tuple(r.penalty for r in regs), W, H))
+        self._th[None] = theta.tolist()
+        count.fill(0)
+        numer.fill(0)
+        splat(self.n_events, self._ex, self._ey, self._edt, self._ew, self._ech, self._th,
+              self._ctx, self._wmom, self._vote, count, numer)
+        images(count, numer, out)
+        return names, count.to_numpy().astype(np.float64), out.to_numpy().astype(np.float64)
+
+    def _all_penalties(self, theta: np.ndarray) -> dict[str, float]:
+        names, count, out = self._map_fields(theta)
+        support = count / (count + kmaps.SUPPORT_KAPPA)
+        total = support.sum()
+        result = {}
+        for r, name in enumerate(names):
+            reg = REGULARIZERS.get(name)
+            mean = float((support * out[2 * r + 1]).sum() / total) if total > 0 else 0.0
+            result[name] = mean * reg.scale(self.duration, self.orientation)
+        return result
+
+    def maps(self, theta) -> dict[str, np.ndarray | float]:
+        """Regularizer maps at ``theta`` as (H, W) NumPy images.
+
+        Returns
+        -------
+        dict
+            ``"count"``: the vote count C(x); for each registered regularizer ``name``: its map
+            (``"divergence"`` in 1/s, ``"deformation"`` unitless; 0 where no event landed),
+            ``name + "_penalty"``: the pixel penalty, and ``"R_" + name``: the scalar penalty.
+        """
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        names, count, out = self._map_fields(theta)
+        result: dict[str, np.ndarray | float] = {"count": count}
+        support = count / (count + kmaps.SUPPORT_KAPPA)
+        total = support.sum()
+        for r, name in enumerate(names):
+            reg = REGULARIZERS.get(name)
+            result[name] = out[2 * r]
+            result[name + "_penalty"] = out[2 * r + 1]
+            mean = float((support * out[2 * r + 1]).sum() / total) if total > 0 else 0.0
+            result["R_" + name] = mean * reg.scale(self.duration, self.orientation)
+        return result
+
+    def dense_flow(self, theta, dt: float = 0.0) -> np.ndarray:
+        """Flow implied by ``theta`` on the pixel grid, shape (2, H, W).
+
+        ``dt = 0``: the instantaneous flow (px/s); else the displacement over ``dt`` seconds (px).
+        """
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        return dense_flow(self.model, theta, self.events.sensor_size, camera=self.camera,
+                          duration=self.duration, dt=dt)
+
+    def timed_value_and_grad(self, theta, repeats: int = 10) -> float:
+        """Median seconds of one ``value_and_grad`` over ``repeats`` runs (after one warm-up)."""
+        self.value_and_grad(theta)
+        times = []
+        for _ in range(max(1, int(repeats))):
+            t0 = time.perf_counter()
+            self.value_and_grad(theta)
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+
+    def __repr__(self) -> str:
+        regs = ", ".join(f"{k}={v:g}" for k, v in self.regularizer_weights.items()) or "none"
+        return (
+            f"ContrastMaximization(warp={self.model.name}, objective={self.objective.name}, "
+            f"regularizers={regs}, events={self.n_events}, sensor={self.width}x{self.height}, "
+            f"T={self.duration * 1e3:.3f} ms)"
+        )
+
+
+def dense_flow(
+    warp: str | WarpModel,
+    theta,
+    sensor_size: tuple[int, int],
+    *,
+    camera: Camera | None = None,
+    duration: float = 1.0,
+    dt: float = 0.0,
+) -> np.ndarray:
+    """Flow field of a parametric warp on the pixel grid, shape (2, H, W) (x then y component).
+
+    Parameters
+    ----------
+    warp : str or WarpModel
+        The model.
+    theta : array_like
+        Parameters, physical units.
+    sensor_size : (int, int)
+        ``(W, H)``.
+    camera : Camera, optional
+        Centre (and intrinsics for ``rotation3``); default the image centre.
+    duration : float
+        Window duration T (s) for ``mitrokhin4``.
+    dt : float
+        0: instantaneous flow (px/s). Otherwise the displacement ``-(W(x, dt) - x)`` in px.
+    """
+    backend.ensure_initialized()
+    model = get_warp(warp)
+    theta = _check_theta(theta, model.n_params, model.name)
+    W, H = (int(v) for v in sensor_size)
+    if model.needs_camera and camera is None:
+        raise ValueError(f"warp {model.name!r} needs a camera (intrinsics): pass camera=")
+    if not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be positive seconds, got {duration}")
+    real = backend.real()
+    th = ti.Vector.field(model.n_params, real, shape=())
+    ctx = ti.Vector.field(5, real, shape=())
+    out = ti.field(real, shape=(2, H, W))
+    th[None] = theta.tolist()
+    if camera is not None:
+        ctx[None] = [camera.cx, camera.cy, camera.fx, camera.fy, duration]
+    else:
+        ctx[None] = [(W - 1) / 2.0, (H - 1) / 2.0, 1.0, 1.0, duration]
+    kernel = _cached(("dense_flow", model.name, id(model), W, H),
+                     lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H))
+    kernel(th, ctx, float(dt), out)
+    return out.to_numpy().astype(np.float64)

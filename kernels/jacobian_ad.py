@@ -1,0 +1,65 @@
+"""Per-event Jacobians of any warp with respect to the event position, by Taichi reverse-mode autodiff.
+
+``dx'/dx`` of ``warp(p, dt, th, ctx)`` and ``dv/dx`` of ``flow(p, th, ctx)`` at every event: the
+determinant of the first is the deformation ``det dx'/dx``, the trace of the second the divergence.
+Each output depends on its own event only, so seeding every output's adjoint with a unit vector gives a
+whole row of every event's Jacobian in one reverse pass. These kernels check the closed forms of
+``warps.py`` and serve user-registered warps; they differentiate with respect to positions held in
+their own fields (``px, py`` with ``needs_grad``), never the problem's event arrays.
+"""
+
+import taichi as ti
+
+
+def make_position_kernels(warp_fn, flow_fn):
+    """Return ``(warp_positions, flow_positions)`` kernels writing ``out_x, out_y`` per event."""
+
+    @ti.kernel
+    def warp_positions(
+        px: ti.template(),
+        py: ti.template(),
+        pdt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        out_x: ti.template(),
+        out_y: ti.template(),
+    ):
+        for i in px:
+            q = warp_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
+            out_x[i] = q[0]
+            out_y[i] = q[1]
+
+    @ti.kernel
+    def flow_positions(
+        px: ti.template(),
+        py: ti.template(),
+        pdt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        out_x: ti.template(),
+        out_y: ti.template(),
+    ):
+        for i in px:
+            v = flow_fn(ti.Vector([px[i], py[i]]), th[None], ctx[None])
+            out_x[i] = v[0]
+            out_y[i] = v[1]
+
+    return warp_positions, flow_positions
+
+
+def make_quantity_kernel(quantity_fn):
+    """Forward-only: ``out[i] = quantity(p_i, dt_i, th, ctx)`` (closed-form det or div per event)."""
+
+    @ti.kernel
+    def per_event(
+        px: ti.template(),
+        py: ti.template(),
+        pdt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        out: ti.template(),
+    ):
+        for i in px:
+            out[i] = quantity_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
+
+    return per_event

@@ -1,0 +1,38 @@
+"""The augmented objective J = G / G0 - sum_r lambda_r R_r as one serial kernel into a 0-D loss field.
+
+``G`` is the objective summed over channels (``finalize`` of ``objectives.py``), ``G0`` the identity
+warp's value (1 for the raw objective), ``R_r = macc[1 + r] / macc[0]`` the regularizer penalties, and
+``lam[None][r]`` holds lambda_r times the regularizer's scale. ``diag`` receives ``(G_raw, R_0, ...)``
+for reporting. Formulas: docs/FORMULAS.md, "Augmented objective".
+"""
+
+import taichi as ti
+
+
+def make_loss_kernel(finalize_fn, n_channels: int, n_pixels: int, n_regs: int):
+    @ti.kernel
+    def loss_kernel(
+        acc: ti.template(),
+        macc: ti.template(),
+        lam: ti.template(),
+        g0: float,
+        loss: ti.template(),
+        diag: ti.template(),
+    ):
+        a = acc[None]
+        g = 0.0
+        for c in ti.static(range(n_channels)):
+            g += finalize_fn(a, c, n_pixels)
+        j = g / g0
+        diag[None][0] = g
+        if ti.static(n_regs > 0):
+            msum = macc[None][0]
+            for r in ti.static(range(n_regs)):
+                rr = 0.0
+                if msum > 0.0:
+                    rr = macc[None][1 + r] / msum
+                j -= lam[None][r] * rr
+                diag[None][1 + r] = rr
+        loss[None] = j
+
+    return loss_kernel

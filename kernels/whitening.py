@@ -1,0 +1,69 @@
+"""Whitening baseline (Nunes & Demiris): whiten the warped positions before building the IWE.
+
+``x'' = mu0 + S0^(1/2) (S + eps I)^(-1/2) (x' - mu)`` (docs/FORMULAS.md, "Whitening baseline").
+The moments of the warped positions are reduced into one 0-D vector field ``wmom``:
+slots 0-4 hold ``sum x, sum y, sum x^2, sum x y, sum y^2`` of the positions relative to the centre
+``(cx, cy)`` of ``ctx`` (less cancellation in f32), slot 5 the event count, slots 6-7 ``mu0`` and 8-10 the entries ``(a, b, d)`` of the
+symmetric ``S0^(1/2)``; slots 5-10 are constants written by the driver.
+"""
+
+import taichi as ti
+
+N_SLOTS = 11
+EPS = 1e-6  # px^2, keeps the covariance invertible at total collapse
+
+
+@ti.func
+def _inv_sqrt_2x2(a, b, d):
+    """Inverse of the symmetric square root of the SPD matrix [[a, b], [b, d]]."""
+    det = ti.max(a * d - b * b, EPS * EPS)
+    s = ti.sqrt(det)
+    t = ti.sqrt(a + d + 2.0 * s)
+    # sqrt(S) = (S + s I) / t; its inverse is adj(S + s I) / (det(S + s I) / t)
+    ra, rb, rd = (a + s) / t, b / t, (d + s) / t
+    rdet = ra * rd - rb * rb
+    return rd / rdet, -rb / rdet, ra / rdet
+
+
+@ti.func
+def apply(q, m, c):
+    """Whitened position of the warped position ``q`` given the moments ``m`` and the context ``c``."""
+    n = m[5]
+    mx = m[0] / n
+    my = m[1] / n
+    sxx = ti.max(m[2] / n - mx * mx, 0.0) + EPS
+    sxy = m[3] / n - mx * my
+    syy = ti.max(m[4] / n - my * my, 0.0) + EPS
+    ia, ib, id_ = _inv_sqrt_2x2(sxx, sxy, syy)
+    # the moments are relative to the centre (c[0], c[1])
+    ux = q[0] - c[0] - mx
+    uy = q[1] - c[1] - my
+    wx = ia * ux + ib * uy
+    wy = ib * ux + id_ * uy
+    return ti.Vector([m[6] + m[8] * wx + m[9] * wy, m[7] + m[9] * wx + m[10] * wy])
+
+
+def make_moments_kernel(warp_fn):
+    """Reduce the first and second moments of the warped positions into ``wmom`` (slots 0-4)."""
+
+    @ti.kernel
+    def moments(
+        n: ti.i32,
+        ex: ti.template(),
+        ey: ti.template(),
+        edt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        wmom: ti.template(),
+    ):
+        for i in range(n):
+            q = warp_fn(ti.Vector([ex[i], ey[i]]), edt[i], th[None], ctx[None])
+            ux = q[0] - ctx[None][0]
+            uy = q[1] - ctx[None][1]
+            wmom[None][0] += ux
+            wmom[None][1] += uy
+            wmom[None][2] += ux * ux
+            wmom[None][3] += ux * uy
+            wmom[None][4] += uy * uy
+
+    return moments

@@ -1,0 +1,75 @@
+"""Shared fixtures: backend precision switching, synthetic event windows, the shared data folder."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cmax_taichi as cm
+
+#: the real recordings beside the checkout (never copied into the repository)
+SHARED_DATA = Path(
+    os.environ.get("CMAX_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
+
+SENSOR = (64, 48)
+DURATION = 0.05  # s
+CAMERA = cm.Camera(fx=50.0, fy=52.0, cx=31.3, cy=23.7)
+
+#: a moderate parameter vector per warp (displacements of a few px over DURATION)
+THETAS = {
+    "zoom1": [4.0],
+    "translation2": [40.0, -25.0],
+    "rotation3": [0.8, -1.2, 2.0],
+    "se2": [30.0, -20.0, 3.0],
+    "sim2": [30.0, -20.0, 3.0, 2.5],
+    "mitrokhin4": [30.0, -20.0, 3.0, 2.0],
+}
+
+
+def use_precision(precision: str) -> None:
+    """Switch the backend to ``precision`` on the CPU if it is not already."""
+    if cm.backend_info().precision != precision:
+        cm.init(precision=precision)
+
+
+def edge_events(n: int = 400, seed: int = 0, sensor=SENSOR, duration: float = DURATION):
+    """Events on a few straight edges (plus 10% noise), times uniform over ``duration``."""
+    rng = np.random.default_rng(seed)
+    W, H = sensor
+    n_edge = int(0.9 * n)
+    starts = rng.uniform([8, 6], [W - 8, H - 6], size=(5, 2))
+    angles = rng.uniform(0, np.pi, size=5)
+    which = rng.integers(0, 5, size=n_edge)
+    s = rng.uniform(-10, 10, size=n_edge)
+    x = starts[which, 0] + s * np.cos(angles[which]) + rng.normal(0, 0.3, n_edge)
+    y = starts[which, 1] + s * np.sin(angles[which]) + rng.normal(0, 0.3, n_edge)
+    x = np.concatenate([x, rng.uniform(0, W - 1, n - n_edge)])
+    y = np.concatenate([y, rng.uniform(0, H - 1, n - n_edge)])
+    x = np.clip(x, 0, W - 1)
+    y = np.clip(y, 0, H - 1)
+    t = np.sort(rng.uniform(0, duration, n))
+    t[0], t[-1] = 0.0, duration
+    p = rng.integers(0, 2, n)
+    return x, y, t, p
+
+
+@pytest.fixture
+def f64():
+    use_precision("f64")
+
+
+@pytest.fixture
+def f32():
+    use_precision("f32")
+
+
+def shared_data_dir(*parts: str) -> Path:
+    """Path inside ../shared/data, or skip the test with a clear message when it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"real-data folder {path} is absent (it sits beside the checkout, not in it)")
+    return path

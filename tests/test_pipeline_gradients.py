@@ -1,0 +1,141 @@
+"""The Taichi pipeline against the float64 NumPy reference: values, and gradients against central
+finite differences of the reference, for every warp x objective x regularizer combination, in f64
+and (looser) f32."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from conftest import CAMERA, SENSOR, THETAS, edge_events, use_precision
+
+import cmax_taichi as cm
+from cmax_taichi import reference
+
+WARPS = list(THETAS)
+OBJECTIVES = ["variance", "gradient_magnitude"]
+REGS = {
+    "none": {},
+    "div": {"divergence": 0.7},
+    "def": {"deformation": 1.3},
+    "both": {"divergence": 0.7, "deformation": 1.3},
+}
+TOL = {"f64": dict(value=1e-10, grad=2e-6), "f32": dict(value=2e-4, grad=2e-2)}
+
+
+def _events(seed=0, n=400):
+    x, y, t, p = edge_events(n=n, seed=seed)
+    return cm.Events(x, y, t, p, SENSOR), (x, y, t, p)
+
+
+def _ref_kwargs(options):
+    regs = options.get("regularizers", {})
+    camera = options.get("camera")
+    return dict(
+        warp=options["warp"],
+        sensor_size=SENSOR,
+        center=None if camera is None else (camera.cx, camera.cy),
+        focal=None if camera is None else (camera.fx, camera.fy),
+        t_ref=options.get("t_ref", "first"),
+        objective=options.get("objective", "variance"),
+        normalize=options.get("normalize", True),
+        blur_sigma=options.get("blur_sigma", 1.0),
+        polarity=options.get("polarity", "ignore"),
+        weights=options.get("weights"),
+        lambda_div=regs.get("divergence", 0.0),
+        lambda_def=regs.get("deformation", 0.0),
+        whitening=options.get("whitening", False),
+    )
+
+
+def _ref_fd_grad(raw, theta, kwargs, rel_step=1e-6):
+    theta = np.asarray(theta, dtype=np.float64)
+    grad = np.empty_like(theta)
+    for i in range(theta.size):
+        h = rel_step * max(1.0, abs(theta[i]))
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        jp = reference.evaluate(*raw, tp, **kwargs)["J"]
+        jm = reference.evaluate(*raw, tm, **kwargs)["J"]
+        grad[i] = (jp - jm) / (2 * h)
+    return grad
+
+
+def check_against_reference(precision: str, options: dict, seed: int = 0) -> None:
+    use_precision(precision)
+    events, raw = _events(seed)
+    kwargs = _ref_kwargs(options)
+    prob = cm.ContrastMaximization(
+        events,
+        warp=options["warp"],
+        objective=kwargs["objective"],
+        regularizers=options.get("regularizers"),
+        camera=options.get("camera"),
+        t_ref=kwargs["t_ref"],
+        blur_sigma=kwargs["blur_sigma"],
+        polarity=kwargs["polarity"],
+        weights=options.get("weights"),
+        normalize=kwargs["normalize"],
+        whitening=kwargs["whitening"],
+    )
+    theta = np.asarray(options.get("theta", THETAS[options["warp"]]), dtype=np.float64)
+    value, grad = prob.value_and_grad(theta)
+    ref = reference.evaluate(*raw, theta, **kwargs)
+    fd = _ref_fd_grad(raw, theta, kwargs)
+    tol = TOL[precision]
+    assert np.isfinite(value) and np.all(np.isfinite(grad))
+    assert value == pytest.approx(ref["J"], rel=tol["value"], abs=tol["value"])
+    scale = max(np.max(np.abs(fd)), 1e-12)
+    err = np.max(np.abs(grad - fd)) / scale
+    assert err < tol["grad"], f"gradient {grad} vs finite differences {fd} (rel err {err:.2e})"
+    # the regularizer penalties as reported, against the reference
+    ev = prob.evaluate(theta)
+    assert ev.R["divergence"] == pytest.approx(ref["R_div"], rel=tol["value"] * 10, abs=1e-9)
+    assert ev.R["deformation"] == pytest.approx(ref["R_def"], rel=tol["value"] * 10, abs=1e-9)
+    assert ev.G_raw == pytest.approx(ref["G_raw"], rel=tol["value"] * 10)
+
+
+COMBOS = list(itertools.product(WARPS, OBJECTIVES, REGS))
+
+
+@pytest.mark.parametrize("warp,objective,regs", COMBOS)
+def test_value_and_gradient_f64(warp, objective, regs):
+    check_against_reference(
+        "f64", dict(warp=warp, objective=objective, regularizers=REGS[regs], camera=CAMERA)
+    )
+
+
+VARIANTS = {
+    "raw_objective": dict(normalize=False),
+    "no_camera_centre": dict(camera=None),
+    "mean_square": dict(objective="mean_square"),
+    "no_blur": dict(blur_sigma=0.0),
+    "wide_blur": dict(blur_sigma=2.0),
+    "signed_polarity": dict(polarity="signed"),
+    "split_polarity": dict(polarity="split"),
+    "t_ref_middle": dict(t_ref="middle"),
+    "t_ref_last": dict(t_ref="last"),
+    "t_ref_float": dict(t_ref=0.0123),
+    "whitening": dict(whitening=True),
+    "whitening_regs": dict(whitening=True, regularizers=REGS["both"]),
+    "weights": dict(weights=np.linspace(0.2, 1.5, 400)),
+}
+
+
+@pytest.mark.parametrize("warp", ["mitrokhin4", "zoom1", "rotation3", "sim2"])
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_options_f64(warp, variant):
+    options = dict(warp=warp, objective="variance", regularizers=REGS["both"], camera=CAMERA)
+    options.update(VARIANTS[variant])
+    if options["camera"] is None and warp == "rotation3":
+        pytest.skip("rotation3 needs a camera")
+    check_against_reference("f64", options)
+
+
+@pytest.mark.parametrize("warp,objective,regs", COMBOS)
+def test_value_and_gradient_f32(warp, objective, regs):
+    check_against_reference(
+        "f32", dict(warp=warp, objective=objective, regularizers=REGS[regs], camera=CAMERA)
+    )
