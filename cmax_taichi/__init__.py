@@ -11,7 +11,7 @@ from .events import Camera, Events
 from .jacobians import event_jacobians
 from .objectives import OBJECTIVES, Objective, objective_names, register_objective
 from .problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
-from .regularizers import REGULARIZERS, Regularizer, regularizer_names, register_regularizer
+from .regularizers import REGULARIZERS, Regularizer, register_regularizer, regularizer_names
 from .warps import WARPS, WarpModel, get_warp, register_warp, warp_names
 
 __version__ = "0.1.0"

@@ -16,9 +16,7 @@ __all__ = ["Events", "Camera"]
 
 def _as_1d(name: str, values, dtype) -> np.ndarray:
     arr = np.asarray(values)
-    if arr.dtype == object or not (
-        np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)
-    ):
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)):
         raise TypeError(f"{name} must be a numeric array, got dtype {arr.dtype}")
     if arr.ndim != 1:
         raise ValueError(f"{name} must be one-dimensional, got shape {arr.shape}")
@@ -242,7 +240,7 @@ class Camera:
         return any(d != 0.0 for d in self.dist)
 
     @property
-    def K(self) -> np.ndarray:
+    def K(self) -> np.ndarray:  # noqa: N802 - the conventional name of the intrinsic matrix
         """3x3 intrinsic matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
@@ -288,7 +286,5 @@ class Camera:
         """From ``fx fy cx cy [k1 k2 p1 p2 k3]`` (the ECD ``calib.txt`` layout)."""
         values = [float(v) for v in values]
         if len(values) not in (4, 8, 9):
-            raise ValueError(
-                f"calibration needs fx fy cx cy [k1 k2 p1 p2 [k3]], got {len(values)} numbers"
-            )
+            raise ValueError(f"calibration needs fx fy cx cy [k1 k2 p1 p2 [k3]], got {len(values)} numbers")
         return cls(*values[:4], dist=tuple(values[4:]) or (0.0,) * 5)

@@ -48,29 +48,34 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
     theta = _check_theta(theta, model.n_params, model.name)
     real = backend.real()
     n = problem.n_events
+    problem._load()
     problem._th[None] = theta.tolist()
-    args = (problem._ex, problem._ey, problem._edt, problem._th, problem._ctx)
+    args = (n, problem._ex, problem._ey, problem._edt, problem._th, problem._ctx)
     if method == "closed":
         out = ti.field(real, shape=n)
         result = {}
         for name, fn in (("det", model.det_fn), ("div", _div_as_quantity(model))):
-            k = _cached(("quantity", name, model.name, id(model)),
-                        lambda fn=fn: kad.make_quantity_kernel(fn))
+            k = _cached(
+                ("quantity", name, model.name, id(model)),
+                lambda fn=fn: kad.make_quantity_kernel(fn),
+            )
             k(*args, out)
             result[name] = out.to_numpy().astype(np.float64)
         return result
 
-    warp_k, flow_k = _cached(("positions", model.name, id(model)),
-                             lambda: kad.make_position_kernels(model.warp, model.flow))
+    warp_k, flow_k = _cached(
+        ("positions", model.name, id(model)),
+        lambda: kad.make_position_kernels(model.warp, model.flow),
+    )
     px = ti.field(real, shape=n, needs_grad=True)
     py = ti.field(real, shape=n, needs_grad=True)
     ox = ti.field(real, shape=n, needs_grad=True)
     oy = ti.field(real, shape=n, needs_grad=True)
-    px.copy_from(problem._ex)
-    py.copy_from(problem._ey)
+    px.from_numpy(problem.events.x.astype(backend.numpy_real()))
+    py.from_numpy(problem.events.y.astype(backend.numpy_real()))
     rows = {}
     for label, kernel in (("warp", warp_k), ("flow", flow_k)):
-        kargs = (px, py, problem._edt, problem._th, problem._ctx, ox, oy)
+        kargs = (n, px, py, problem._edt, problem._th, problem._ctx, ox, oy)
         kernel(*kargs)
         jac = np.empty((n, 2, 2))
         for row, (sx, sy) in enumerate(((1.0, 0.0), (0.0, 1.0))):

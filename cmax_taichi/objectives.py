@@ -59,22 +59,31 @@ def register_builtin_objectives(registry: Registry[Objective]) -> None:
     registry.register(
         "variance",
         Objective(
-            "variance", ko.VARIANCE_SLOTS, ko.make_variance_reduce, ko.variance_finalize,
+            "variance",
+            ko.VARIANCE_SLOTS,
+            ko.make_variance_reduce,
+            ko.variance_finalize,
             "image variance (Gallego et al. CVPR 2018)",
         ),
     )
     registry.register(
         "gradient_magnitude",
         Objective(
-            "gradient_magnitude", ko.GRADIENT_MAGNITUDE_SLOTS, ko.make_gradient_magnitude_reduce,
-            ko.gradient_magnitude_finalize, "mean squared Sobel/8 gradient (Gallego et al. CVPR 2019)",
+            "gradient_magnitude",
+            ko.GRADIENT_MAGNITUDE_SLOTS,
+            ko.make_gradient_magnitude_reduce,
+            ko.gradient_magnitude_finalize,
+            "mean squared Sobel/8 gradient (Gallego et al. CVPR 2019)",
         ),
     )
     registry.register(
         "mean_square",
         Objective(
-            "mean_square", ko.MEAN_SQUARE_SLOTS, ko.make_mean_square_reduce,
-            ko.mean_square_finalize, "mean of the squared IWE (Gallego et al. CVPR 2019)",
+            "mean_square",
+            ko.MEAN_SQUARE_SLOTS,
+            ko.make_mean_square_reduce,
+            ko.mean_square_finalize,
+            "mean of the squared IWE (Gallego et al. CVPR 2019)",
         ),
     )
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from . import backend
+from . import backend, workspace
 from .events import Camera, Events
 from .kernels import iwe as kiwe
 from .kernels import loss as kloss
@@ -80,10 +80,6 @@ def _check_theta(theta, n: int, name: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"theta has non-finite values: {arr}")
     return arr
-
-
-def _dummy(dtype, shape=(1,)):
-    return ti.field(dtype, shape=shape)
 
 
 class ContrastMaximization:
@@ -163,9 +159,7 @@ class ContrastMaximization:
         if weights is not None:
             user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
             if user_weights.size != len(events):
-                raise ValueError(
-                    f"weights has {user_weights.size} values for {len(events)} events"
-                )
+                raise ValueError(f"weights has {user_weights.size} values for {len(events)} events")
             if not np.all(np.isfinite(user_weights)):
                 raise ValueError("weights has non-finite values")
         if camera is not None and camera.has_distortion and not events.undistorted:
@@ -233,8 +227,11 @@ class ContrastMaximization:
     @staticmethod
     def _resolve_t_ref(t_ref, events: Events) -> float:
         if isinstance(t_ref, str):
-            choices = {"first": events.t[0], "middle": 0.5 * (events.t[0] + events.t[-1]),
-                       "last": events.t[-1]}
+            choices = {
+                "first": events.t[0],
+                "middle": 0.5 * (events.t[0] + events.t[-1]),
+                "last": events.t[-1],
+            }
             if t_ref not in choices:
                 raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
             return float(choices[t_ref])
@@ -248,78 +245,131 @@ class ContrastMaximization:
 
     # --- fields and kernels ----------------------------------------------------------------------
     def _allocate(self, vote_w: np.ndarray, focal) -> None:
-        real = backend.real()
-        npr = backend.numpy_real()
-        N, W, H, C = self.n_events, self.width, self.height, self.n_channels
-        ev = self.events
-        self._ex = ti.field(real, shape=N)
-        self._ey = ti.field(real, shape=N)
-        self._edt = ti.field(real, shape=N)
-        self._ex.from_numpy(ev.x.astype(npr))
-        self._ey.from_numpy(ev.y.astype(npr))
-        self._edt.from_numpy((ev.t - self.t_ref).astype(npr))
-        if self._weighted:
-            self._ew = ti.field(real, shape=N)
-            self._ew.from_numpy(vote_w.astype(npr))
-        else:
-            self._ew = _dummy(real)
-        if self.polarity == "split":
-            self._ech = ti.field(ti.i8, shape=N)
-            self._ech.from_numpy((ev.p < 0).astype(np.int8))
-        else:
-            self._ech = _dummy(ti.i8)
-
-        P = self.model.n_params
-        self._th = ti.Vector.field(P, real, shape=(), needs_grad=True)
-        self._ctx = ti.Vector.field(5, real, shape=())
-        self._ctx[None] = [self.center[0], self.center[1], focal[0], focal[1], self.duration]
-
-        self._vote = ti.field(real, shape=(C, H, W), needs_grad=True)
-        if self.blur_sigma > 0:
-            r = int(math.ceil(3 * self.blur_sigma))
-            taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * self.blur_sigma**2))
-            taps /= taps.sum()
-            self._radius = r
-            self._taps = ti.field(real, shape=2 * r + 1)
-            self._taps.from_numpy(taps.astype(npr))
-            self._tmp = ti.field(real, shape=(C, H, W), needs_grad=True)
-            self._img = ti.field(real, shape=(C, H, W), needs_grad=True)
-        else:
-            self._radius = 0
-            self._tmp = self._img = self._vote
-
+        """Take the pooled fields of this problem's shape and load this problem into them."""
+        C, W, H = self.n_channels, self.width, self.height
         self._reg_names = list(self.regularizer_weights)
         n_r = len(self._reg_names)
-        if n_r:
-            self._count = ti.field(real, shape=(H, W), needs_grad=True)
-            self._numer = ti.field(real, shape=(n_r, H, W), needs_grad=True)
-            self._macc = ti.Vector.field(1 + n_r, real, shape=(), needs_grad=True)
-            self._lam = ti.Vector.field(n_r, real, shape=())
-            lam = []
-            for name in self._reg_names:
-                reg = REGULARIZERS.get(name)
-                lam.append(self.regularizer_weights[name] * reg.scale(self.duration, self.orientation))
-            self._lam[None] = lam
-        else:
-            self._count = _dummy(real, (1, 1))
-            self._numer = _dummy(real, (1, 1, 1))
-            self._macc = ti.Vector.field(1, real, shape=(), needs_grad=True)
-            self._lam = ti.Vector.field(1, real, shape=())
-        self._acc = ti.Vector.field(
-            self.objective.slots_per_channel * C, real, shape=(), needs_grad=True
+        self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
+        key = (
+            "problem",
+            self._backend.generation,
+            workspace.capacity_for(self.n_events),
+            W,
+            H,
+            C,
+            self.model.n_params,
+            n_r,
+            self._radius,
+            self.objective.slots_per_channel,
+            self._weighted,
+            self.polarity == "split",
+            self.whitening,
         )
-        self._loss = ti.field(real, shape=(), needs_grad=True)
-        self._diag = ti.Vector.field(1 + max(n_r, 1), real, shape=())
-
+        self._ws = workspace.acquire(key, self._build_fields)
+        ev = self.events
+        self._host = {
+            "ex": ev.x,
+            "ey": ev.y,
+            "edt": ev.t - self.t_ref,
+            "ew": vote_w if self._weighted else None,
+            "ech": (ev.p < 0).astype(np.int8) if self.polarity == "split" else None,
+            "ctx": [self.center[0], self.center[1], focal[0], focal[1], self.duration],
+        }
+        if self.blur_sigma > 0:
+            r = self._radius
+            taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * self.blur_sigma**2))
+            self._host["taps"] = taps / taps.sum()
+        if n_r:
+            self._host["lam"] = [
+                self.regularizer_weights[name] * REGULARIZERS.get(name).scale(self.duration, self.orientation)
+                for name in self._reg_names
+            ]
         if self.whitening:
-            self._wmom = ti.Vector.field(kwhite.N_SLOTS, real, shape=(), needs_grad=True)
             mu0 = np.array([ev.x.mean(), ev.y.mean()])
             S0 = np.cov(np.stack([ev.x, ev.y]), bias=True)
             evals, evecs = np.linalg.eigh(S0)
             L0 = evecs @ np.diag(np.sqrt(np.maximum(evals, 0.0))) @ evecs.T
-            self._wconst = [float(N), mu0[0], mu0[1], L0[0, 0], L0[0, 1], L0[1, 1]]
+            self._wconst = [float(self.n_events), mu0[0], mu0[1], L0[0, 0], L0[0, 1], L0[1, 1]]
+        for name in (
+            "ex",
+            "ey",
+            "edt",
+            "ew",
+            "ech",
+            "th",
+            "ctx",
+            "vote",
+            "tmp",
+            "img",
+            "taps",
+            "count",
+            "numer",
+            "macc",
+            "lam",
+            "acc",
+            "loss",
+            "diag",
+            "wmom",
+        ):
+            setattr(self, "_" + name, getattr(self._ws, name))
+        self._load()
+
+    def _build_fields(self, ws) -> None:
+        """Allocate the fields of a workspace (called once per problem shape)."""
+        real = backend.real()
+        cap = workspace.capacity_for(self.n_events)
+        C, W, H, n_r = self.n_channels, self.width, self.height, len(self.regularizer_weights)
+        ws.ex = ti.field(real, shape=cap)
+        ws.ey = ti.field(real, shape=cap)
+        ws.edt = ti.field(real, shape=cap)
+        ws.ew = ti.field(real, shape=cap) if self._weighted else workspace.dummy(real)
+        ws.ech = ti.field(ti.i8, shape=cap) if self.polarity == "split" else workspace.dummy(ti.i8)
+        ws.th = ti.Vector.field(self.model.n_params, real, shape=(), needs_grad=True)
+        ws.ctx = ti.Vector.field(5, real, shape=())
+        ws.vote = ti.field(real, shape=(C, H, W), needs_grad=True)
+        if self.blur_sigma > 0:
+            ws.taps = ti.field(real, shape=2 * self._radius + 1)
+            ws.tmp = ti.field(real, shape=(C, H, W), needs_grad=True)
+            ws.img = ti.field(real, shape=(C, H, W), needs_grad=True)
         else:
-            self._wmom = ti.Vector.field(1, real, shape=(), needs_grad=True)
+            ws.taps = workspace.dummy(real)
+            ws.tmp = ws.img = ws.vote
+        if n_r:
+            ws.count = ti.field(real, shape=(H, W), needs_grad=True)
+            ws.numer = ti.field(real, shape=(n_r, H, W), needs_grad=True)
+        else:
+            ws.count = workspace.dummy(real, (1, 1))
+            ws.numer = workspace.dummy(real, (1, 1, 1))
+        ws.macc = ti.Vector.field(1 + n_r, real, shape=(), needs_grad=True)
+        ws.lam = ti.Vector.field(max(n_r, 1), real, shape=())
+        ws.acc = ti.Vector.field(self.objective.slots_per_channel * C, real, shape=(), needs_grad=True)
+        ws.loss = ti.field(real, shape=(), needs_grad=True)
+        ws.diag = ti.Vector.field(1 + max(n_r, 1), real, shape=())
+        n_w = kwhite.N_SLOTS if self.whitening else 1
+        ws.wmom = ti.Vector.field(n_w, real, shape=(), needs_grad=True)
+        ws.maps = {}
+
+    def _load(self) -> None:
+        """Upload this problem's events and constants into the shared workspace if needed."""
+        ws = self._ws
+        if ws.owned_by(self):
+            return
+        npr = backend.numpy_real()
+        n = self.n_events
+        for name in ("ex", "ey", "edt", "ew", "ech"):
+            values = self._host[name]
+            if values is None:
+                continue
+            f = getattr(ws, name)
+            buf = np.zeros(f.shape[0], dtype=np.int8 if name == "ech" else npr)
+            buf[:n] = values
+            f.from_numpy(buf)
+        ws.ctx[None] = self._host["ctx"]
+        if "taps" in self._host:
+            ws.taps.from_numpy(self._host["taps"].astype(npr))
+        if "lam" in self._host:
+            ws.lam[None] = self._host["lam"]
+        ws.take(self)
 
     def _build_kernels(self) -> None:
         m, W, H, C = self.model, self.width, self.height, self.n_channels
@@ -328,8 +378,13 @@ class ContrastMaximization:
         penalties = tuple(r.penalty for r in regs)
         reg_key = tuple((r.name, id(r)) for r in regs)
         flags = dict(
-            width=W, height=H, n_channels=C, split_polarity=self.polarity == "split",
-            weighted=self._weighted, do_iwe=not self.whitening, whiten=False,
+            width=W,
+            height=H,
+            n_channels=C,
+            split_polarity=self.polarity == "split",
+            weighted=self._weighted,
+            do_iwe=not self.whitening,
+            whiten=False,
         )
         self._k_splat = _cached(
             ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
@@ -341,21 +396,15 @@ class ContrastMaximization:
                 ("splat", m.name, id(m), (), tuple(sorted(wflags.items()))),
                 lambda: kiwe.make_splat_kernel(m.warp, (), **wflags),
             )
-            self._k_moments = _cached(
-                ("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp)
-            )
+            self._k_moments = _cached(("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp))
         if self.blur_sigma > 0:
             r = self._radius
-            self._k_blur_x = _cached(("blur", r, 1, W, H, C),
-                                     lambda: kiwe.make_blur_kernel(r, 1, W, H, C))
-            self._k_blur_y = _cached(("blur", r, 0, W, H, C),
-                                     lambda: kiwe.make_blur_kernel(r, 0, W, H, C))
+            self._k_blur_x = _cached(("blur", r, 1, W, H, C), lambda: kiwe.make_blur_kernel(r, 1, W, H, C))
+            self._k_blur_y = _cached(("blur", r, 0, W, H, C), lambda: kiwe.make_blur_kernel(r, 0, W, H, C))
         obj = self.objective
-        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, C),
-                                 lambda: obj.make_reduce(W, H, C))
+        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, C), lambda: obj.make_reduce(W, H, C))
         if regs:
-            self._k_maps = _cached(("maps", reg_key, W, H),
-                                   lambda: kmaps.make_maps_reduce(penalties, W, H))
+            self._k_maps = _cached(("maps", reg_key, W, H), lambda: kmaps.make_maps_reduce(penalties, W, H))
         self._k_loss = _cached(
             ("loss", obj.name, id(obj), C, W * H, len(regs)),
             lambda: kloss.make_loss_kernel(obj.finalize, C, W * H, len(regs)),
@@ -369,15 +418,31 @@ class ContrastMaximization:
             )
 
     def _args_splat(self, vote):
-        return (self.n_events, self._ex, self._ey, self._edt, self._ew, self._ech, self._th,
-                self._ctx, self._wmom, vote, self._count, self._numer)
+        return (
+            self.n_events,
+            self._ex,
+            self._ey,
+            self._edt,
+            self._ew,
+            self._ech,
+            self._th,
+            self._ctx,
+            self._wmom,
+            vote,
+            self._count,
+            self._numer,
+        )
 
     def _kernel_chain(self):
         """The forward kernels with their arguments, in order."""
         chain = []
         if self.whitening:
-            chain.append((self._k_moments, (self.n_events, self._ex, self._ey, self._edt,
-                                            self._th, self._ctx, self._wmom)))
+            chain.append(
+                (
+                    self._k_moments,
+                    (self.n_events, self._ex, self._ey, self._edt, self._th, self._ctx, self._wmom),
+                )
+            )
             chain.append((self._k_wsplat, self._args_splat(self._vote)))
         chain.append((self._k_splat, self._args_splat(self._vote)))
         if self.blur_sigma > 0:
@@ -386,8 +451,12 @@ class ContrastMaximization:
         chain.append((self._k_reduce, (self._img, self._acc)))
         if self._reg_names:
             chain.append((self._k_maps, (self._count, self._numer, self._macc)))
-        chain.append((self._k_loss, (self._acc, self._macc, self._lam, float(self.G0),
-                                     self._loss, self._diag)))
+        chain.append(
+            (
+                self._k_loss,
+                (self._acc, self._macc, self._lam, float(self.G0), self._loss, self._diag),
+            )
+        )
         return chain
 
     def _buffers(self):
@@ -399,6 +468,7 @@ class ContrastMaximization:
         return bufs
 
     def _forward(self, theta: np.ndarray) -> tuple[float, float]:
+        self._load()
         self._th[None] = theta.tolist()
         for buf in self._buffers():
             buf.fill(0)
@@ -435,9 +505,7 @@ class ContrastMaximization:
         theta = _check_theta(theta, self.model.n_params, self.model.name)
         value, g_raw = self._forward(theta)
         penalties = self._all_penalties(theta)
-        return Evaluation(
-            J=value, G=g_raw / self.G0, G_raw=g_raw, G0=self._identity_objective, R=penalties
-        )
+        return Evaluation(J=value, G=g_raw / self.G0, G_raw=g_raw, G0=self._identity_objective, R=penalties)
 
     # --- images -----------------------------------------------------------------------------------
     def iwe(self, theta) -> np.ndarray:
@@ -453,27 +521,51 @@ class ContrastMaximization:
         names = REGULARIZERS.names()
         regs = [REGULARIZERS.get(n) for n in names]
         m, W, H = self.model, self.width, self.height
-        if getattr(self, "_mapf", None) is None or self._mapf[0] != names:
+        key = tuple(names)
+        if key not in self._ws.maps:
             real = backend.real()
-            count = ti.field(real, shape=(H, W))
-            numer = ti.field(real, shape=(len(regs), H, W))
-            out = ti.field(real, shape=(2 * len(regs), H, W))
-            self._mapf = (names, count, numer, out)
-        _, count, numer, out = self._mapf
+            self._ws.maps[key] = (
+                ti.field(real, shape=(H, W)),
+                ti.field(real, shape=(len(regs), H, W)),
+                ti.field(real, shape=(2 * len(regs), H, W)),
+            )
+        count, numer, out = self._ws.maps[key]
+        self._load()
         reg_key = tuple((r.name, id(r)) for r in regs)
-        flags = dict(width=W, height=H, n_channels=self.n_channels,
-                     split_polarity=self.polarity == "split", weighted=self._weighted,
-                     do_iwe=False, whiten=False)
-        splat = _cached(("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
-                        lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity(m) for r in regs),
-                                                       **flags))
-        images = _cached(("map_images", reg_key, W, H),
-                         lambda: kmaps.make_maps_image_kernel(tuple(r.penalty for r in regs), W, H))
+        flags = dict(
+            width=W,
+            height=H,
+            n_channels=self.n_channels,
+            split_polarity=self.polarity == "split",
+            weighted=self._weighted,
+            do_iwe=False,
+            whiten=False,
+        )
+        splat = _cached(
+            ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
+            lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity(m) for r in regs), **flags),
+        )
+        images = _cached(
+            ("map_images", reg_key, W, H),
+            lambda: kmaps.make_maps_image_kernel(tuple(r.penalty for r in regs), W, H),
+        )
         self._th[None] = theta.tolist()
         count.fill(0)
         numer.fill(0)
-        splat(self.n_events, self._ex, self._ey, self._edt, self._ew, self._ech, self._th,
-              self._ctx, self._wmom, self._vote, count, numer)
+        splat(
+            self.n_events,
+            self._ex,
+            self._ey,
+            self._edt,
+            self._ew,
+            self._ech,
+            self._th,
+            self._ctx,
+            self._wmom,
+            self._vote,
+            count,
+            numer,
+        )
         images(count, numer, out)
         return names, count.to_numpy().astype(np.float64), out.to_numpy().astype(np.float64)
 
@@ -519,8 +611,14 @@ class ContrastMaximization:
         """
         self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name)
-        return dense_flow(self.model, theta, self.events.sensor_size, camera=self.camera,
-                          duration=self.duration, dt=dt)
+        return dense_flow(
+            self.model,
+            theta,
+            self.events.sensor_size,
+            camera=self.camera,
+            duration=self.duration,
+            dt=dt,
+        )
 
     def timed_value_and_grad(self, theta, repeats: int = 10) -> float:
         """Median seconds of one ``value_and_grad`` over ``repeats`` runs (after one warm-up)."""
@@ -584,7 +682,9 @@ def dense_flow(
         ctx[None] = [camera.cx, camera.cy, camera.fx, camera.fy, duration]
     else:
         ctx[None] = [(W - 1) / 2.0, (H - 1) / 2.0, 1.0, 1.0, duration]
-    kernel = _cached(("dense_flow", model.name, id(model), W, H),
-                     lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H))
+    kernel = _cached(
+        ("dense_flow", model.name, id(model), W, H),
+        lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H),
+    )
     kernel(th, ctx, float(dt), out)
     return out.to_numpy().astype(np.float64)

@@ -94,11 +94,7 @@ def _rotation_matrices(w: np.ndarray, dt: np.ndarray) -> np.ndarray:
     a = np.where(small, 1.0, np.sin(phi_safe) / phi_safe)
     b = np.where(small, 0.5, (1.0 - np.cos(phi_safe)) / phi_safe**2)
     eye = np.eye(3)[None, :, :]
-    return (
-        eye
-        + (a * dt)[:, None, None] * hat[None, :, :]
-        + (b * dt * dt)[:, None, None] * hat2[None, :, :]
-    )
+    return eye + (a * dt)[:, None, None] * hat[None, :, :] + (b * dt * dt)[:, None, None] * hat2[None, :, :]
 
 
 def _exp_series(z: np.ndarray) -> np.ndarray:
@@ -655,9 +651,7 @@ def evaluate(
     iwe = _iwe(*positions_for_iwe(xw, yw), w, pol, polarity, width, height, blur_sigma)
     g_raw = objective_value(objective, iwe)
 
-    xw0, yw0, _, _ = warp_events(
-        warp, x, y, dt, np.zeros_like(theta), center=center, focal=focal, duration=T
-    )
+    xw0, yw0, _, _ = warp_events(warp, x, y, dt, np.zeros_like(theta), center=center, focal=focal, duration=T)
     iwe0 = _iwe(*positions_for_iwe(xw0, yw0), w, pol, polarity, width, height, blur_sigma)
     g0 = objective_value(objective, iwe0)
     if normalize:

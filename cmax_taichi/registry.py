@@ -1,8 +1,8 @@
 """Named registries with explicit registration.
 
-One :class:`Registry` each for warp models, objectives and regularizers. Built-in entries are added by
-explicit calls in :mod:`cmax_taichi.builtins` (no import-time side effects elsewhere); users add their
-own with :func:`register_warp` and friends.
+One :class:`Registry` each for warp models (``warps.py``), objectives (``objectives.py``) and
+regularizers (``regularizers.py``). Each of those modules registers its built-in entries by one explicit
+call at its bottom; users add their own with :func:`register_warp` and friends.
 """
 
 from __future__ import annotations

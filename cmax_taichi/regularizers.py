@@ -99,18 +99,24 @@ def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
     registry.register(
         "divergence",
         Regularizer(
-            "divergence", _divergence_quantity, km.divergence_penalty,
+            "divergence",
+            _divergence_quantity,
+            km.divergence_penalty,
             scale=lambda duration, orientation: orientation * duration,
-            map_unit="1/s", neutral=0.0,
+            map_unit="1/s",
+            neutral=0.0,
             description="mean flow divergence per window, > 0 when events contract (R_Div)",
         ),
     )
     registry.register(
         "deformation",
         Regularizer(
-            "deformation", _deformation_quantity, km.deformation_penalty,
+            "deformation",
+            _deformation_quantity,
+            km.deformation_penalty,
             scale=lambda duration, orientation: 1.0,
-            map_unit="", neutral=1.0,
+            map_unit="",
+            neutral=1.0,
             description="mean of max(DEF, 1/DEF) - 1 of the area deformation map (R_Def)",
         ),
     )

@@ -12,10 +12,12 @@ import taichi as ti
 
 
 def make_position_kernels(warp_fn, flow_fn):
-    """Return ``(warp_positions, flow_positions)`` kernels writing ``out_x, out_y`` per event."""
+    """Return ``(warp_positions, flow_positions)`` kernels writing ``out_x, out_y`` for the first ``n``
+    events."""
 
     @ti.kernel
     def warp_positions(
+        n: ti.i32,
         px: ti.template(),
         py: ti.template(),
         pdt: ti.template(),
@@ -24,13 +26,14 @@ def make_position_kernels(warp_fn, flow_fn):
         out_x: ti.template(),
         out_y: ti.template(),
     ):
-        for i in px:
+        for i in range(n):
             q = warp_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
             out_x[i] = q[0]
             out_y[i] = q[1]
 
     @ti.kernel
     def flow_positions(
+        n: ti.i32,
         px: ti.template(),
         py: ti.template(),
         pdt: ti.template(),
@@ -39,7 +42,7 @@ def make_position_kernels(warp_fn, flow_fn):
         out_x: ti.template(),
         out_y: ti.template(),
     ):
-        for i in px:
+        for i in range(n):
             v = flow_fn(ti.Vector([px[i], py[i]]), th[None], ctx[None])
             out_x[i] = v[0]
             out_y[i] = v[1]
@@ -52,6 +55,7 @@ def make_quantity_kernel(quantity_fn):
 
     @ti.kernel
     def per_event(
+        n: ti.i32,
         px: ti.template(),
         py: ti.template(),
         pdt: ti.template(),
@@ -59,7 +63,7 @@ def make_quantity_kernel(quantity_fn):
         ctx: ti.template(),
         out: ti.template(),
     ):
-        for i in px:
+        for i in range(n):
             out[i] = quantity_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
 
     return per_event

@@ -66,7 +66,7 @@ def make_gradient_magnitude_reduce(width: int, height: int, n_channels: int):
                 gy = 0.0
                 for dy in ti.static(range(-1, 2)):
                     for dx in ti.static(range(-1, 2)):
-                        if ti.static(dx != 0 or dy != 0):
+                        if ti.static(dx != 0 or dy != 0):  # noqa: SIM102 - compile-time if
                             if 0 <= y + dy < H and 0 <= x + dx < W:
                                 v = img[c, y + dy, x + dx]
                                 gx += ti.static(_SOBEL_X[dy + 1][dx + 1]) * v

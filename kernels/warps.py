@@ -205,7 +205,7 @@ def sim2_flow(p, th, ctx):
 
 # --- mitrokhin4: theta = (h_x, h_y [px/s], h_z [1/s], theta [rad/s]), window-normalised time ---------
 @ti.func
-def _mitrokhin_A(th, ctx):
+def _mitrokhin_a(th, ctx):
     T = ctx[4]
     k = th[2] * T + 1.0
     ang = th[3] * T
@@ -214,7 +214,7 @@ def _mitrokhin_A(th, ctx):
 
 @ti.func
 def mitrokhin4_warp(p, dt, th, ctx):
-    ac, as_ = _mitrokhin_A(th, ctx)
+    ac, as_ = _mitrokhin_a(th, ctx)
     sig = dt / ctx[4]
     q = _rel(p, ctx)
     # (A - I) q with A = [[ac, -as], [as, ac]]
@@ -225,7 +225,7 @@ def mitrokhin4_warp(p, dt, th, ctx):
 
 @ti.func
 def mitrokhin4_det(p, dt, th, ctx):
-    ac, as_ = _mitrokhin_A(th, ctx)
+    ac, as_ = _mitrokhin_a(th, ctx)
     sig = dt / ctx[4]
     a = 1.0 + sig - sig * ac
     b = sig * as_
@@ -234,13 +234,13 @@ def mitrokhin4_det(p, dt, th, ctx):
 
 @ti.func
 def mitrokhin4_div(p, th, ctx):
-    ac, as_ = _mitrokhin_A(th, ctx)
+    ac, as_ = _mitrokhin_a(th, ctx)
     return 2.0 * (ac - 1.0) / ctx[4]
 
 
 @ti.func
 def mitrokhin4_flow(p, th, ctx):
-    ac, as_ = _mitrokhin_A(th, ctx)
+    ac, as_ = _mitrokhin_a(th, ctx)
     q = _rel(p, ctx)
     T = ctx[4]
     return ti.Vector(

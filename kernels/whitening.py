@@ -3,8 +3,8 @@
 ``x'' = mu0 + S0^(1/2) (S + eps I)^(-1/2) (x' - mu)`` (docs/FORMULAS.md, "Whitening baseline").
 The moments of the warped positions are reduced into one 0-D vector field ``wmom``:
 slots 0-4 hold ``sum x, sum y, sum x^2, sum x y, sum y^2`` of the positions relative to the centre
-``(cx, cy)`` of ``ctx`` (less cancellation in f32), slot 5 the event count, slots 6-7 ``mu0`` and 8-10 the entries ``(a, b, d)`` of the
-symmetric ``S0^(1/2)``; slots 5-10 are constants written by the driver.
+``(cx, cy)`` of ``ctx`` (less cancellation in f32), slot 5 the event count, slots 6-7 ``mu0`` and
+8-10 the entries ``(a, b, d)`` of the symmetric ``S0^(1/2)``; slots 5-10 are constants written by the driver.
 """
 
 import taichi as ti

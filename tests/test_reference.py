@@ -63,9 +63,7 @@ def fd_jacobian(name, x, y, dt, theta, h=1e-5):
 
 
 def flow(name, theta, center=CENTER):
-    return reference.flow_field(
-        name, theta, width=W, height=H, center=center, focal=FOCAL, duration=T
-    )
+    return reference.flow_field(name, theta, width=W, height=H, center=center, focal=FOCAL, duration=T)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -302,9 +300,7 @@ def test_blur_matches_scipy_correlate1d(sigma):
     g /= g.sum()
     expected = ndimage.correlate1d(img, g, axis=1, mode="constant", cval=0.0)
     expected = ndimage.correlate1d(expected, g, axis=0, mode="constant", cval=0.0)
-    np.testing.assert_allclose(
-        reference.gaussian_blur(img, sigma), expected, rtol=1e-12, atol=1e-14
-    )
+    np.testing.assert_allclose(reference.gaussian_blur(img, sigma), expected, rtol=1e-12, atol=1e-14)
     stack = np.stack([img, 2 * img])
     np.testing.assert_allclose(reference.gaussian_blur(stack, sigma)[1], 2 * expected, rtol=1e-12)
 

@@ -1,0 +1,1 @@
+"""Sub-commands of the ``cmax-taichi`` command line (see ``cmax_taichi/cli.py``)."""

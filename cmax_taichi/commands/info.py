@@ -1,0 +1,38 @@
+"""Show the backend in use and the registered warps, objectives and regularizers."""
+
+from __future__ import annotations
+
+import argparse
+
+NAME = "info"
+HELP = "show the backend (arch, precision) and the registered models"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--arch",
+        default=None,
+        help="cpu | gpu | cuda | vulkan | metal (default: $CMAX_TAICHI_ARCH or cpu)",
+    )
+    parser.add_argument("--precision", default=None, choices=["f32", "f64"])
+
+
+def run(args: argparse.Namespace) -> int:
+    import cmax_taichi as cm
+
+    info = cm.init(arch=args.arch, precision=args.precision)
+    print(f"cmax-taichi {cm.__version__}")
+    print(f"backend: arch={info.arch} (requested {info.requested_arch}), precision={info.precision}")
+    print("warps:")
+    for name in cm.warp_names():
+        m = cm.get_warp(name)
+        params = ", ".join(f"{p} [{u}]" for p, u in zip(m.params, m.units, strict=True))
+        flag = " (collapse-enabled)" if m.collapse_enabled else ""
+        print(f"  {name:14s} {params}{flag}: {m.description}")
+    print("objectives:")
+    for name in cm.objective_names():
+        print(f"  {name:20s} {cm.OBJECTIVES.get(name).description}")
+    print("regularizers:")
+    for name in cm.regularizer_names():
+        print(f"  {name:14s} {cm.REGULARIZERS.get(name).description}")
+    return 0

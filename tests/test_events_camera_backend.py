@@ -1,0 +1,115 @@
+"""Events windows, camera undistortion, backend selection."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from conftest import SENSOR, edge_events
+
+import cmax_taichi as cm
+
+
+def _events(n=1000, duration=0.1):
+    x, y, t, p = edge_events(n=n, seed=5, duration=duration)
+    return cm.Events(x, y, t, p, SENSOR)
+
+
+def test_windows_by_count():
+    ev = _events(1000)
+    wins = list(ev.windows_by_count(300))
+    assert [len(w) for w in wins] == [300, 300, 300]
+    assert wins[1].t[0] == ev.t[300]
+    overlapping = list(ev.windows_by_count(300, stride=100))
+    assert len(overlapping) == 8
+    with pytest.raises(ValueError):
+        list(ev.windows_by_count(1))
+
+
+def test_windows_by_duration():
+    ev = _events(1000, duration=0.1)
+    wins = list(ev.windows_by_duration(0.025))
+    assert len(wins) >= 4
+    assert sum(len(w) for w in wins) == len(ev)
+    for w in wins:
+        assert w.duration < 0.025
+    with pytest.raises(ValueError):
+        list(ev.windows_by_duration(0.0))
+
+
+def test_slicing_keeps_order_and_sensor():
+    ev = _events(100)
+    sub = ev[10:20]
+    assert len(sub) == 10 and sub.sensor_size == ev.sensor_size
+    assert np.all(sub.t == ev.t[10:20])
+    picked = ev[np.array([5, 1, 3])]
+    assert np.all(np.diff(picked.t) >= 0)
+    assert len(ev.time_slice(ev.t[10], ev.t[20])) == 10
+
+
+def test_polarity_mapping():
+    ev = cm.Events([1, 2], [1, 2], [0.0, 1.0], [0, 1], SENSOR)
+    assert list(ev.p) == [-1, 1]
+
+
+def test_undistortion_round_trip():
+    cam = cm.Camera(fx=199.1, fy=198.8, cx=132.2, cy=110.7, dist=(-0.368, 0.151, -0.0003, -0.0008, 0.0))
+    rng = np.random.default_rng(0)
+    xn = rng.uniform(-0.5, 0.5, 500)
+    yn = rng.uniform(-0.4, 0.4, 500)
+    xd, yd = cam.distort_normalized(xn, yn)
+    xu, yu = cam.undistort_points(xd * cam.fx + cam.cx, yd * cam.fy + cam.cy)
+    np.testing.assert_allclose(xu, xn * cam.fx + cam.cx, atol=1e-6)
+    np.testing.assert_allclose(yu, yn * cam.fy + cam.cy, atol=1e-6)
+
+
+def test_camera_from_calib_line():
+    cam = cm.Camera.from_calib_line(
+        ["199.09", "198.83", "132.19", "110.71", "-0.368", "0.151", "-0.0003", "-0.0008", "0.0"]
+    )
+    assert cam.fx == pytest.approx(199.09) and cam.dist[0] == pytest.approx(-0.368)
+    with pytest.raises(ValueError):
+        cm.Camera.from_calib_line([1, 2, 3])
+
+
+def test_gpu_request_falls_back_to_cpu_with_warning():
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            info = cm.init(arch="cuda", precision="f64")
+        if info.arch == "cuda":
+            pytest.skip("a CUDA device is present: no fallback to test")
+        assert info.arch == "cpu" and info.requested_arch == "cuda"
+        assert any("not available" in str(w.message) for w in caught)
+    finally:
+        cm.init(arch="cpu", precision="f64")
+
+
+def test_unknown_arch_and_precision():
+    with pytest.raises(ValueError, match="unknown arch"):
+        cm.init(arch="tpu")
+    with pytest.raises(ValueError, match="unknown precision"):
+        cm.init(precision="f16")
+
+
+def test_env_variable_selects_arch(monkeypatch):
+    monkeypatch.setenv("CMAX_TAICHI_ARCH", "cpu")
+    info = cm.init(precision="f64")
+    assert info.arch == "cpu" and info.requested_arch == "cpu"
+
+
+def test_repeated_evaluations_reuse_fields():
+    """Evaluations allocate no new Taichi fields (no new SNode trees)."""
+    import taichi as ti
+
+    cm.init(precision="f64")
+    prob = cm.ContrastMaximization(
+        _events(), warp="mitrokhin4", regularizers={"divergence": 1.0, "deformation": 1.0}
+    )
+    prob.value_and_grad([1.0, 2.0, 0.5, 0.1])
+    runtime = ti.lang.impl.get_runtime()
+    trees_before = runtime.prog.get_snode_tree_size()
+    for k in range(5):
+        prob.value_and_grad([1.0 + k, 2.0, 0.5, 0.1])
+    assert runtime.prog.get_snode_tree_size() == trees_before
