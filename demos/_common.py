@@ -1,0 +1,223 @@
+"""Shared plumbing of the demos: matplotlib backend choice, inputs (real recordings or synthetic
+scenes) and the optimizer call. Uses the public API of cmax_taichi only.
+
+The real recordings live in ``../shared/data`` beside the checkout (``CMAX_SHARED_DATA`` overrides the
+folder); every demo falls back to a synthetic scene generated here with NumPy when they are absent.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import cmax_taichi as cm
+
+REPO = Path(__file__).resolve().parents[1]
+DATA_DIR = Path(os.environ.get("CMAX_SHARED_DATA", REPO.parent / "shared" / "data"))
+ECD_SEQUENCES = ("boxes_rotation", "dynamic_rotation", "poster_rotation", "shapes_rotation")
+
+
+def setup_matplotlib(save: str | None) -> bool:
+    """Pick the backend before pyplot is imported; return True for an interactive window.
+
+    ``--save`` always renders headless (Agg). Without it the window opens when a display exists
+    (``DISPLAY`` / ``WAYLAND_DISPLAY`` on Linux; macOS and Windows always have one).
+    """
+    import matplotlib
+
+    has_display = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    has_display |= sys.platform in ("darwin", "win32")
+    if save is not None or not has_display:
+        matplotlib.use("Agg", force=True)
+        return False
+    return True
+
+
+def no_display_exit(name: str) -> int:
+    print(
+        f"{name}: no display found; run with --save out.png to render the figure to a file", file=sys.stderr
+    )
+    return 2
+
+
+def subsample(events: cm.Events, max_events: int | None) -> cm.Events:
+    """Every k-th event so that at most ``max_events`` remain: the same window, fewer events."""
+    if max_events is None or len(events) <= max_events:
+        return events
+    step = int(np.ceil(len(events) / max_events))
+    return events[::step]
+
+
+@dataclass
+class Scene:
+    """Events for a demo, with what is known about them."""
+
+    events: cm.Events
+    camera: cm.Camera | None
+    name: str
+    truth: np.ndarray | None = None  # ground-truth parameters (model units), when known
+    truth_label: str = "ground truth"
+    extra: dict = field(default_factory=dict)
+
+
+# --- MVSEC indoor_flying1 (collapse explorer) ---------------------------------------------------------------
+def load_mvsec(n_events: int = 30000) -> Scene | None:
+    """The first ``n_events`` of the MVSEC indoor_flying1 cut (undistorted), or None when absent.
+
+    ``n_events`` = 30000 is the window size of the paper's MVSEC experiments.
+    """
+    folder = DATA_DIR / "mvsec_indoor_flying1"
+    if not (folder / "events.txt").exists():
+        return None
+    calib = np.loadtxt(folder / "calib.txt", max_rows=1)
+    width, height = (int(v) for v in np.loadtxt(folder / "calib.txt", skiprows=1, max_rows=1))
+    data = np.loadtxt(folder / "events.txt", max_rows=int(n_events * 1.01) + 200)
+    t, x, y, p = data[:, 0], data[:, 1], data[:, 2], data[:, 4]
+    # The undistorted float coordinates can fall a little outside the sensor: drop those quietly.
+    inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    t, x, y, p = t[inside][:n_events], x[inside][:n_events], y[inside][:n_events], p[inside][:n_events]
+    events = cm.Events(x, y, t, p, (width, height), undistorted=True)
+    camera = cm.Camera(*calib[:4], dist=tuple(calib[4:9]))
+    return Scene(
+        events, camera, f"MVSEC indoor_flying1, {len(events)} events, {events.duration * 1e3:.0f} ms"
+    )
+
+
+def _segment_points(rng: np.random.Generator, n: int, n_segments: int, half_extent: np.ndarray) -> np.ndarray:
+    """``n`` points on random straight segments and corners in ``[-half, half]^2`` (a textured scene)."""
+    a = rng.uniform(-half_extent, half_extent, size=(n_segments, 2))
+    angle = rng.uniform(0, np.pi, n_segments)
+    length = rng.uniform(10, 40, n_segments)
+    which = rng.integers(0, n_segments, n)
+    s = rng.uniform(-0.5, 0.5, n) * length[which]
+    pts = a[which] + s[:, None] * np.stack([np.cos(angle[which]), np.sin(angle[which])], axis=1)
+    return pts + rng.normal(0, 0.35, size=pts.shape)
+
+
+def synthetic_zoom(n_events: int = 20000, h_z: float = 2.0, duration: float = 0.15, seed: int = 0) -> Scene:
+    """Textured edges under forward camera motion: an expanding scene with exact zoom ``h_z`` [1/s].
+
+    A point at reference offset ``x0`` (from the image centre, at the first event's time) is seen at
+    ``x0 / (1 - h_z t)``: the ``zoom1`` warp ``c + (1 - t h_z)(x - c)`` maps it back exactly, so the true
+    parameter is ``h_z`` (and ``(0, 0, h_z, 0)`` for ``mitrokhin4``).
+    """
+    rng = np.random.default_rng(seed)
+    width, height = 240, 180
+    c = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    n_total = int(n_events * 1.6)  # some leave the sensor while it expands
+    pts = _segment_points(rng, n_total, 60, c * 0.95)
+    t = np.sort(rng.uniform(0.0, duration, n_total))
+    xy = c + pts / (1.0 - h_z * t)[:, None]
+    noise = rng.random(n_total) < 0.05
+    xy[noise] = rng.uniform([0, 0], [width - 1, height - 1], size=(int(noise.sum()), 2))
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] <= width - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= height - 1)
+    idx = np.flatnonzero(inside)[:n_events]
+    p = rng.integers(0, 2, idx.size)
+    events = cm.Events(xy[idx, 0], xy[idx, 1], t[idx], p, (width, height))
+    return Scene(
+        events,
+        None,
+        f"synthetic forward motion (true h_z = {h_z:g} 1/s), {len(events)} events",
+        truth=np.array([h_z]),
+    )
+
+
+# --- ECD rotation (rotation demo) -------------------------------------------------------------------------
+def load_ecd(sequence: str) -> Scene | None:
+    """A raw ECD rotation window with its calibration and the gyro ground truth, or None when absent."""
+    if sequence not in ECD_SEQUENCES:
+        raise ValueError(f"unknown sequence {sequence!r}; valid: {', '.join(ECD_SEQUENCES)}")
+    folder = DATA_DIR / "ecd_rotation" / sequence
+    if not (folder / "events.txt").exists():
+        return None
+    calib = np.loadtxt(folder / "calib.txt")
+    gyro = np.loadtxt(folder / "motion.txt").reshape(-1)[:3]
+    data = np.loadtxt(folder / "events.txt")
+    events = cm.Events(data[:, 1], data[:, 2], data[:, 0], data[:, 3], (240, 180))
+    camera = cm.Camera(*calib[:4], dist=tuple(calib[4:9]))
+    name = f"ECD {sequence}, {len(events)} events, {events.duration * 1e3:.1f} ms"
+    return Scene(events, camera, name, truth=gyro, truth_label="IMU gyro")
+
+
+def _rodrigues(w: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``exp(dt [w]_x)``, shape (n, 3, 3)."""
+    angle = np.linalg.norm(w) * dt
+    axis = w / max(np.linalg.norm(w), 1e-12)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * K + (1 - c) * (K @ K)
+
+
+def synthetic_rotation(
+    n_events: int = 20000,
+    w: tuple[float, float, float] = (0.4, -1.0, 0.6),
+    duration: float = 0.08,
+    seed: int = 1,
+) -> Scene:
+    """Textured edges seen by a rotating camera (no distortion), exact angular velocity ``w`` [rad/s].
+
+    Uses the convention of the data README: a bearing at time t maps to the reference (first event)
+    time by ``bearing_ref = exp(hat(w) (t - t_ref)) bearing_t``,
+    so ``bearing_t = exp(-hat(w) dt) bearing_ref``.
+    """
+    rng = np.random.default_rng(seed)
+    width, height = 240, 180
+    camera = cm.Camera(200.0, 200.0, 119.5, 89.5)
+    w = np.asarray(w, dtype=np.float64)
+    n_total = int(n_events * 1.5)
+    pts = _segment_points(rng, n_total, 70, np.array([150.0, 115.0])) + [camera.cx, camera.cy]
+    t = np.sort(rng.uniform(0.0, duration, n_total))
+    rays = np.stack(
+        [(pts[:, 0] - camera.cx) / camera.fx, (pts[:, 1] - camera.cy) / camera.fy, np.ones(n_total)], 1
+    )
+    rotated = np.einsum("nij,nj->ni", _rodrigues(-w, t), rays)
+    x = camera.cx + camera.fx * rotated[:, 0] / rotated[:, 2]
+    y = camera.cy + camera.fy * rotated[:, 1] / rotated[:, 2]
+    noise = rng.random(n_total) < 0.05
+    x[noise] = rng.uniform(0, width - 1, int(noise.sum()))
+    y[noise] = rng.uniform(0, height - 1, int(noise.sum()))
+    inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    idx = np.flatnonzero(inside)[:n_events]
+    events = cm.Events(x[idx], y[idx], t[idx], rng.integers(0, 2, idx.size), (width, height))
+    name = f"synthetic rotation, {len(events)} events, {duration * 1e3:.0f} ms"
+    return Scene(events, camera, name, truth=w, truth_label="true w")
+
+
+# --- optimizer ----------------------------------------------------------------------------------------------
+@dataclass
+class _Result:
+    theta: np.ndarray
+    value: float
+    history: list
+    seconds: float
+
+
+def run_optimizer(prob: cm.ContrastMaximization, theta0, max_iter: int = 80):
+    """Maximise ``prob`` from ``theta0``; the result has ``.theta``, ``.value``, ``.history``.
+
+    TEMPORARY: ``cmax_taichi.maximize`` is being written; until it lands this is plain Adam on
+    ``prob.value_and_grad`` with per-unit step sizes, keeping the best point.
+    """
+    import time
+
+    start = time.perf_counter()
+    units = prob.model.units
+    step = np.array([{"px/s": 4.0, "1/s": 0.1, "rad/s": 0.05}.get(u, 0.05) for u in units])
+    theta = np.asarray(theta0, dtype=np.float64).copy()
+    m = np.zeros_like(theta)
+    v = np.zeros_like(theta)
+    history = []
+    best = (-np.inf, theta.copy())
+    for k in range(1, max_iter + 1):
+        value, grad = prob.value_and_grad(theta)
+        history.append((theta.copy(), value))
+        if value > best[0]:
+            best = (value, theta.copy())
+        m = 0.9 * m + 0.1 * grad
+        v = 0.999 * v + 0.001 * grad**2
+        theta = theta + step * (m / (1 - 0.9**k)) / (np.sqrt(v / (1 - 0.999**k)) + 1e-12)
+    return _Result(best[1], best[0], history, time.perf_counter() - start)
