@@ -183,15 +183,19 @@ class Events:
                 yield window
             k += 1
 
-    def undistort(self, camera: Camera) -> Events:
-        """Return new events with undistorted coordinates (those leaving the sensor are dropped)."""
+    def undistort(self, camera: Camera, return_mask: bool = False):
+        """Return new events with undistorted coordinates (those leaving the sensor are dropped).
+
+        With ``return_mask``, also return the boolean mask of the kept events (to filter arrays that
+        go with the events, such as weights).
+        """
         if self.undistorted:
-            return self
+            return (self, np.ones(len(self), dtype=bool)) if return_mask else self
         xu, yu = camera.undistort_points(self.x, self.y)
         W, H = self.sensor_size
         inside = np.isfinite(xu) & np.isfinite(yu)
         inside &= (xu >= 0) & (xu <= W - 1) & (yu >= 0) & (yu <= H - 1)
-        return Events(
+        result = Events(
             xu[inside],
             yu[inside],
             self.t[inside],
@@ -200,6 +204,7 @@ class Events:
             undistorted=True,
             _validated=True,
         )
+        return (result, inside) if return_mask else result
 
 
 @dataclass(frozen=True)

@@ -163,13 +163,9 @@ class ContrastMaximization:
             if not np.all(np.isfinite(user_weights)):
                 raise ValueError("weights has non-finite values")
         if camera is not None and camera.has_distortion and not events.undistorted:
-            kept = camera.undistort_points(events.x, events.y)
-            inside = np.isfinite(kept[0]) & np.isfinite(kept[1])
-            inside &= (kept[0] >= 0) & (kept[0] <= events.width - 1)
-            inside &= (kept[1] >= 0) & (kept[1] <= events.height - 1)
-            events = events.undistort(camera)
+            events, kept = events.undistort(camera, return_mask=True)
             if user_weights is not None:
-                user_weights = user_weights[inside]
+                user_weights = user_weights[kept]
             if len(events) < 2:
                 raise ValueError("fewer than 2 events remain inside the sensor after undistortion")
         self.events = events
@@ -673,10 +669,16 @@ def dense_flow(
         raise ValueError(f"warp {model.name!r} needs a camera (intrinsics): pass camera=")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be positive seconds, got {duration}")
-    real = backend.real()
-    th = ti.Vector.field(model.n_params, real, shape=())
-    ctx = ti.Vector.field(5, real, shape=())
-    out = ti.field(real, shape=(2, H, W))
+    info = backend.info()
+
+    def build(ws):
+        real = backend.real()
+        ws.th = ti.Vector.field(model.n_params, real, shape=())
+        ws.ctx = ti.Vector.field(5, real, shape=())
+        ws.out = ti.field(real, shape=(2, H, W))
+
+    ws = workspace.acquire(("dense_flow", info.generation, model.n_params, W, H), build)
+    th, ctx, out = ws.th, ws.ctx, ws.out
     th[None] = theta.tolist()
     if camera is not None:
         ctx[None] = [camera.cx, camera.cy, camera.fx, camera.fy, duration]

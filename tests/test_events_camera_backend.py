@@ -113,3 +113,31 @@ def test_repeated_evaluations_reuse_fields():
     for k in range(5):
         prob.value_and_grad([1.0 + k, 2.0, 0.5, 0.1])
     assert runtime.prog.get_snode_tree_size() == trees_before
+
+
+def test_problem_undistorts_raw_events_and_filters_weights():
+    cm.init(precision="f64")
+    cam = cm.Camera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, dist=(-0.3, 0.1, 0.0, 0.0, 0.0))
+    x, y, t, p = edge_events(n=400, seed=9)
+    raw = cm.Events(x, y, t, p, SENSOR)
+    weights = np.linspace(0.5, 1.5, len(raw))
+    prob = cm.ContrastMaximization(raw, warp="rotation3", camera=cam, weights=weights)
+    undist, kept = raw.undistort(cam, return_mask=True)
+    assert prob.events.undistorted and prob.n_events == len(undist) == int(kept.sum())
+    np.testing.assert_allclose(prob.events.x, undist.x)
+    value, grad = prob.value_and_grad([0.1, -0.2, 0.3])
+    assert np.isfinite(value) and np.all(np.isfinite(grad))
+    # the caller's events are not modified
+    assert not raw.undistorted and np.all(raw.x == np.clip(x, 0, SENSOR[0] - 1))
+
+
+def test_dense_flow_reuses_fields():
+    import taichi as ti
+
+    cm.init(precision="f64")
+    cm.dense_flow("zoom1", [1.0], SENSOR)
+    trees = ti.lang.impl.get_runtime().prog.get_snode_tree_size()
+    for h in (2.0, 3.0, 4.0):
+        flow = cm.dense_flow("zoom1", [h], SENSOR)
+    assert ti.lang.impl.get_runtime().prog.get_snode_tree_size() == trees
+    np.testing.assert_allclose(flow[0, 0, 0], 4.0 * (0 - (SENSOR[0] - 1) / 2))
