@@ -1,0 +1,135 @@
+"""Dataset readers: every format opens as a :class:`Recording` that returns the core
+:class:`~cmax_taichi.Events` window by window (plus a :class:`~cmax_taichi.Camera` and ground truth
+where the format has them), reading only the rows a window needs.
+
+======== =========================================================== ==========================
+format   layout                                                      module
+======== =========================================================== ==========================
+ecd      folder: events.txt ``t x y p`` + calib.txt (+ ground truth) :mod:`.ecd`
+text     ``t x y p`` / ``t x y depth p`` text (+ calib.txt)          :mod:`.text`
+mvsec    ``*_data.hdf5`` (``davis/left/events``) + gt_flow_dist.npz  :mod:`.mvsec`
+dsec     ``events.h5`` (``events/{x,y,t,p}``, ``ms_to_idx``) + PNG   :mod:`.dsec`
+aedat4   ``.aedat4`` (needs the optional package ``aedat``)          :mod:`.aedat4`
+======== =========================================================== ==========================
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from pathlib import Path
+
+from ..events import Events
+from .base import Recording
+from .text import EVENT_FILE_NAMES, count_columns, find_events_file
+
+__all__ = ["FORMATS", "Recording", "detect_format", "open_recording", "read_events"]
+
+#: format name -> (module, class)
+_READERS = {
+    "ecd": ("ecd", "ECDRecording"),
+    "text": ("text", "TextRecording"),
+    "mvsec": ("mvsec", "MVSECRecording"),
+    "dsec": ("dsec", "DSECRecording"),
+    "aedat4": ("aedat4", "AEDAT4Recording"),
+}
+#: the supported format names
+FORMATS = tuple(_READERS)
+
+
+def _unknown(path: Path, why: str) -> ValueError:
+    return ValueError(f"{path}: {why}; supported formats: {', '.join(FORMATS)} (pass format= to choose)")
+
+
+def _hdf5_format(path: Path) -> str:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            if "davis" in f:
+                return "mvsec"
+            if "events" in f and isinstance(f["events"], h5py.Group) and "x" in f["events"]:
+                return "dsec"
+            keys = sorted(f.keys())
+    except OSError as exc:
+        raise OSError(f"{path}: not a readable HDF5 file ({exc})") from None
+    raise _unknown(path, f"HDF5 file without 'davis/left/events' (MVSEC) or 'events/x' (DSEC); keys {keys}")
+
+
+def detect_format(path: str | os.PathLike) -> str:
+    """The format name of ``path`` (a file or a folder), from its name and, for HDF5 and text, its
+    content. Raises FileNotFoundError for a missing path and ValueError for an unknown format."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    if path.is_dir():
+        if any((path / name).is_file() for name in EVENT_FILE_NAMES):
+            return "ecd" if count_columns(find_events_file(path)) == 4 else "text"
+        if (path / "events.h5").is_file() or (path / "events" / "left" / "events.h5").is_file():
+            return "dsec"
+        for pattern, name in (("*_data.hdf5", "mvsec"), ("*.aedat4", "aedat4")):
+            found = sorted(path.glob(pattern))
+            if len(found) == 1:
+                return name
+            if len(found) > 1:
+                raise _unknown(path, f"{len(found)} {pattern} files in this folder: open one of them")
+        raise _unknown(path, "no events file found in this folder")
+    suffix = path.suffix.lower()
+    if suffix == ".aedat4":
+        return "aedat4"
+    if suffix in (".h5", ".hdf5"):
+        return _hdf5_format(path)
+    if suffix in (".txt", ".dat", ".csv", ""):
+        return "ecd" if count_columns(path) == 4 else "text"
+    raise _unknown(path, f"unknown file type {suffix!r}")
+
+
+def open_recording(path: str | os.PathLike, format: str | None = None, **options) -> Recording:
+    """Open an event recording.
+
+    Parameters
+    ----------
+    path : path
+        A file (``events.txt``, ``*_data.hdf5``, ``events.h5``, ``*.aedat4``) or a folder holding
+        one (an ECD folder, a DSEC sequence).
+    format : str, optional
+        One of :data:`FORMATS`; detected from the path when None.
+    **options
+        Passed to the format's reader. Every reader takes ``sensor_size=(W, H)`` (px) and
+        ``camera=`` (a :class:`~cmax_taichi.Camera`); text formats take ``columns=``,
+        ``undistorted=``, ``cache_dir=`` and ``cache=``; see each module.
+
+    Returns
+    -------
+    Recording
+        Use it as a context manager to close HDF5 files.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    ValueError
+        Unknown format, or a malformed file (the message names the file and the problem).
+    KeyError
+        An HDF5 file without a dataset the format needs.
+    ImportError
+        The optional package a format needs is not installed (the message names it).
+    """
+    path = Path(path).expanduser()
+    if format is None:
+        format = detect_format(path)
+    elif not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    if format not in _READERS:
+        raise ValueError(f"unknown format {format!r}; supported formats: {', '.join(FORMATS)}")
+    module_name, class_name = _READERS[format]
+    module = importlib.import_module(f"{__name__}.{module_name}")
+    return getattr(module, class_name)(path, **options)
+
+
+def read_events(
+    path: str | os.PathLike, format: str | None = None, start: int = 0, stop: int | None = None, **options
+) -> Events:
+    """Events ``start:stop`` (by index) of the recording at ``path``; see :func:`open_recording`."""
+    with open_recording(path, format, **options) as recording:
+        return recording.read(start, stop)

@@ -1,0 +1,122 @@
+"""The binary event cache: a source file decoded once into a float64 ``(N, 4)`` table ``t x y p``
+(seconds, px, px, polarity), stored in a user cache directory and memory-mapped afterwards.
+
+The cache never lives beside the data (data folders may be read-only and users' data must not be
+modified). A cache entry is keyed by the source's absolute path, size and modification time and by the
+decoder's options, so a changed file gets a new entry; the stale entries of the same path are removed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import tempfile
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+#: bump when the table layout or a decoder's output changes (old entries are then ignored)
+CACHE_VERSION = 1
+#: the environment variable that overrides the cache directory
+CACHE_ENV = "CMAX_TAICHI_CACHE"
+COLUMNS = 4  # t, x, y, p
+
+
+def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
+    """The cache directory: ``cache_dir``, else ``$CMAX_TAICHI_CACHE``, else
+    ``$XDG_CACHE_HOME/cmax_taichi``, else ``~/.cache/cmax_taichi``."""
+    if cache_dir is not None:
+        return Path(cache_dir).expanduser()
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base).expanduser() / "cmax_taichi"
+
+
+def _keys(source: Path, kind: str, options: dict) -> tuple[str, str]:
+    st = source.stat()
+    path_key = hashlib.sha256(str(source.resolve()).encode()).hexdigest()[:16]
+    state = json.dumps(
+        [CACHE_VERSION, kind, st.st_size, st.st_mtime_ns, options], sort_keys=True, default=str
+    )
+    return path_key, hashlib.sha256(state.encode()).hexdigest()[:16]
+
+
+def _map(table_path: Path, n: int) -> np.ndarray:
+    if n == 0:  # an empty file cannot be memory-mapped
+        return np.empty((0, COLUMNS), dtype=np.float64)
+    return np.memmap(table_path, dtype=np.float64, mode="r", shape=(n, COLUMNS))
+
+
+def cached_table(
+    source: Path,
+    kind: str,
+    options: dict,
+    build: Callable[[BinaryIO], dict],
+    cache_dir: str | os.PathLike | None = None,
+    use_cache: bool = True,
+) -> tuple[np.ndarray, dict]:
+    """The ``(N, 4)`` float64 table of ``source``, memory-mapped, and its metadata.
+
+    ``build(out)`` decodes the source, writes the rows to the binary stream ``out`` (row-major
+    float64) and returns a JSON-able dict with at least ``"n"`` (the row count). It runs once per
+    version of the source; later calls map the stored table. With ``use_cache=False``, or when the
+    cache directory cannot be written (a warning says so), the table goes to a temporary file that
+    is deleted when the returned array is garbage-collected (on POSIX).
+    """
+    path_key, state_key = _keys(source, kind, options)
+    root = cache_root(cache_dir)
+    table_path = root / f"{path_key}-{state_key}.f64"
+    meta_path = root / f"{path_key}-{state_key}.json"
+    if use_cache and meta_path.is_file() and table_path.is_file():
+        try:
+            meta = json.loads(meta_path.read_text())
+            if table_path.stat().st_size == meta["n"] * COLUMNS * 8:
+                return _map(table_path, int(meta["n"])), meta
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged entry is rebuilt below
+    if use_cache:
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{path_key}-", suffix=".tmp", dir=root)
+        except OSError as exc:
+            warnings.warn(
+                f"cannot write the event cache in {root} ({exc}); decoding {source} into a temporary "
+                f"file instead (set {CACHE_ENV} or cache_dir= to a writable folder)",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            use_cache = False
+    if not use_cache:
+        fd, tmp_name = tempfile.mkstemp(prefix="cmax_taichi-", suffix=".f64")
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            meta = build(out)
+        meta = dict(meta, source=str(source.resolve()), kind=kind, version=CACHE_VERSION)
+        if tmp.stat().st_size != meta["n"] * COLUMNS * 8:
+            raise OSError(f"event cache for {source}: wrote {tmp.stat().st_size} bytes for {meta['n']} rows")
+        if not use_cache:
+            table = _map(tmp, int(meta["n"]))
+            # POSIX: the mapping keeps the data alive until it is released; Windows cannot unlink a
+            # mapped file, and the temporary folder keeps it
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            return table, meta
+        os.replace(tmp, table_path)
+        meta_tmp = meta_path.with_suffix(".json.tmp")
+        meta_tmp.write_text(json.dumps(meta))
+        os.replace(meta_tmp, meta_path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    # entries of earlier versions of the same file are stale now
+    for old in root.glob(f"{path_key}-*"):
+        if old.name not in (table_path.name, meta_path.name) and not old.name.startswith("."):
+            old.unlink(missing_ok=True)
+    return _map(table_path, int(meta["n"])), meta

@@ -1,0 +1,54 @@
+"""HDF5 helpers shared by the MVSEC and DSEC readers: opening with one-line errors, finding a
+dataset, and telling the user which plugin a compressed dataset needs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+
+
+def open_h5(path: Path) -> h5py.File:
+    """Open ``path`` read-only; OSError naming the file when it is not readable HDF5."""
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise OSError(f"{path}: not a readable HDF5 file ({exc})") from None
+
+
+def dataset(f: h5py.File, key: str, path: Path, what: str) -> h5py.Dataset:
+    """``f[key]`` as a dataset whose filters this h5py can decode.
+
+    Raises KeyError naming the file and the missing key, and OSError telling the user to
+    ``pip install hdf5plugin`` when the dataset uses a compression filter that is not registered
+    (DSEC files use blosc)."""
+    if key not in f or not isinstance(f[key], h5py.Dataset):
+        raise KeyError(f"{path}: no dataset '{key}' ({what})")
+    ds = f[key]
+    plist = ds.id.get_create_plist()
+    for i in range(plist.get_nfilters()):
+        code, _flags, _values, name = plist.get_filter(i)
+        if h5py.h5z.filter_avail(code):
+            continue
+        try:
+            import hdf5plugin  # noqa: F401  (registers blosc, lz4, zstd, ... with h5py)
+        except ImportError:
+            raise OSError(
+                f"{path}: dataset '{key}' is compressed with the HDF5 filter "
+                f"'{name.decode(errors='replace')}' (id {code}), which h5py cannot decode without "
+                f"plugins: pip install hdf5plugin"
+            ) from None
+        if not h5py.h5z.filter_avail(code):
+            raise OSError(
+                f"{path}: dataset '{key}' needs the HDF5 filter '{name.decode(errors='replace')}' "
+                f"(id {code}), which neither h5py nor hdf5plugin provides"
+            )
+    return ds
+
+
+def read(ds: h5py.Dataset, index, path: Path):
+    """``ds[index]`` with read errors (corrupt or truncated files) as one OSError naming the file."""
+    try:
+        return ds[index]
+    except OSError as exc:
+        raise OSError(f"{path}: cannot read '{ds.name}' ({exc})") from None

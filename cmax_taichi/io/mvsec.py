@@ -1,0 +1,147 @@
+"""MVSEC (Zhu et al. RA-L 2018) ``*_data.hdf5`` files and the EV-FlowNet ``*_gt_flow_dist.npz``
+ground truth.
+
+* ``davis/left/events``: (N, 4) float64 rows ``x y t p`` (px, px, s, -1/+1), raw (distorted)
+  coordinates of a DAVIS346 (346x260). Rows are read by hyperslab; a time is found by a binary
+  search of single rows, then one block: nothing is loaded whole.
+* ``davis/left/calibration`` (not part of the official files; accepted when present): ``fx fy cx cy
+  [k1 k2 p1 p2 [k3]]``. MVSEC's own calibration (camchain yaml, equidistant distortion) is not read:
+  pass ``camera=``.
+* ``<name>_gt_flow_dist.npz`` beside ``<name>_data.hdf5`` (or ``gt_flow=``): ``timestamps`` (M,) s,
+  ``x_flow_dist``, ``y_flow_dist`` (M, 260, 346) px: frame i is the displacement from
+  ``timestamps[i]`` to ``timestamps[i+1]``. :meth:`MVSECRecording.flow` accumulates it over an
+  interval as EV-FlowNet does (see :mod:`._flow`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..events import Camera
+from . import _hdf5
+from ._flow import NpzFrames, accumulate_flow
+from .base import Recording
+
+SENSOR_SIZE = (346, 260)
+
+
+def _find_data_file(path: Path) -> Path:
+    if path.is_dir():
+        found = sorted(path.glob("*_data.hdf5"))
+        if len(found) != 1:
+            raise ValueError(f"{path}: expected one *_data.hdf5 file in this folder, found {len(found)}")
+        return found[0]
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    return path
+
+
+class MVSECRecording(Recording):
+    """An MVSEC ``*_data.hdf5`` file (or a folder holding one).
+
+    Parameters
+    ----------
+    path : path
+        The ``*_data.hdf5`` file or its folder.
+    camera : Camera, optional
+        Intrinsics; default: ``davis/<side>/calibration`` when the file has it, else None.
+    sensor_size : (int, int)
+        ``(W, H)`` px, default 346x260.
+    side : {"left", "right"}
+        Which DAVIS.
+    gt_flow : path, optional
+        The ``*_gt_flow_dist.npz`` file; default: the one beside ``path`` named after it, if present.
+    """
+
+    format = "mvsec"
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        camera: Camera | None = None,
+        sensor_size: tuple[int, int] = SENSOR_SIZE,
+        side: str = "left",
+        gt_flow: str | os.PathLike | None = None,
+    ) -> None:
+        self.data_file = _find_data_file(Path(path))
+        self._file = _hdf5.open_h5(self.data_file)
+        try:
+            key = f"davis/{side}/events"
+            self._ds = _hdf5.dataset(self._file, key, self.data_file, "not an MVSEC *_data.hdf5 file?")
+            if self._ds.ndim != 2 or self._ds.shape[1] != 4:
+                raise ValueError(
+                    f"{self.data_file}: '{key}' has shape {self._ds.shape}; expected (N, 4) x y t p"
+                )
+            n = self._ds.shape[0]
+            t_start = float(_hdf5.read(self._ds, (0, 2), self.data_file)) if n else np.nan
+            t_end = float(_hdf5.read(self._ds, (n - 1, 2), self.data_file)) if n else np.nan
+            calib_key = f"davis/{side}/calibration"
+            if camera is None and calib_key in self._file:
+                values = np.ravel(_hdf5.read(self._file[calib_key], (), self.data_file))
+                try:
+                    camera = Camera.from_calib_line(values)
+                except ValueError as exc:
+                    raise ValueError(f"{self.data_file}: '{calib_key}': {exc}") from None
+            super().__init__(
+                self.data_file,
+                sensor_size=sensor_size,
+                camera=camera,
+                undistorted=False,
+                n_events=n,
+                t_start=t_start,
+                t_end=t_end,
+            )
+        except BaseException:
+            self._file.close()
+            raise
+        if gt_flow is None:
+            guess = self.data_file.with_name(self.data_file.name.replace("_data.hdf5", "_gt_flow_dist.npz"))
+            gt_flow = guess if guess != self.data_file and guess.is_file() else None
+        elif not Path(gt_flow).is_file():
+            raise FileNotFoundError(f"{gt_flow}: no such ground-truth flow file")
+        self.gt_flow_file = Path(gt_flow) if gt_flow is not None else None
+        self._gt = None
+
+    def _columns(self, start: int, stop: int):
+        rows = np.asarray(_hdf5.read(self._ds, np.s_[start:stop], self.data_file), dtype=np.float64)
+        return rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3]
+
+    def _times(self, start: int, stop: int) -> np.ndarray:
+        return np.asarray(_hdf5.read(self._ds, np.s_[start:stop, 2], self.data_file), dtype=np.float64)
+
+    def _release(self) -> None:
+        self._file.close()
+
+    def _flow_frames(self):
+        if self._gt is None:
+            path = self.gt_flow_file
+            fx, fy = NpzFrames(path, "x_flow_dist"), NpzFrames(path, "y_flow_dist")
+            try:
+                with np.load(path) as npz:
+                    ts = np.asarray(npz["timestamps"], dtype=np.float64).ravel()
+            except KeyError:
+                raise KeyError(f"{path}: no array 'timestamps'") from None
+            W, H = self.sensor_size
+            if fx.shape != fy.shape or fx.shape[1:] != (H, W) or len(ts) != fx.shape[0]:
+                raise ValueError(
+                    f"{path}: expected x_flow_dist, y_flow_dist of shape ({len(ts)}, {H}, {W}), "
+                    f"got {fx.shape} and {fy.shape}"
+                )
+            if np.any(np.diff(ts) <= 0):
+                raise ValueError(f"{path}: 'timestamps' must increase")
+            self._gt = (fx, fy, ts)
+        return self._gt
+
+    def flow(self, t0: float, t1: float) -> np.ndarray | None:
+        """Ground-truth flow ``(2, H, W)`` px over ``[t0, t1]`` s (NaN where invalid), accumulated from
+        the gt_flow_dist frames as EV-FlowNet's ``estimate_corresponding_gt_flow``; None without the
+        npz file. Frames are read one at a time."""
+        if self.gt_flow_file is None:
+            return None
+        fx, fy, ts = self._flow_frames()
+        # frame i is the displacement over [ts[i], ts[i+1]]: the last frame has no end time
+        return accumulate_flow(lambda i: (fx[i], fy[i]), ts, t0, t1, str(self.gt_flow_file))
