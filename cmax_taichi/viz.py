@@ -201,7 +201,8 @@ def show_flow(
     flow : ndarray
         ``(2, H, W)`` flow (x, y components) in ``unit``.
     max_magnitude : float, optional
-        Magnitude at full brightness (default the field's largest); shown on the legend.
+        Magnitude at full brightness (default the field's largest); shown on the legend. To update in
+        place: ``artist.set_data(flow_to_rgb(new, m))`` and ``artist.wheel_axes.title.set_text(...)``.
     unit : str
         Unit of the flow, for the legend.
     title : str
@@ -220,6 +221,7 @@ def show_flow(
     artist = ax.imshow(flow_to_rgb(flow, max_magnitude), interpolation="nearest")
     _label_image_axes(ax, title)
     artist.wheel_axes = None
+    artist.max_magnitude = max_magnitude
     if wheel:
         inset = ax.inset_axes([0.74, 0.02, 0.25, 0.25 * ax.bbox.width / max(ax.bbox.height, 1.0)])
         inset.imshow(flow_wheel(), interpolation="bilinear")
@@ -545,6 +547,7 @@ def plot_landscape_1d(
     current: float | None = None,
     truth: float | None = None,
     mark_maxima: bool = True,
+    legend_outside: bool = False,
 ) -> dict:
     """Draw objective curves over one parameter.
 
@@ -564,6 +567,8 @@ def plot_landscape_1d(
         Draw a dashed vertical line at the ground truth.
     mark_maxima : bool
         Mark each curve's maximum with a dot of the curve's colour.
+    legend_outside : bool
+        Put the legend to the right of the axes (leave room for it) rather than over the curves.
 
     Returns
     -------
@@ -598,7 +603,10 @@ def plot_landscape_1d(
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
+    if legend_outside:
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    else:
+        ax.legend(fontsize=7, loc="best")
     return handles
 
 

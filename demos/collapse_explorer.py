@@ -83,13 +83,15 @@ class Explorer:
         self.ax_def = self.fig.add_subplot(grid[0, 2])
         self.ax_flow = self.fig.add_subplot(grid[1, 0])
         self.ax_curve = self.fig.add_subplot(grid[1, 1:])
+        box = self.ax_curve.get_position()  # room on the right for the legend
+        self.ax_curve.set_position([box.x0, box.y0, box.width - 0.14, box.height])
         self._build_images()
         self._build_widgets(bottom)
 
     # --- set-up ---------------------------------------------------------------------------------------------
     def _color_limits(self) -> None:
         """Fixed colour ranges over the whole slider box, so that colours compare across positions."""
-        div, dfm, flow = 1e-9, 1.0 + 1e-3, 1e-9
+        div, dfm = 1e-9, 1.0 + 1e-3
         for i in range(self.n):
             for end in self.ranges[i]:
                 th = np.zeros(self.n)
@@ -99,9 +101,7 @@ class Explorer:
                 div = max(div, float(np.percentile(np.abs(maps["divergence"][hit]), 99)))
                 ratio = np.abs(np.log(np.maximum(maps["deformation"][hit], 1e-3)))
                 dfm = max(dfm, float(np.exp(np.percentile(ratio, 99))))
-                f = self.base.dense_flow(th)
-                flow = max(flow, float(np.hypot(f[0], f[1]).max()))
-        self.div_limit, self.def_limit, self.flow_limit = div, min(dfm, 100.0), flow
+        self.div_limit, self.def_limit = div, min(dfm, 10.0)  # beyond 10x the colours saturate
 
     def _build_images(self) -> None:
         th = self.theta
@@ -110,7 +110,7 @@ class Explorer:
         self.im_div = viz.show_regularizer_map(self.ax_div, maps, "divergence", limit=self.div_limit)
         self.im_def = viz.show_regularizer_map(self.ax_def, maps, "deformation", limit=self.def_limit)
         self.im_flow = viz.show_flow(
-            self.ax_flow, self.base.dense_flow(th), max_magnitude=self.flow_limit, title="Flow of the warp"
+            self.ax_flow, self.base.dense_flow(th), title="Flow of the warp (black: 0)"
         )
 
     def _build_widgets(self, bottom: float) -> None:
@@ -187,7 +187,14 @@ class Explorer:
         ):
             artist.set_data(np.ma.masked_array(maps[name], mask=~(maps["count"] > 0)))
             ax.set_title(f"{name} map (R = {maps['R_' + name]:.3g})")
-        self.im_flow.set_data(viz.flow_to_rgb(self.base.dense_flow(th), self.flow_limit))
+        # Flow brightness is scaled per frame (the legend's rim says to what): a fixed scale over the
+        # slider box would leave every moderate flow black.
+        flow = self.base.dense_flow(th)
+        rim = max(float(np.hypot(flow[0], flow[1]).max()), 1e-9)
+        self.im_flow.set_data(viz.flow_to_rgb(flow, rim))
+        self.im_flow.wheel_axes.title.set_text(
+            f"rim: {rim:.3g} px/s" if rim < 100 else f"rim: {rim:.0f} px/s"
+        )
 
     def refresh_curve(self) -> None:
         if not self.curve_stale:
@@ -205,6 +212,7 @@ class Explorer:
             title=self._curve_title(),
             current=float(self.theta[i]),
             truth=truth,
+            legend_outside=True,
         )
         self.current_marks = {
             label: self.ax_curve.plot([], [], "s", mfc="w", mec=line.get_color(), ms=7, mew=1.5)[0]
@@ -231,8 +239,7 @@ class Explorer:
     def optimize(self, label: str):
         """Run the optimizer on objective ``label`` from the current point; draw (and animate) its path."""
         result = _common.run_optimizer(self.problems[label], self.theta.copy())
-        path = np.array([h[0] for h in result.history] + [result.theta])
-        values = np.array([h[1] for h in result.history] + [result.value])
+        path, values = _common.optimizer_path(result)
         summary = ", ".join(f"{p} = {v:.3g}" for p, v in zip(self.model.params, result.theta, strict=True))
         self.fig.suptitle(
             f"{self._suptitle()}\noptimizer on '{label}' ({len(path) - 1} iterations): {summary}", fontsize=10
@@ -260,7 +267,7 @@ class Explorer:
         self.path_artists += self.ax_curve.plot(
             path[-1, i], values[-1], "*", color=color, mec="k", ms=14, label="estimate"
         )
-        self.ax_curve.legend(fontsize=7, loc="best")
+        self.ax_curve.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
         self.fig.canvas.draw_idle()
 
     def _animate(self, path: np.ndarray, done) -> None:
