@@ -253,7 +253,7 @@ class TextRecording(Recording):
         if sensor_size is None:
             if not meta["n"]:
                 raise ValueError(f"{self.events_file}: no events and no sensor size (pass sensor_size=)")
-            sensor_size = (int(math.floor(meta["xy_max"][0])) + 1, int(math.floor(meta["xy_max"][1])) + 1)
+            sensor_size = (int(math.ceil(meta["xy_max"][0])) + 1, int(math.ceil(meta["xy_max"][1])) + 1)
         if integer and meta["n"]:
             (x0, y0), (x1, y1) = meta["xy_min"], meta["xy_max"]
             W, H = sensor_size
