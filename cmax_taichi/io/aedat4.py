@@ -35,7 +35,9 @@ def _decoder(path: Path):
         ) from None
     try:
         return aedat.Decoder(str(path))
-    except Exception as exc:  # the Rust decoder raises plain exceptions for bad files
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # the Rust decoder raises plain exceptions, or panics, on bad files
         raise ValueError(f"{path}: not a readable AEDAT4 file ({exc})") from None
 
 
@@ -70,9 +72,9 @@ def _decode(path: Path, out: BinaryIO) -> dict:
             t_last = float(rows[-1, 0])
             out.write(rows.tobytes())
             n += len(rows)
-    except ValueError:
+    except (ValueError, KeyboardInterrupt, SystemExit):
         raise
-    except Exception as exc:  # truncated or corrupt packets
+    except BaseException as exc:  # truncated or corrupt packets (the decoder may panic)
         raise ValueError(f"{path}: cannot decode the AEDAT4 file after {n} events ({exc})") from None
     return {"n": n, "t_start": t_first, "t_end": t_last, "sensor_size": list(size)}
 
