@@ -144,13 +144,15 @@ def test_gt_flow_accumulation(tmp_path, compressed):
     np.testing.assert_array_equal(frames[3], fx[3])
     rec = open_recording(path)
     assert rec.gt_flow_file.name == "indoor_flying9_gt_flow_dist.npz"
-    for t0, t1 in [
+    intervals = [
         (ts[1] + 0.01, ts[1] + 0.04),  # inside one frame: scaled
         (ts[1] + 0.03, ts[2] + 0.01),  # shorter than a frame, across a boundary: EV-FlowNet scales too
         (ts[1], ts[2]),  # exactly one frame
         (ts[0] + 0.02, ts[3] + 0.03),  # several frames: propagated
         (ts[0], ts[5]),
-    ]:
+    ]
+    # a compressed npz is read by seeking in the deflate stream (slow): one interval is enough
+    for t0, t1 in intervals[3:4] if compressed else intervals:
         ours = rec.flow(t0, t1)
         ref = np.stack(evflownet_reference(fx, fy, ts, t0, t1))
         assert ours.shape == (2, H, W)

@@ -134,6 +134,7 @@ class NpzFrames:
         self.shape, self.dtype = tuple(shape), np.dtype(dtype)
         self._frame_bytes = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
         self._map = None
+        self._zip = self._member = None
         if info.compress_type == zipfile.ZIP_STORED:
             with open(self.path, "rb") as f:
                 f.seek(info.header_offset)
@@ -151,9 +152,19 @@ class NpzFrames:
             raise IndexError(f"{self.path}: frame {i} of '{self.key}' out of range (0..{len(self) - 1})")
         if self._map is not None:
             return np.array(self._map[i])
-        with zipfile.ZipFile(self.path) as zf, zf.open(f"{self.key}.npy") as member:
-            member.seek(self._data_offset + i * self._frame_bytes)
-            raw = member.read(self._frame_bytes)
+        if self._member is None:
+            # kept open: a forward seek decompresses only the gap (frames are asked for in time order)
+            self._zip = zipfile.ZipFile(self.path)
+            self._member = self._zip.open(f"{self.key}.npy")
+        self._member.seek(self._data_offset + i * self._frame_bytes)
+        raw = self._member.read(self._frame_bytes)
         if len(raw) != self._frame_bytes:
             raise ValueError(f"{self.path}: array '{self.key}' is truncated at frame {i}")
         return np.frombuffer(raw, dtype=self.dtype).reshape(self.shape[1:]).copy()
+
+    def close(self) -> None:
+        """Release the open file (the memory map goes with the object)."""
+        if self._member is not None:
+            self._member.close()
+            self._zip.close()
+            self._member = self._zip = None

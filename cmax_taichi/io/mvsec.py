@@ -115,6 +115,9 @@ class MVSECRecording(Recording):
 
     def _release(self) -> None:
         self._file.close()
+        if self._gt is not None:
+            self._gt[0].close()
+            self._gt[1].close()
 
     def _flow_frames(self):
         if self._gt is None:

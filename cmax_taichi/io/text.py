@@ -123,23 +123,25 @@ def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> di
                 chunk, rest = data[:cut], data[cut:]
             else:
                 chunk, rest = data, b""
-            if chunk.strip():
+            if chunk and not chunk.isspace():
                 try:
                     arr = np.loadtxt(io.BytesIO(chunk), dtype=np.float64, comments="#", ndmin=2)
                 except ValueError:
                     raise _bad_line(path, chunk, line_no, ncols) from None
                 if arr.shape[1] != ncols:
                     raise _bad_line(path, chunk, line_no, ncols)
-                rows = np.ascontiguousarray(arr[:, pick])
+                rows = arr if pick == [0, 1, 2, 3] else np.ascontiguousarray(arr[:, pick])
                 _check_rows(path, chunk, line_no, rows, t_last)
-                if n == 0 and len(rows):
-                    t_first = float(rows[0, 0])
                 if len(rows):
+                    if n == 0:
+                        t_first = float(rows[0, 0])
                     t_last = float(rows[-1, 0])
-                    lo = np.minimum(lo, rows[:, 1:3].min(axis=0))
-                    hi = np.maximum(hi, rows[:, 1:3].max(axis=0))
-                    integer = integer and bool(np.all(rows[:, 1:3] == np.floor(rows[:, 1:3])))
-                out.write(rows.tobytes())
+                    for k in (0, 1):  # 1-D reductions: much faster than axis=0 on a strided pair
+                        column = rows[:, 1 + k]
+                        lo[k] = min(lo[k], column.min())
+                        hi[k] = max(hi[k], column.max())
+                        integer = integer and bool(np.all(np.floor(column) == column))
+                out.write(rows.data)
                 n += len(rows)
             line_no += chunk.count(b"\n")
             if eof:
