@@ -116,13 +116,6 @@ def test_mvsec_text_cut():
         rec.read(0, 30000)
 
 
-def test_events_work_with_a_problem():
-    folder = shared_data_dir("ecd_rotation", "poster_rotation")
-    rec = open_recording(folder)
-    prob = cm.ContrastMaximization(rec.read(0, 2000), warp="rotation3", camera=rec.camera)
-    assert np.isfinite(prob.value([0.0, 0.0, 0.0]))
-
-
 # --- fixture folders --------------------------------------------------------------------------
 def test_ecd_fixture_exact_and_ground_truth(tmp_path):
     data = write_ecd(tmp_path / "seq")
@@ -192,7 +185,7 @@ def test_text_options(tmp_path):
 # --- the cache --------------------------------------------------------------------------------
 def test_cache_second_read_faster_identical_and_invalidated(tmp_path):
     rng = np.random.default_rng(2)
-    n = 200_000
+    n = 100_000
     t = np.cumsum(rng.integers(0, 3, n)) * 1e-6
     block = np.column_stack([t, rng.integers(0, 240, n), rng.integers(0, 180, n), rng.integers(0, 2, n)])
     path = tmp_path / "events.txt"
