@@ -230,7 +230,7 @@ def show_flow(
         for spine in inset.spines.values():
             spine.set_visible(False)
         inset.set_title(
-            f"rim: {_fmt(max_magnitude)} {unit}",
+            f"rim: {_fmt(max_magnitude)} {unit}" if max_magnitude > 0 else "no motion",
             fontsize=7,
             pad=2,
             bbox=dict(facecolor="w", alpha=0.8, lw=0, pad=1),

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 import cmax_taichi as cm
+from cmax_taichi.io import open_recording
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_DIR = Path(os.environ.get("CMAX_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -73,15 +75,12 @@ def load_mvsec(n_events: int = 30000) -> Scene | None:
     folder = DATA_DIR / "mvsec_indoor_flying1"
     if not (folder / "events.txt").exists():
         return None
-    calib = np.loadtxt(folder / "calib.txt", max_rows=1)
-    width, height = (int(v) for v in np.loadtxt(folder / "calib.txt", skiprows=1, max_rows=1))
-    data = np.loadtxt(folder / "events.txt", max_rows=int(n_events * 1.01) + 200)
-    t, x, y, p = data[:, 0], data[:, 1], data[:, 2], data[:, 4]
-    # The undistorted float coordinates can fall a little outside the sensor: drop those quietly.
-    inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-    t, x, y, p = t[inside][:n_events], x[inside][:n_events], y[inside][:n_events], p[inside][:n_events]
-    events = cm.Events(x, y, t, p, (width, height), undistorted=True)
-    camera = cm.Camera(*calib[:4], dist=tuple(calib[4:9]))
+    with warnings.catch_warnings():
+        # Undistorted float coordinates fall a little outside the sensor; the reader drops those.
+        warnings.filterwarnings("ignore", message=".*outside the .* sensor", category=RuntimeWarning)
+        with open_recording(folder) as rec:
+            events = rec.read(0, n_events)
+            camera = rec.camera
     return Scene(
         events, camera, f"MVSEC indoor_flying1, {len(events)} events, {events.duration * 1e3:.0f} ms"
     )
@@ -134,13 +133,12 @@ def load_ecd(sequence: str) -> Scene | None:
     folder = DATA_DIR / "ecd_rotation" / sequence
     if not (folder / "events.txt").exists():
         return None
-    calib = np.loadtxt(folder / "calib.txt")
-    gyro = np.loadtxt(folder / "motion.txt").reshape(-1)[:3]
-    data = np.loadtxt(folder / "events.txt")
-    events = cm.Events(data[:, 1], data[:, 2], data[:, 0], data[:, 3], (240, 180))
-    camera = cm.Camera(*calib[:4], dist=tuple(calib[4:9]))
+    with open_recording(folder) as rec:
+        events = rec.read()  # raw distorted pixels: the problem undistorts them with rec.camera
+        camera = rec.camera
+        gyro = rec.angular_velocity(0.5 * (events.t[0] + events.t[-1]))
     name = f"ECD {sequence}, {len(events)} events, {events.duration * 1e3:.1f} ms"
-    return Scene(events, camera, name, truth=gyro, truth_label="IMU gyro")
+    return Scene(events, camera, name, truth=np.asarray(gyro, dtype=np.float64), truth_label="IMU gyro")
 
 
 def _rodrigues(w: np.ndarray, dt: np.ndarray) -> np.ndarray:

@@ -190,11 +190,10 @@ class Explorer:
         # Flow brightness is scaled per frame (the legend's rim says to what): a fixed scale over the
         # slider box would leave every moderate flow black.
         flow = self.base.dense_flow(th)
-        rim = max(float(np.hypot(flow[0], flow[1]).max()), 1e-9)
+        rim = float(np.hypot(flow[0], flow[1]).max())
         self.im_flow.set_data(viz.flow_to_rgb(flow, rim))
-        self.im_flow.wheel_axes.title.set_text(
-            f"rim: {rim:.3g} px/s" if rim < 100 else f"rim: {rim:.0f} px/s"
-        )
+        label = f"rim: {rim:.3g} px/s" if rim < 100 else f"rim: {rim:.0f} px/s"
+        self.im_flow.wheel_axes.title.set_text(label if rim > 1e-9 else "no motion")
 
     def refresh_curve(self) -> None:
         if not self.curve_stale:
