@@ -10,6 +10,7 @@ from .backend import info as backend_info
 from .events import Camera, Events
 from .jacobians import event_jacobians
 from .objectives import OBJECTIVES, Objective, objective_names, register_objective
+from .optimize import OptimizeResult, maximize
 from .problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
 from .regularizers import REGULARIZERS, Regularizer, register_regularizer, regularizer_names
 from .warps import WARPS, WarpModel, get_warp, register_warp, warp_names
@@ -24,6 +25,7 @@ __all__ = [
     "Events",
     "OBJECTIVES",
     "Objective",
+    "OptimizeResult",
     "POLARITY_MODES",
     "REGULARIZERS",
     "Regularizer",
@@ -34,6 +36,7 @@ __all__ = [
     "event_jacobians",
     "get_warp",
     "init",
+    "maximize",
     "objective_names",
     "register_objective",
     "register_regularizer",
