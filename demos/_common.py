@@ -186,50 +186,19 @@ def synthetic_rotation(
 
 
 # --- optimizer ----------------------------------------------------------------------------------------------
-@dataclass
-class _History:
-    theta: np.ndarray  # (K, P), physical units
-    value: np.ndarray  # (K,)
+def run_optimizer(prob: cm.ContrastMaximization, theta0=None, method: str = "adam", init: str = "none"):
+    """:func:`cmax_taichi.maximize` from ``theta0`` (default 0).
 
-
-@dataclass
-class _Result:
-    theta: np.ndarray
-    value: float
-    history: _History
-    seconds: float
-    method: str
-
-
-def run_optimizer(prob: cm.ContrastMaximization, theta0=None, method: str = "adam", max_iter: int = 80):
-    """Maximise ``prob`` locally from ``theta0`` (default 0); ``.theta``, ``.value``, ``.history``.
-
-    TEMPORARY: ``cmax_taichi.maximize`` is being written; until it lands this is plain Adam on
-    ``prob.value_and_grad`` with per-unit step sizes, keeping the best point (``method`` is ignored).
+    ``init="none"`` is a local ascent from ``theta0`` only (what the demos animate: where gradient
+    ascent goes from the point you chose); ``"auto"`` adds the global search first.
     """
-    import time
-
-    start = time.perf_counter()
-    units = prob.model.units
-    step = np.array([{"px/s": 4.0, "1/s": 0.1, "rad/s": 0.05}.get(u, 0.05) for u in units])
-    theta = np.zeros(prob.model.n_params) if theta0 is None else np.asarray(theta0, dtype=np.float64).copy()
-    m = np.zeros_like(theta)
-    v = np.zeros_like(theta)
-    thetas, values = [], []
-    for k in range(1, max_iter + 1):
-        value, grad = prob.value_and_grad(theta)
-        thetas.append(theta.copy())
-        values.append(value)
-        m = 0.9 * m + 0.1 * grad
-        v = 0.999 * v + 0.001 * grad**2
-        theta = theta + step * (m / (1 - 0.9**k)) / (np.sqrt(v / (1 - 0.999**k)) + 1e-12)
-    best = int(np.argmax(values))
-    history = _History(np.array(thetas), np.array(values))
-    return _Result(thetas[best], values[best], history, time.perf_counter() - start, "adam")
+    if theta0 is None and init == "none":
+        theta0 = np.zeros(prob.model.n_params)
+    return cm.maximize(prob, theta0=theta0, method=method, init=init)
 
 
 def optimizer_path(result) -> tuple[np.ndarray, np.ndarray]:
-    """``(theta (K, P), J (K,))`` of the optimizer's iterates."""
+    """``(theta (K, P), J (K,))`` of the iterates of the optimizer's winning local run."""
     return np.asarray(result.history.theta, dtype=np.float64), np.asarray(
         result.history.value, dtype=np.float64
     )

@@ -47,12 +47,12 @@ def landscape_values(k: int, points: list[np.ndarray], n: int) -> np.ndarray:
     """Grid values of parameter ``k`` covering 0 and ``points`` with a margin (rad/s)."""
     vals = [0.0] + [float(p[k]) for p in points if p is not None]
     lo, hi = min(vals), max(vals)
-    margin = max(0.35 * (hi - lo), 0.3)
+    margin = max(0.15 * (hi - lo), 0.2)
     return np.linspace(lo - margin, hi + margin, n)
 
 
 def build_figure(
-    scene: _common.Scene, prob: cm.ContrastMaximization, result, objective_label: str, grid: int
+    scene: _common.Scene, prob: cm.ContrastMaximization, result, objective_label: str, grid: int, init: str
 ):
     import matplotlib.pyplot as plt
 
@@ -61,11 +61,12 @@ def build_figure(
     truth = scene.truth
     path, values = _common.optimizer_path(result)
 
+    start = "local ascent from 0" if init == "none" else f"{init} search, then local ascent"
     fig = plt.figure(figsize=(15, 9))
     gs = fig.add_gridspec(2, 3, left=0.05, right=0.96, top=0.9, bottom=0.07, hspace=0.35, wspace=0.38)
     fig.suptitle(
         f"Rotation estimation by CMax: {scene.name}\nobjective: {objective_label}; "
-        f"optimizer: {result.method} ({len(path) - 1} iterations, {result.seconds:.2f} s)",
+        f"optimizer: {result.method}, {start} ({len(path) - 1} iterations, {result.seconds:.2f} s)",
         fontsize=11,
     )
 
@@ -102,7 +103,7 @@ def build_figure(
         (line,) = ax.plot(it, path[:, k], lw=1.5, label=model.params[k])
         if truth is not None:
             ax.axhline(truth[k], color=line.get_color(), ls="--", lw=1.0)
-    ax.set_xlabel("iteration of the local ascent")
+    ax.set_xlabel("iteration (local ascent)")
     ax.set_ylabel("angular velocity [rad/s] (dashed: ground truth)")
     ax.set_title("Optimizer trajectory")
     ax.grid(alpha=0.3)
@@ -116,8 +117,9 @@ def build_figure(
     # Landscape over the two largest axes, the third at the estimate, with the path.
     ax = fig.add_subplot(gs[1, 2])
     i, j = landscape_axes(truth, estimate)
-    vx = landscape_values(i, [truth, estimate, path[0]], grid)
-    vy = landscape_values(j, [truth, estimate, path[0]], grid)
+    points = [truth, estimate, *path]  # the whole path stays on the map
+    vx = landscape_values(i, points, grid)
+    vy = landscape_values(j, points, grid)
     surface = viz.landscape_2d(prob, (i, j), vx, vy, theta=estimate)
     viz.plot_landscape_2d(
         ax,
@@ -147,6 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--lam", type=float, default=1.0, help="weight λ of each regularizer (default 1)")
     parser.add_argument("--method", choices=("adam", "armijo", "lbfgs"), default="adam", help="local ascent")
+    parser.add_argument(
+        "--init",
+        choices=("none", "auto", "grid", "random"),
+        default="none",
+        help="none: local ascent from 0 (default); auto/grid/random: global search first",
+    )
     parser.add_argument("--grid", type=int, default=25, help="landscape grid points per axis (default 25)")
     parser.add_argument(
         "--max-events", type=int, help="use every k-th event so that at most this many remain"
@@ -171,7 +179,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     names = REGULARIZERS[args.regularizer]
     weights = None if names is None else {n: args.lam for n in names}
     prob = cm.ContrastMaximization(scene.events, warp="rotation3", camera=scene.camera, regularizers=weights)
-    result = _common.run_optimizer(prob, None, method=args.method)
+    result = _common.run_optimizer(prob, None, method=args.method, init=args.init)
     label = "IWE variance" + (
         "" if names is None else " - " + " - ".join(f"{args.lam:g} R_{n}" for n in names)
     )
@@ -180,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if scene.truth is not None:
         print(f"{scene.truth_label}: " + ", ".join(f"{v:+.3f}" for v in scene.truth) + " rad/s")
 
-    fig = build_figure(scene, prob, result, label, args.grid)
+    fig = build_figure(scene, prob, result, label, args.grid, args.init)
     if args.save:
         fig.savefig(args.save, dpi=args.dpi)
         print(f"saved {args.save}")
