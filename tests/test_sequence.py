@@ -1,0 +1,115 @@
+"""Sequence processing: windows by count and by duration, warm start, CSV / JSON round trip, the
+progress bar, and that consecutive windows reuse one pooled workspace (compile once)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import numpy as np
+import pytest
+
+import cmax_taichi as cm
+from cmax_taichi import sequence, workspace
+
+pytestmark = pytest.mark.usefixtures("f64")
+
+SENSOR = (64, 48)
+V = (150.0, 60.0)  # px/s
+
+
+def translating_edges(v=V, n=3300, duration=0.12, seed=4):
+    """Edges translating at ``v`` px/s for ``duration`` s (events leaving the sensor are dropped)."""
+    rng = np.random.default_rng(seed)
+    W, H = SENSOR
+    k = 8
+    centres = rng.uniform([12, 10], [W - 12, H - 10], size=(k, 2))
+    angles = rng.uniform(0, np.pi, size=k)
+    which = rng.integers(0, k, n)
+    s = rng.uniform(-7, 7, n)
+    t = np.sort(rng.uniform(0, duration, n))
+    x = centres[which, 0] + s * np.cos(angles[which]) + v[0] * (t - duration / 2)
+    y = centres[which, 1] + s * np.sin(angles[which]) + v[1] * (t - duration / 2)
+    keep = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+    return cm.Events(x[keep], y[keep], t[keep], rng.integers(0, 2, n)[keep], SENSOR)
+
+
+@pytest.fixture(scope="module")
+def events():
+    return translating_edges()
+
+
+def test_windows_by_count_with_warm_start(events, tmp_path):
+    seen = []
+    stream = io.StringIO()  # not a terminal: one line per 10%
+    result = sequence.process(
+        events,
+        "translation2",
+        n_events=1000,
+        progress=stream,
+        on_window=lambda row, prob, res: seen.append((row.index, res.init, len(workspace._POOL))),
+    )
+    assert len(result) == 3 and [w.n_events for w in result.windows] == [1000] * 3
+    for w in result.windows:
+        assert abs(w.theta[0] - V[0]) < 8.0 and abs(w.theta[1] - V[1]) < 8.0, w
+        assert w.fwl > 1.0 and w.t_end > w.t_start and w.iterations > 0 and w.seconds > 0
+    assert [s[1] for s in seen] == ["grid", "local", "local"]  # warm start after the first window
+    assert seen[1][2] == seen[2][2]  # the same pooled fields for every window (no new compile)
+    assert "3/3 windows" in stream.getvalue()
+
+    csv_path = result.to_csv(tmp_path / "r.csv")
+    with csv_path.open() as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == [
+        "index",
+        "t_start [s]",
+        "t_end [s]",
+        "n_events",
+        "v_x [px/s]",
+        "v_y [px/s]",
+        "value",
+        "fwl",
+        "iterations",
+        "seconds",
+        "converged",
+    ]
+    assert len(rows) == 4 and float(rows[1][4]) == pytest.approx(result.windows[0].theta[0])
+    json_path = result.to_json(tmp_path / "r.json")
+    data = json.loads(json_path.read_text())
+    assert data["params"] == ["v_x", "v_y"] and data["units"] == ["px/s", "px/s"]
+    assert data["settings"]["window_events"] == 1000
+    back = sequence.read_results(json_path)
+    np.testing.assert_allclose(back.theta, result.theta)
+    assert [w.t_start for w in back.windows] == [w.t_start for w in result.windows]
+
+
+def test_windows_by_duration_without_warm_start(events):
+    result = sequence.process(
+        events,
+        "translation2",
+        duration=0.04,
+        warm_start=False,
+        compute_fwl=False,
+        max_windows=2,
+        progress=False,
+        optimize_options={"n_init": 300},
+    )
+    assert len(result) == 2
+    assert all(np.isnan(w.fwl) for w in result.windows)
+    assert all(abs(w.theta[0] - V[0]) < 8.0 for w in result.windows)
+    assert result.windows[1].t_start >= 0.04 - 1e-9
+
+
+def test_bad_inputs(events, tmp_path):
+    with pytest.raises(TypeError, match="source must be"):
+        sequence.process([1, 2, 3])
+    with pytest.raises(ValueError, match="needs a camera"):
+        sequence.process(events, "rotation3", progress=False)
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="not a results JSON"):
+        sequence.read_results(bad)
+    bad.write_text('{"warp": "zoom1"}')
+    with pytest.raises(ValueError, match="not a cmax-taichi results file"):
+        sequence.read_results(bad)
