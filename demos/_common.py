@@ -46,6 +46,29 @@ def no_display_exit(name: str) -> int:
     return 2
 
 
+def save_figure(fig, path: str, dpi: int, compact: bool = False) -> None:
+    """Save ``fig``; ``compact``: a 256-colour palette PNG (about 2x smaller, for the README pictures)."""
+    if not compact:
+        fig.savefig(path, dpi=dpi)
+    else:
+        import io
+
+        from PIL import Image  # matplotlib depends on Pillow
+
+        buffer = io.BytesIO()
+        fig.savefig(buffer, dpi=dpi, format="png")
+        buffer.seek(0)
+        Image.open(buffer).convert("RGB").quantize(256).save(path, optimize=True)
+    print(f"saved {path}")
+
+
+def add_save_arguments(parser) -> None:
+    """``--save``, ``--dpi``, ``--compact`` (shared by every demo)."""
+    parser.add_argument("--save", metavar="PNG", help="render headless into this file instead of a window")
+    parser.add_argument("--dpi", type=int, default=80, help="resolution of --save (default 80)")
+    parser.add_argument("--compact", action="store_true", help="--save a 256-colour PNG (smaller file)")
+
+
 def subsample(events: cm.Events, max_events: int | None) -> cm.Events:
     """Every k-th event so that at most ``max_events`` remain: the same window, fewer events."""
     if max_events is None or len(events) <= max_events:

@@ -318,8 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("none", "divergence", "deformation", "both"),
         help="run the optimizer from --theta on this objective and draw its path (headless too)",
     )
-    parser.add_argument("--save", metavar="PNG", help="render headless into this file instead of a window")
-    parser.add_argument("--dpi", type=int, default=80, help="resolution of --save (default 80)")
+    _common.add_save_arguments(parser)
     return parser
 
 
@@ -346,8 +345,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         label = {"none": 0, "divergence": 1, "deformation": 2, "both": 3}[args.optimize]
         explorer.optimize(explorer.labels[label])
     if args.save:
-        explorer.fig.savefig(args.save, dpi=args.dpi)
-        print(f"saved {args.save}")
+        _common.save_figure(explorer.fig, args.save, args.dpi, args.compact)
         return 0
     import matplotlib.pyplot as plt
 

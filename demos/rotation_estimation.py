@@ -159,8 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--max-events", type=int, help="use every k-th event so that at most this many remain"
     )
-    parser.add_argument("--save", metavar="PNG", help="render headless into this file instead of a window")
-    parser.add_argument("--dpi", type=int, default=80, help="resolution of --save (default 80)")
+    _common.add_save_arguments(parser)
     return parser
 
 
@@ -190,8 +189,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     fig = build_figure(scene, prob, result, label, args.grid, args.init)
     if args.save:
-        fig.savefig(args.save, dpi=args.dpi)
-        print(f"saved {args.save}")
+        _common.save_figure(fig, args.save, args.dpi, args.compact)
         return 0
     import matplotlib.pyplot as plt
 

@@ -150,7 +150,9 @@ def test_collapse_explorer_4dof_with_optimizer_renders(tmp_path):
 
 def test_rotation_estimation_renders(tmp_path):
     out = tmp_path / "rot.png"
-    rc = _demo("rotation_estimation").main(["--save", str(out), "--max-events", "3000", "--grid", "5"])
+    rc = _demo("rotation_estimation").main(
+        ["--save", str(out), "--max-events", "3000", "--grid", "5", "--compact"]
+    )
     assert rc == 0
     _assert_not_blank(out)
 
