@@ -164,12 +164,15 @@ class Explorer:
     def set_theta(self, theta: np.ndarray) -> None:
         """Move the sliders (which redraws) to ``theta``, clipped to the slider ranges."""
         theta = np.clip(theta, self.ranges[:, 0], self.ranges[:, 1])
-        self._batch = True  # one redraw for all sliders, not one per slider
+        self._batch = True  # one update and one redraw for all sliders, not one per slider
         try:
             for s, v in zip(self.sliders, theta, strict=True):
+                s.drawon = False
                 s.set_val(float(v))
         finally:
             self._batch = False
+            for s in self.sliders:
+                s.drawon = True
         self._on_slider(None)
 
     # --- drawing --------------------------------------------------------------------------------------------
