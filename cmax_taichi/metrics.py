@@ -13,6 +13,8 @@ RMS angular error  ``sqrt(mean_k |w_est,k - w_gt,k|^2) * 180 / pi`` over windows
                    (the norm of the 3-vector error; per-axis RMS also returned)
 covered share      ``#{x : C_0(x) >= c and C_theta(x) >= c} / #{x : C_0(x) >= c}``  fraction
                    with C the vote count of the warped events, ``c = 0.25``
+covered area       ``#{x : C_theta(x) >= c} / #{x : C_0(x) >= c}`` (< 1: the events   ratio
+ratio              occupy less area than unwarped; collapse drives it towards 0)
 =================  ===============================================================  ==============
 
 The flow metrics use the pixels where the ground truth is valid (finite, and both components non-zero,
@@ -34,6 +36,7 @@ from .warps import WarpModel
 
 __all__ = [
     "angular_velocity_error",
+    "covered_area_ratio",
     "covered_share",
     "event_mask",
     "flow_error",
@@ -217,3 +220,12 @@ def covered_share(prob: ContrastMaximization, theta, min_count: float = 0.25) ->
     c1 = prob.maps(theta)["count"] >= min_count
     n0 = int(np.count_nonzero(c0))
     return float(np.count_nonzero(c0 & c1) / n0) if n0 else math.nan
+
+
+def covered_area_ratio(prob: ContrastMaximization, theta, min_count: float = 0.25) -> float:
+    """Pixels covered at ``theta`` over pixels covered by the identity warp (coverage as in
+    :func:`covered_share`): below 1 when the warp gathers the events into less area (collapse), above
+    1 when it spreads them."""
+    n0 = int(np.count_nonzero(prob.maps(np.zeros(prob.model.n_params))["count"] >= min_count))
+    n1 = int(np.count_nonzero(prob.maps(theta)["count"] >= min_count))
+    return float(n1 / n0) if n0 else math.nan
