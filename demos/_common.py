@@ -148,6 +148,31 @@ def synthetic_zoom(n_events: int = 20000, h_z: float = 2.0, duration: float = 0.
     )
 
 
+def synthetic_two_objects(n_events: int = 12000, duration: float = 0.05, seed: int = 2) -> Scene:
+    """A textured background and a textured square moving with different translations (px/s).
+
+    ``Scene.extra["labels"]``: the true object of each event (0 background, 1 square); ``Scene.truth``:
+    the two velocities, shape (2, 2).
+    """
+    rng = np.random.default_rng(seed)
+    width, height = 240, 180
+    velocity = np.array([[-80.0, 20.0], [150.0, -60.0]])
+    n_square = n_events // 3
+    half = np.array([width / 2.0, height / 2.0])
+    background = _segment_points(rng, n_events - n_square, 80, half) + half
+    square = _segment_points(rng, n_square, 25, np.array([30.0, 30.0])) + [90.0, 90.0]
+    pts = np.vstack([background, square])
+    label = np.r_[np.zeros(len(background), int), np.ones(len(square), int)]
+    t = rng.uniform(0.0, duration, len(pts))
+    xy = pts + t[:, None] * velocity[label]
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] <= width - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= height - 1)
+    order = np.argsort(t[inside], kind="stable")
+    xy, t, label = xy[inside][order], t[inside][order], label[inside][order]
+    events = cm.Events(xy[:, 0], xy[:, 1], t, rng.integers(0, 2, len(t)), (width, height))
+    name = f"two objects (background {velocity[0].tolist()}, square {velocity[1].tolist()} px/s)"
+    return Scene(events, None, name, truth=velocity, extra={"labels": label})
+
+
 # --- ECD rotation (rotation demo) -------------------------------------------------------------------------
 def load_ecd(sequence: str) -> Scene | None:
     """A raw ECD rotation window with its calibration and the gyro ground truth, or None when absent."""
