@@ -73,8 +73,10 @@ class Explorer:
         self._batch = False
         self._color_limits()
 
-        self.fig = plt.figure(figsize=(15, 9.2 if self.n > 1 else 8.4))
+        self.fig = plt.figure(figsize=(15, 9.2 if self.n > 1 or interactive else 8.4))
         bottom = 0.11 + 0.035 * self.n
+        if interactive:  # room for the radio buttons under the plots
+            bottom = max(bottom, 0.27)
         grid = self.fig.add_gridspec(
             2, 3, left=0.05, right=0.95, top=0.91, bottom=bottom, hspace=0.38, wspace=0.42
         )
@@ -125,17 +127,17 @@ class Explorer:
             self.sliders.append(slider)
         if not self.interactive:
             return
-        ax_radio = self.fig.add_axes([0.63, 0.005, 0.17, bottom - 0.02])
+        ax_radio = self.fig.add_axes([0.63, 0.01, 0.17, bottom - 0.12])
         ax_radio.set_title("optimize", fontsize=8)
         self.radio = RadioButtons(ax_radio, self.labels, active=len(self.labels) - 1)
         for text in self.radio.labels:
             text.set_fontsize(8)
-        self.button = Button(self.fig.add_axes([0.82, bottom - 0.06, 0.07, 0.04]), "Optimize")
+        self.button = Button(self.fig.add_axes([0.82, bottom - 0.1, 0.07, 0.04]), "Optimize")
         self.button.on_clicked(lambda _event: self.optimize(self.radio.value_selected))
-        self.reset = Button(self.fig.add_axes([0.9, bottom - 0.06, 0.06, 0.04]), "Reset")
+        self.reset = Button(self.fig.add_axes([0.9, bottom - 0.1, 0.06, 0.04]), "Reset")
         self.reset.on_clicked(lambda _event: self.set_theta(np.zeros(self.n)))
         if self.n > 1:
-            ax_pick = self.fig.add_axes([0.82, 0.005, 0.14, bottom - 0.08])
+            ax_pick = self.fig.add_axes([0.82, 0.01, 0.14, bottom - 0.14])
             ax_pick.set_title("curve over", fontsize=8)
             self.pick = RadioButtons(ax_pick, list(self.model.params), active=self.curve_index)
             self.pick.on_clicked(self._on_pick)
@@ -181,8 +183,8 @@ class Explorer:
         image = self.base.iwe(th)
         self.im_iwe.set_data(image)
         self.im_iwe.set_clim(*viz.iwe_limits(image))
-        ev = self.base.evaluate(th)
-        self.ax_iwe.set_title(f"IWE (G / G(0) = {ev.G:.3g})")
+        g = self.base.value(th)  # the problem without regularizer: J = G / G(0)
+        self.ax_iwe.set_title(f"IWE (G / G(0) = {g:.3g})")
         maps = self.base.maps(th)
         for name, artist, ax in (
             ("divergence", self.im_div, self.ax_div),
@@ -273,8 +275,8 @@ class Explorer:
         self.fig.canvas.draw_idle()
 
     def _animate(self, path: np.ndarray, done) -> None:
-        """Step the sliders along the optimizer's path (about 3 s whatever its length), then call ``done``."""
-        frames = np.vstack([path[:: max(1, len(path) // 60)], path[-1:]])
+        """Step the sliders along the optimizer's path (about 20 frames), then call ``done``."""
+        frames = np.vstack([path[:: int(np.ceil(len(path) / 20))], path[-1:]])  # ~20 redraws
         timer = self.fig.canvas.new_timer(interval=50)
         state = {"k": 0}
 
