@@ -26,7 +26,7 @@ from .kernels import maps as kmaps
 from .kernels import warps as kwarps
 from .kernels import whitening as kwhite
 from .objectives import OBJECTIVES, Objective
-from .regularizers import REGULARIZERS, Regularizer
+from .regularizers import REGULARIZERS, Regularizer, penalty_value
 from .warps import WarpModel, get_warp
 
 __all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
@@ -276,9 +276,10 @@ class ContrastMaximization:
             taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * self.blur_sigma**2))
             self._host["taps"] = taps / taps.sum()
         if n_r:
-            self._host["lam"] = [
-                self.regularizer_weights[name] * REGULARIZERS.get(name).scale(self.duration, self.orientation)
-                for name in self._reg_names
+            # weights lambda_r, then the scales s_r (the loss kernel applies one-sided hinges to s_r R_r)
+            regs = [REGULARIZERS.get(name) for name in self._reg_names]
+            self._host["lam"] = [self.regularizer_weights[r.name] for r in regs] + [
+                r.scale(self.duration, self.orientation) for r in regs
             ]
         if self.whitening:
             mu0 = np.array([ev.x.mean(), ev.y.mean()])
@@ -337,7 +338,7 @@ class ContrastMaximization:
             ws.count = workspace.dummy(real, (1, 1))
             ws.numer = workspace.dummy(real, (1, 1, 1))
         ws.macc = ti.Vector.field(1 + n_r, real, shape=(), needs_grad=True)
-        ws.lam = ti.Vector.field(max(n_r, 1), real, shape=())
+        ws.lam = ti.Vector.field(max(2 * n_r, 1), real, shape=())
         ws.acc = ti.Vector.field(self.objective.slots_per_channel * C, real, shape=(), needs_grad=True)
         ws.loss = ti.field(real, shape=(), needs_grad=True)
         ws.diag = ti.Vector.field(1 + max(n_r, 1), real, shape=())
@@ -402,8 +403,8 @@ class ContrastMaximization:
         if regs:
             self._k_maps = _cached(("maps", reg_key, W, H), lambda: kmaps.make_maps_reduce(penalties, W, H))
         self._k_loss = _cached(
-            ("loss", obj.name, id(obj), C, W * H, len(regs)),
-            lambda: kloss.make_loss_kernel(obj.finalize, C, W * H, len(regs)),
+            ("loss", obj.name, id(obj), C, W * H, tuple(r.one_sided for r in regs)),
+            lambda: kloss.make_loss_kernel(obj.finalize, C, W * H, tuple(r.one_sided for r in regs)),
         )
 
     # --- evaluation ------------------------------------------------------------------------------
@@ -573,7 +574,7 @@ class ContrastMaximization:
         for r, name in enumerate(names):
             reg = REGULARIZERS.get(name)
             mean = float((support * out[2 * r + 1]).sum() / total) if total > 0 else 0.0
-            result[name] = mean * reg.scale(self.duration, self.orientation)
+            result[name] = penalty_value(reg, mean, self.duration, self.orientation)
         return result
 
     def maps(self, theta) -> dict[str, np.ndarray | float]:
@@ -597,7 +598,7 @@ class ContrastMaximization:
             result[name] = out[2 * r]
             result[name + "_penalty"] = out[2 * r + 1]
             mean = float((support * out[2 * r + 1]).sum() / total) if total > 0 else 0.0
-            result["R_" + name] = mean * reg.scale(self.duration, self.orientation)
+            result["R_" + name] = penalty_value(reg, mean, self.duration, self.orientation)
         return result
 
     def dense_flow(self, theta, dt: float = 0.0) -> np.ndarray:

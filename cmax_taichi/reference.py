@@ -677,7 +677,8 @@ def evaluate(
     d = np.maximum(def_map, DEF_FLOOR)
     alpha_map = np.where(support, np.maximum(d, 1.0 / d) - 1.0, 0.0)
     m = count / (count + KAPPA)
-    r_div = _support_mean(m, s_t * T * div_map)
+    # one-sided: net contraction is penalised, expansion is not rewarded (FORMULAS.md)
+    r_div = max(0.0, _support_mean(m, s_t * T * div_map))
     r_def = _support_mean(m, alpha_map)
 
     j = g - lambda_div * r_div - lambda_def * r_def

@@ -16,7 +16,7 @@ from .kernels import maps as km
 from .registry import Registry
 from .warps import WarpModel
 
-__all__ = ["Regularizer", "REGULARIZERS", "register_regularizer", "regularizer_names"]
+__all__ = ["Regularizer", "REGULARIZERS", "register_regularizer", "regularizer_names", "penalty_value"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,9 @@ class Regularizer:
     scale : callable
         ``scale(duration_s, orientation) -> float`` multiplying R (orientation is +1 when t_ref is
         before the mean event time, else -1).
+    one_sided : bool
+        ``R = max(0, scale * mean)``: penalise only one direction (the divergence penalises net
+        contraction and must not reward expansion).
     map_unit : str
         Unit of the map (for plots).
     neutral : float
@@ -46,12 +49,19 @@ class Regularizer:
     quantity: Callable[[WarpModel], Callable]
     penalty: Callable
     scale: Callable[[float, float], float]
+    one_sided: bool = False
     map_unit: str = ""
     neutral: float = 0.0
     description: str = ""
 
 
 REGULARIZERS: Registry[Regularizer] = Registry("regularizer")
+
+
+def penalty_value(reg: Regularizer, support_mean: float, duration: float, orientation: float) -> float:
+    """R of ``reg`` from the support-weighted mean of its pixel penalty (the loss kernel's formula)."""
+    value = reg.scale(duration, orientation) * support_mean
+    return max(0.0, value) if reg.one_sided else value
 
 
 def register_regularizer(reg: Regularizer, *, replace: bool = False) -> Regularizer:
@@ -103,9 +113,10 @@ def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
             _divergence_quantity,
             km.divergence_penalty,
             scale=lambda duration, orientation: orientation * duration,
+            one_sided=True,
             map_unit="1/s",
             neutral=0.0,
-            description="mean flow divergence per window, > 0 when events contract (R_Div)",
+            description="net flow divergence per window when events contract, else 0 (R_Div)",
         ),
     )
     registry.register(
@@ -115,6 +126,7 @@ def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
             _deformation_quantity,
             km.deformation_penalty,
             scale=lambda duration, orientation: 1.0,
+            one_sided=False,
             map_unit="",
             neutral=1.0,
             description="mean of max(DEF, 1/DEF) - 1 of the area deformation map (R_Def)",

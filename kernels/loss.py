@@ -1,15 +1,18 @@
 """The augmented objective J = G / G0 - sum_r lambda_r R_r as one serial kernel into a 0-D loss field.
 
 ``G`` is the objective summed over channels (``finalize`` of ``objectives.py``), ``G0`` the identity
-warp's value (1 for the raw objective), ``R_r = macc[1 + r] / macc[0]`` the regularizer penalties, and
-``lam[None][r]`` holds lambda_r times the regularizer's scale. ``diag`` receives ``(G_raw, R_0, ...)``
-for reporting. Formulas: docs/FORMULAS.md, "Augmented objective".
+warp's value (1 for the raw objective), ``R_r = s_r macc[1 + r] / macc[0]`` the regularizer penalties
+(``max(0, .)`` for one-sided ones), with ``lam[None][r] = lambda_r`` and ``lam[None][n + r] = s_r`` the
+regularizer's scale. ``diag`` receives ``(G_raw, R_0, ...)`` for reporting.
+Formulas: docs/FORMULAS.md, "Augmented objective".
 """
 
 import taichi as ti
 
 
-def make_loss_kernel(finalize_fn, n_channels: int, n_pixels: int, n_regs: int):
+def make_loss_kernel(finalize_fn, n_channels: int, n_pixels: int, one_sided: tuple):
+    n_regs = len(one_sided)
+
     @ti.kernel
     def loss_kernel(
         acc: ti.template(),
@@ -30,7 +33,9 @@ def make_loss_kernel(finalize_fn, n_channels: int, n_pixels: int, n_regs: int):
             for r in ti.static(range(n_regs)):
                 rr = 0.0
                 if msum > 0.0:
-                    rr = macc[None][1 + r] / msum
+                    rr = lam[None][n_regs + r] * macc[None][1 + r] / msum
+                if ti.static(one_sided[r]):
+                    rr = ti.max(rr, 0.0)
                 j -= lam[None][r] * rr
                 diag[None][1 + r] = rr
         loss[None] = j

@@ -36,9 +36,13 @@ def test_non_editable_install_ships_kernels(tmp_path):
         pytest.skip("setuptools is not installed in this environment")
     assert build.returncode == 0, build.stderr
     assert (target / "cmax_taichi" / "kernels" / "warps.py").is_file()
+    # every sub-package of the source tree is shipped
+    for init in (ROOT / "cmax_taichi").rglob("__init__.py"):
+        rel = init.relative_to(ROOT)
+        assert (target / rel).is_file(), f"{rel.parent} is not in the wheel (pyproject packages)"
     env = dict(os.environ, PYTHONPATH=str(target))
     code = (
-        "import cmax_taichi, cmax_taichi.kernels.iwe as k; "
+        "import cmax_taichi, cmax_taichi.kernels.iwe as k, cmax_taichi.io, cmax_taichi.cli; "
         "assert 'site' in cmax_taichi.__file__ and 'site' in k.__file__, (cmax_taichi.__file__, k.__file__); "
         "print(cmax_taichi.warp_names())"
     )

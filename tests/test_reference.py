@@ -368,8 +368,13 @@ def test_zoom_divergence_penalty_and_sign():
     first = reference.evaluate(x, y, t, p, [hz], warp="zoom1", sensor_size=(W, H))
     assert first["R_div"] == pytest.approx(T * 2 * hz, rel=0, abs=1e-12)
     assert first["R_div"] > 0
+    # with t_ref last, h_z > 0 expands the events: one-sided R_Div does not reward it
     last = reference.evaluate(x, y, t, p, [hz], warp="zoom1", sensor_size=(W, H), t_ref="last")
-    assert last["R_div"] == pytest.approx(-T * 2 * hz, rel=0, abs=1e-12)
+    assert last["R_div"] == 0.0
+    last_contracting = reference.evaluate(x, y, t, p, [-hz], warp="zoom1", sensor_size=(W, H), t_ref="last")
+    assert last_contracting["R_div"] == pytest.approx(T * 2 * hz, rel=0, abs=1e-12)
+    expanding = reference.evaluate(x, y, t, p, [-hz], warp="zoom1", sensor_size=(W, H))
+    assert expanding["R_div"] == 0.0
     support = first["count"] > 0
     np.testing.assert_allclose(first["div_map"][support], 2 * hz, rtol=1e-12)
     np.testing.assert_array_equal(first["div_map"][~support], 0.0)
