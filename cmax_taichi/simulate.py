@@ -616,14 +616,35 @@ PRESETS = {
 }
 
 
-def preset_scene(name: str, sensor_size: tuple[int, int] | None = None) -> Scene:
-    """The scene of preset ``name`` (optionally on another sensor size)."""
+def _scaled_motion(motion: Motion, scale: float) -> Motion:
+    """The same motion on a sensor ``scale`` times as large: px/s parameters scale, rates do not."""
+    units = get_warp(motion.warp).units
+    theta = tuple(v * scale if u == "px/s" else v for v, u in zip(motion.theta, units, strict=True))
+    return Motion(motion.warp, theta, segment=motion.segment)
+
+
+def preset_scene(name: str, sensor_size: tuple[int, int] | None = None, scale: float = 1.0) -> Scene:
+    """The scene of preset ``name``.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`PRESETS`.
+    sensor_size : (int, int), optional
+        Another sensor size with the same motion parameters.
+    scale : float
+        Shrink or grow the whole preset: the sensor size and the px/s parameters are multiplied by it
+        (so the flow in px scales too, and the flow relative to the image size is kept).
+    """
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; valid presets: {', '.join(PRESETS)}")
+    if not (math.isfinite(scale) and 0.05 <= scale <= 10.0):
+        raise ValueError(f"scale must be in [0.05, 10], got {scale}")
     p = PRESETS[name]
-    W, H = (int(v) for v in (sensor_size or p.sensor_size))
+    W, H = sensor_size or (round(p.sensor_size[0] * scale), round(p.sensor_size[1] * scale))
+    W, H = int(W), int(H)
     tex = _fit_texture(load_texture(p.texture), W, H)
-    return Scene((W, H), [Layer(tex, p.motion, name=p.texture)], name=name)
+    return Scene((W, H), [Layer(tex, _scaled_motion(p.motion, scale), name=p.texture)], name=name)
 
 
 # --- simulator -----------------------------------------------------------------------------------
@@ -1277,10 +1298,13 @@ def simulate_preset(
     seed: int = 0,
     sensor_size: tuple[int, int] | None = None,
     progress: bool = False,
+    scale: float = 1.0,
     **overrides,
 ) -> SimulatedRecording:
-    """Simulate preset ``name`` (:data:`PRESETS`) for ``duration`` s (default the preset's)."""
-    scene = preset_scene(name, sensor_size)
+    """Simulate preset ``name`` (:data:`PRESETS`) for ``duration`` s (default the preset's); see
+    :func:`preset_scene` for ``sensor_size`` and ``scale``; keyword arguments override the preset's
+    :class:`SimulatorConfig` fields."""
+    scene = preset_scene(name, sensor_size, scale)
     p = PRESETS[name]
     settings = {**p.config, **overrides, "seed": seed}
     unknown = set(settings) - set(SimulatorConfig.__dataclass_fields__)

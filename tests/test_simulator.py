@@ -210,6 +210,19 @@ def test_indoor_flying_preset_has_mvsec_like_rates():
     assert 2.0 < mag.mean() < 8.0
 
 
+def test_scaled_preset_keeps_the_flow_relative_to_the_image():
+    full = sm.preset_scene("driving")
+    half = sm.preset_scene("driving", scale=0.5)
+    assert half.sensor_size == (173, 130)
+    np.testing.assert_allclose(
+        half.layers[0].motion.theta, np.array(full.layers[0].motion.theta) * [0.5, 0.5, 1, 1]
+    )
+    f_full = cm.dense_flow("mitrokhin4", full.layers[0].motion.theta, full.sensor_size, duration=0.1, dt=0.1)
+    f_half = cm.dense_flow("mitrokhin4", half.layers[0].motion.theta, half.sensor_size, duration=0.1, dt=0.1)
+    ratio = np.abs(f_half).max() / np.abs(f_full).max()
+    assert 0.45 < ratio < 0.55
+
+
 @pytest.mark.parametrize(
     "make, message",
     [
@@ -225,6 +238,7 @@ def test_indoor_flying_preset_has_mvsec_like_rates():
         (lambda: sm.warp_scene("translation2", texture="unknown"), "valid textures"),
         (lambda: sm.Layer(np.full((4, 4), 2.0), sm.Motion("translation2", (1, 1))), r"in \[0, 1\]"),
         (lambda: sm.preset_scene("mars"), "valid presets"),
+        (lambda: sm.preset_scene("driving", scale=0.0), "scale"),
         (lambda: sm.simulate(sm.warp_scene("zoom1", (2.0,), sensor_size=SMALL), 0.5), "reaches the plane"),
         (lambda: sm.simulate(sm.warp_scene("translation2", sensor_size=SMALL), -1.0), "duration"),
     ],
