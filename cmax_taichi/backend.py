@@ -75,7 +75,7 @@ def init(arch: str | None = None, precision: str | None = None, *, quiet: bool =
         ``"f64"`` on the CPU and ``"f32"`` on a GPU (GPUs are much faster in f32; Vulkan and Metal have
         no f64 at all).
     quiet : bool
-        Keep Taichi's start-up banner and info logs quiet.
+        Show only Taichi's errors (not its info logs and compiler warnings).
 
     Returns
     -------
@@ -100,7 +100,10 @@ def init(arch: str | None = None, precision: str | None = None, *, quiet: bool =
         ti.reset()
     generation = 1 if _state is None else _state.generation + 1
     fp = ti.f64 if precision == "f64" else ti.f32
-    log_level = ti.WARN if quiet else ti.INFO
+    # quiet: Taichi's compiler warnings (e.g. thousands of "Loading variable ... before anything is
+    # stored" lines while differentiating rotation3's matrix code, offline-cache lock notices when two
+    # processes compile at once) are noise to a user; errors still show.
+    log_level = ti.ERROR if quiet else ti.INFO
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         ti.init(
