@@ -124,6 +124,11 @@ def init(arch: str | None = None, precision: str | None = None, *, quiet: bool =
     return _state
 
 
+def is_initialized() -> bool:
+    """Whether :func:`init` has run (explicitly or on first use)."""
+    return _state is not None
+
+
 def ensure_initialized() -> BackendInfo:
     """Initialise the default backend once; return the current backend."""
     if _state is None:

@@ -94,7 +94,7 @@ def init_backend(arch: str | None, precision: str | None):
     throw away the compiled kernels of the calling process)."""
     from .. import backend
 
-    current = backend._state  # None before the first init
+    current = backend.info() if backend.is_initialized() else None
     if (
         current is not None
         and arch in (None, current.requested_arch)
