@@ -13,6 +13,7 @@ from .objectives import OBJECTIVES, Objective, objective_names, register_objecti
 from .optimize import OptimizeResult, maximize
 from .problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
 from .regularizers import REGULARIZERS, Regularizer, register_regularizer, regularizer_names
+from .simulate import SimulatedRecording, Simulator, SimulatorConfig, read_simulation, simulate_preset
 from .warps import WARPS, WarpModel, get_warp, register_warp, warp_names
 
 __version__ = "0.1.0"
@@ -29,6 +30,9 @@ __all__ = [
     "POLARITY_MODES",
     "REGULARIZERS",
     "Regularizer",
+    "SimulatedRecording",
+    "Simulator",
+    "SimulatorConfig",
     "WARPS",
     "WarpModel",
     "backend_info",
@@ -38,9 +42,11 @@ __all__ = [
     "init",
     "maximize",
     "objective_names",
+    "read_simulation",
     "register_objective",
     "register_regularizer",
     "register_warp",
     "regularizer_names",
+    "simulate_preset",
     "warp_names",
 ]
