@@ -13,6 +13,7 @@ from .objectives import OBJECTIVES, Objective, objective_names, register_objecti
 from .optimize import OptimizeResult, maximize
 from .problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
 from .regularizers import REGULARIZERS, Regularizer, register_regularizer, regularizer_names
+from .segment import SegmentationResult, segment
 from .simulate import SimulatedRecording, Simulator, SimulatorConfig, read_simulation, simulate_preset
 from .warps import WARPS, WarpModel, get_warp, register_warp, warp_names
 
@@ -30,6 +31,7 @@ __all__ = [
     "POLARITY_MODES",
     "REGULARIZERS",
     "Regularizer",
+    "SegmentationResult",
     "SimulatedRecording",
     "Simulator",
     "SimulatorConfig",
@@ -47,6 +49,7 @@ __all__ = [
     "register_regularizer",
     "register_warp",
     "regularizer_names",
+    "segment",
     "simulate_preset",
     "warp_names",
 ]

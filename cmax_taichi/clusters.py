@@ -11,7 +11,7 @@ where ``G0_j`` is cluster j's objective at the identity warp with the same membe
 cluster's contrast is scale-free and lambda means the same in every cluster), and the maps of R are
 built with ``|P[i, j]|`` as the event weights. Each term is exactly
 ``reference.evaluate(..., weights=P[:, j], normalize=..., lambda_div=..., lambda_def=...)["J"]``
-(docs/FORMULAS.md, "Motion segmentation"). Gradients for every cluster's parameters come from one
+(docs/SEGMENTATION.md). Gradients for every cluster's parameters come from one
 reverse pass of the kernels of ``kernels/clusters.py``.
 """
 
@@ -341,7 +341,7 @@ class MultiClusterCMax:
         )
 
     # --- memberships -------------------------------------------------------------------------------
-    def set_memberships(self, memberships, active=None) -> np.ndarray:
+    def set_memberships(self, memberships, active=None, identity: bool = True) -> np.ndarray:
         """Fix the memberships and compute each cluster's identity-warp objective ``G0_j``.
 
         Parameters
@@ -352,11 +352,15 @@ class MultiClusterCMax:
         active : array_like of bool, shape (K,), optional
             Clusters that count in J (default all). A cluster whose identity image is flat
             (``G0_j <= 0``, e.g. no weight at all) is left out of J as well.
+        identity : bool
+            Compute ``G0_j`` (one forward pass). False: skip it (``G0_j = 1``, e.g. when only the
+            images and lookups are needed).
 
         Returns
         -------
         ndarray, shape (K,)
-            ``G0_j`` (raw objective of cluster j at the identity warp; units of I^2).
+            ``G0_j`` (raw objective of cluster j at the identity warp; units of I^2; NaN when
+            ``identity=False``).
         """
         P = np.asarray(memberships, dtype=np.float64)
         if P.shape != (self.n_events, self.n_clusters):
@@ -374,6 +378,9 @@ class MultiClusterCMax:
         self._active = act.copy()
         self._load()
         self._upload_memberships()
+        if not identity:
+            self.identity_objective = np.full(self.n_clusters, np.nan)
+            return self.identity_objective.copy()
         self._forward(np.zeros(self.n_total))  # every model's identity is theta = 0
         g_raw = self._diag_vector()[:, 0]
         self.identity_objective = g_raw.copy()
@@ -422,13 +429,16 @@ class MultiClusterCMax:
         numer = ws.numer.grad if self._reg_names else ws.numer  # the dummy has no gradient
         return [ws.vote.grad, ws.tmp.grad, ws.img.grad, numer, ws.acc.grad, ws.macc.grad, ws.loss.grad]
 
-    def _forward(self, flat: np.ndarray) -> float:
+    def _forward(self, flat: np.ndarray, images_only: bool = False) -> float:
         self._load()
         self._ws.th[None] = flat.tolist()
         self._k_zero(*self._zero_args(False))
-        for kernel, args in self._kernel_chain():
+        chain = self._kernel_chain()
+        if images_only:  # the splat and the blur: the cluster images, no objective
+            chain = chain[: 3 if self.blur_sigma > 0 else 1]
+        for kernel, args in chain:
             kernel(*args)
-        return float(self._ws.loss[None])
+        return float("nan") if images_only else float(self._ws.loss[None])
 
     def _backward(self) -> np.ndarray:
         ws = self._ws
@@ -488,7 +498,9 @@ class MultiClusterCMax:
             "R": {name: d[:, 1 + r].copy() for r, name in enumerate(self._reg_names)},
         }
 
-    def lookup(self, thetas, positions: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def lookup(
+        self, thetas, positions: bool = True, images_only: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Every cluster's blurred IWE at every event's position warped by that cluster.
 
         Parameters
@@ -497,6 +509,9 @@ class MultiClusterCMax:
             Parameters (physical units).
         positions : bool
             Also return the warped positions.
+        images_only : bool
+            Build the images only (no objective, maps or loss: faster, and those kernels are not
+            compiled).
 
         Returns
         -------
@@ -507,7 +522,7 @@ class MultiClusterCMax:
         """
         self._check_alive()
         self._require_memberships()
-        self._forward(self.flatten(thetas))
+        self._forward(self.flatten(thetas), images_only=images_only)
         ws = self._ws
         self._k_lookup(self.n_events, ws.ex, ws.ey, ws.edt, ws.th, ws.ctx, ws.img, ws.look, ws.pos)
         values = self._unsort(ws.look.to_numpy())

@@ -18,7 +18,7 @@ its membership weight ``P[i, j]`` at its position warped by cluster j's paramete
 The per-cluster warp functions, quantities and parameter offsets are static: one compiled kernel per
 combination of warp models (different clusters may use different models). The K clusters, the four
 bilinear taps and the blur taps are unrolled with ``ti.static``; image writes are atomic adds; no
-field is written after it is read. Formulas: docs/FORMULAS.md, "Motion segmentation".
+field is written after it is read. Formulas: docs/SEGMENTATION.md.
 """
 
 import taichi as ti

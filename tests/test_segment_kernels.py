@@ -132,7 +132,12 @@ def _bilinear(img: np.ndarray, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
     ax = xw[ok] - x0
     ay = yw[ok] - y0
     acc = np.zeros(ok.sum())
-    for dx, dy, w in ((0, 0, (1 - ax) * (1 - ay)), (1, 0, ax * (1 - ay)), (0, 1, (1 - ax) * ay), (1, 1, ax * ay)):
+    for dx, dy, w in (
+        (0, 0, (1 - ax) * (1 - ay)),
+        (1, 0, ax * (1 - ay)),
+        (0, 1, (1 - ax) * ay),
+        (1, 1, ax * ay),
+    ):
         c, r = x0 + dx, y0 + dy
         inside = (c >= 0) & (c < W) & (r >= 0) & (r < H)
         acc[inside] += w[inside] * img[r[inside], c[inside]]
@@ -142,7 +147,9 @@ def _bilinear(img: np.ndarray, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
 
 def test_lookup_matches_reference(f64):
     spec, raw, P, thetas = _setup("k3_mixed_regs")
-    prob = MultiClusterCMax(cm.Events(*raw, SENSOR), 3, spec["warps"], regularizers=spec["regs"], camera=CAMERA)
+    prob = MultiClusterCMax(
+        cm.Events(*raw, SENSOR), 3, spec["warps"], regularizers=spec["regs"], camera=CAMERA
+    )
     prob.set_memberships(P)
     values, positions = prob.lookup(thetas)
     kwargs = _ref_kwargs(spec, {})
@@ -169,7 +176,8 @@ def test_inactive_and_empty_clusters(f64):
     prob = MultiClusterCMax(ev, 3, spec["warps"], regularizers=spec["regs"], camera=CAMERA)
     prob.set_memberships(P, active=[True, False, True])
     expected = sum(
-        reference.evaluate(*raw, thetas[j], warp=spec["warps"][j], weights=P[:, j], **kwargs)["J"] for j in (0, 2)
+        reference.evaluate(*raw, thetas[j], warp=spec["warps"][j], weights=P[:, j], **kwargs)["J"]
+        for j in (0, 2)
     )
     value, grad = prob.value_and_grad(thetas)
     assert value == pytest.approx(expected, rel=1e-10)
@@ -184,11 +192,15 @@ def test_inactive_and_empty_clusters(f64):
 def test_workspace_is_shared(f64):
     """A second window of the same shape reuses the fields and the compiled kernels."""
     spec, raw, P, thetas = _setup("k3_mixed_regs")
-    first = MultiClusterCMax(cm.Events(*raw, SENSOR), 3, spec["warps"], regularizers=spec["regs"], camera=CAMERA)
+    first = MultiClusterCMax(
+        cm.Events(*raw, SENSOR), 3, spec["warps"], regularizers=spec["regs"], camera=CAMERA
+    )
     first.set_memberships(P)
     v1 = first.value(thetas)
     x, y, t, p = edge_events(n=380, seed=5)
-    second = MultiClusterCMax(cm.Events(x, y, t, p, SENSOR), 3, spec["warps"], regularizers=spec["regs"], camera=CAMERA)
+    second = MultiClusterCMax(
+        cm.Events(x, y, t, p, SENSOR), 3, spec["warps"], regularizers=spec["regs"], camera=CAMERA
+    )
     assert second._ws is first._ws
     assert second._k_splat is first._k_splat
     second.set_memberships(np.full((380, 3), 1 / 3))
