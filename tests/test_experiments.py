@@ -81,6 +81,22 @@ def test_flow_table_writers_put_ours_beside_the_paper(tmp_path):
     assert [float(r["paper"]) for r in hit] == [5.14, 65.61, 10.75, 0.38, 1.16]
 
 
+def test_search_check_tells_a_missed_maximum_from_a_preferred_collapse():
+    meta = [
+        {
+            "gt_fwl": 1.2,
+            "fwl": {"variance/zoom1/Divergence": 5.0, "variance/mitrokhin4/Deformation": 1.2},
+            "J_estimate_truth": {
+                "variance/zoom1/Divergence": [2.0, 1.1],
+                "variance/mitrokhin4/Deformation": [1.1, 1.2],
+            },
+        }
+    ]
+    lines = "\n".join(ex.search_check(meta))
+    assert "prefers the collapse to the truth (1): variance/zoom1/Divergence (interval 1)" in lines
+    assert "missed it (1): variance/mitrokhin4/Deformation (interval 1): J 1.1000 < 1.2000" in lines
+
+
 def test_sensitivity_and_complexity_writers(tmp_path):
     rows = []
     for warp in ex.FLOW_WARPS:
