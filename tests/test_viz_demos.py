@@ -218,3 +218,11 @@ def test_collapse_explorer_widgets_work_without_a_window(monkeypatch):
             break
     assert explorer.path_artists, "the optimizer path was not drawn"
     plt.close(explorer.fig)
+
+
+def test_segmentation_viewer_renders_and_separates_the_objects(tmp_path, capsys):
+    out = tmp_path / "seg.png"
+    assert _demo("segmentation_viewer").main(["--save", str(out), "--max-events", "3000"]) == 0
+    _assert_not_blank(out)
+    found = re.search(r"agreement with the true labels: (\S+)%", capsys.readouterr().out)
+    assert found and float(found.group(1)) > 85.0
