@@ -20,6 +20,7 @@ import taichi as ti
 
 from . import backend, workspace
 from .events import Camera, Events
+from .fused import FusedPipeline
 from .kernels import iwe as kiwe
 from .kernels import loss as kloss
 from .kernels import maps as kmaps
@@ -185,12 +186,21 @@ class ContrastMaximization:
         self.n_events = len(events)
         self.n_channels = 2 if polarity == "split" else 1
 
-        vote_w = np.ones(self.n_events) if user_weights is None else user_weights
-        if polarity == "signed":
-            vote_w = vote_w * events.p
         self._weighted = polarity == "signed" or user_weights is not None
-        self._allocate(vote_w, focal)
-        self._build_kernels()
+        vote_w = None  # per-event vote weights, only where they are not all 1
+        if self._weighted:
+            vote_w = np.ones(self.n_events) if user_weights is None else user_weights
+            if polarity == "signed":
+                vote_w = vote_w * events.p
+        self._focal = focal
+        self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
+        # The fused kernels (cmax_taichi/fused.py) serve value and gradient where they apply; the
+        # generic chain's fields are then allocated only if maps(), evaluate() or jacobians need them.
+        self._fused = FusedPipeline.for_problem(self, vote_w)
+        self._generic_args = (vote_w, focal)
+        self._generic_ready = False
+        if self._fused is None:
+            self._ensure_generic()
         self.G0 = 1.0
         g0 = self._forward(np.zeros(self.model.n_params))[1]
         if not (math.isfinite(g0) and g0 > 0):
@@ -200,6 +210,8 @@ class ContrastMaximization:
             )
         self.G0 = g0 if self.normalize else 1.0
         self._identity_objective = g0
+        if self._fused is not None:
+            self._fused.set_g0(self.G0)
 
     # --- validation helpers --------------------------------------------------------------------
     @staticmethod
@@ -240,7 +252,15 @@ class ContrastMaximization:
         return value
 
     # --- fields and kernels ----------------------------------------------------------------------
-    def _allocate(self, vote_w: np.ndarray, focal) -> None:
+    def _ensure_generic(self) -> None:
+        """Allocate and load the generic kernel chain's fields and kernels (once)."""
+        if self._generic_ready:
+            return
+        self._generic_ready = True
+        self._allocate(*self._generic_args)
+        self._build_kernels()
+
+    def _allocate(self, vote_w: np.ndarray | None, focal) -> None:
         """Take the pooled fields of this problem's shape and load this problem into them."""
         C, W, H = self.n_channels, self.width, self.height
         self._reg_names = list(self.regularizer_weights)
@@ -348,6 +368,7 @@ class ContrastMaximization:
 
     def _load(self) -> None:
         """Upload this problem's events and constants into the shared workspace if needed."""
+        self._ensure_generic()
         ws = self._ws
         if ws.owned_by(self):
             return
@@ -465,6 +486,9 @@ class ContrastMaximization:
         return bufs
 
     def _forward(self, theta: np.ndarray) -> tuple[float, float]:
+        """``(J, G_raw)`` at ``theta``."""
+        if self._fused is not None:
+            return self._fused.evaluate(theta)
         self._load()
         self._th[None] = theta.tolist()
         for buf in self._buffers():
@@ -487,12 +511,16 @@ class ContrastMaximization:
         """Augmented objective J at ``theta`` (physical units)."""
         self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name)
+        if self._fused is not None:
+            return self._fused.value(theta)
         return self._forward(theta)[0]
 
     def value_and_grad(self, theta) -> tuple[float, np.ndarray]:
         """``(J, dJ/dtheta)`` at ``theta`` (physical units), by Taichi reverse-mode autodiff."""
         self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name)
+        if self._fused is not None:
+            return self._fused.value_and_grad(theta)
         value = self._forward(theta)[0]
         return value, self._backward()
 
@@ -510,11 +538,15 @@ class ContrastMaximization:
         self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name)
         self._forward(theta)
-        img = self._img.to_numpy().astype(np.float64)
+        if self._fused is not None:
+            img = self._fused.image()
+        else:
+            img = self._img.to_numpy().astype(np.float64)
         return img[0] if self.n_channels == 1 else img
 
     def _map_fields(self, theta: np.ndarray):
         """Vote every registered regularizer's quantity; return the (count, out) images as NumPy."""
+        self._ensure_generic()
         names = REGULARIZERS.names()
         regs = [REGULARIZERS.get(n) for n in names]
         m, W, H = self.model, self.width, self.height

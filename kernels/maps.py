@@ -26,6 +26,29 @@ def deformation_penalty(avg):
     return ti.max(d, 1.0 / d) - 1.0
 
 
+@ti.func
+def divergence_penalty_grad(avg):
+    """d(divergence_penalty)/d(map value)."""
+    return 1.0 + 0.0 * avg
+
+
+@ti.func
+def deformation_penalty_grad(avg):
+    """d(deformation_penalty)/d(map value): 0 up to the floor, -1/D^2 up to 1, 1 above. At the kinks
+    it takes the side Taichi's autodiff of ``ti.max`` takes (the second argument on a tie)."""
+    out = 0.0 * avg
+    if avg > DEF_FLOOR:
+        out = 1.0 if avg > 1.0 else -1.0 / (avg * avg)
+    return out
+
+
+#: derivatives of the built-in pixel penalties, for the fused pipeline's hand-written map adjoints
+PENALTY_GRADS = {
+    divergence_penalty: divergence_penalty_grad,
+    deformation_penalty: deformation_penalty_grad,
+}
+
+
 def make_maps_reduce(penalty_fns: tuple, width: int, height: int):
     n_r = len(penalty_fns)
 

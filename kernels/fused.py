@@ -1,0 +1,590 @@
+"""The fused CMax pipeline: value and gradient in one kernel launch, with a hand-written backward.
+
+Why: the chain of small kernels of ``iwe.py`` / ``objectives.py`` / ``maps.py`` differentiated by
+Taichi's reverse mode spends its time in atomics (compare-and-swap loops for float adds on the CPU,
+~15 ns each: every scatter, every transposed blur, every reduction into a 0-D *vector* field, which
+Taichi does not make thread-local) and in kernel launches (~10-40 us each from Python). Here one
+kernel ``run(n, ev, a0..a7, grad, out)`` holds every stage as its own task (Taichi runs the
+top-level loops of a kernel one after the other, each in parallel):
+
+1. serial: theta into 0-D fields, reductions cleared;
+2. splat: each event is warped and votes bilinearly into the IWE channels, the count ``C`` and the
+   map numerators ``N_r`` of ``acc[s, y, x, k]``. On the CPU the events are split into one chunk per
+   thread ``s``, each voting with plain loads and stores into its own slice ``s``; on a GPU one
+   slice takes atomic adds. Without weights and per-polarity channels the IWE votes equal the count
+   votes, and one channel serves both;
+3. rows: sum the slices, blur along x, reduce the maps (``sum m``, ``sum m P_r``) into 0-D scalars;
+4. rows: blur along y into ``img``, reduce the objective (Sobel images first for the gradient
+   magnitude);
+5. serial: J;
+6. rows (``grad``): the pixel adjoint dJ/dI, transposed blurs (the Gaussian is symmetric, so its
+   transpose with zero padding is the same correlation), and the map adjoints dJ/dC, dJ/dN_r, into
+   ``adj`` (same channel layout as ``acc``);
+7. events (``grad``): dJ/dtheta as a *gather*:
+   ``dJ/dtheta = sum_k sum_corners d/dtheta [beta_k (b_k adj_ch + |b_k| adj_C + |b_k| sum_r q_rk adj_r)]``
+   with ``adj`` held fixed, using the closed-form parameter Jacobians of ``param_jac.py`` (the
+   trigonometry depends on theta only and leaves the event loop);
+8. serial: ``out = (J, G_raw, dJ/dtheta)``.
+
+Each accumulation buffer is cleared by the pass that consumes it: no call launches a fill, and
+nothing is allocated per call. Warps without closed-form parameter Jacobians (user models) take the
+generic chain of ``problem.py``: Taichi 1.7.4's compiler crashed on the reverse pass of an autodiff
+stand-in for step 7 inside this kernel layout.
+
+Formulas: docs/FORMULAS.md; derivatives of the map penalties: ``maps.py``.
+"""
+
+import taichi as ti
+
+from . import maps as _maps
+from .iwe import bilinear_footprint
+
+MAX_PARAMS = 8  # theta travels as 8 scalar kernel arguments (cheaper than one vector argument)
+OBJECTIVES = ("variance", "mean_square", "gradient_magnitude")
+QUANTITY_KINDS = ("div", "absdet")  # per-event quantities the hand-written backward differentiates
+_SOBEL_X = ((-1.0, 0.0, 1.0), (-2.0, 0.0, 2.0), (-1.0, 0.0, 1.0))  # [row dy][col dx], as objectives.py
+_KAPPA = _maps.SUPPORT_KAPPA
+
+
+def channel_layout(n_channels: int, n_regs: int, n_voted: int, shared_count: bool) -> tuple[int, int, int]:
+    """``(i_count, i_numer, n_acc)``: where the count and the first voted numerator live, and the
+    channel count of ``acc`` / ``adj`` (IWE channels first)."""
+    if n_regs == 0:
+        return -1, -1, n_channels
+    i_count = 0 if shared_count else n_channels
+    return i_count, i_count + 1, i_count + 1 + n_voted
+
+
+class FusedFields:
+    """The fields of one fused pipeline shape.
+
+    Parameters
+    ----------
+    real : Taichi float type
+    width, height, n_channels, n_regs, n_params : int
+    n_voted : int
+        Regularizer quantities voted into maps (the others are the same for every event).
+    radius : int
+        Blur footprint radius (px); 0 = no blur.
+    n_slices : int
+        Accumulation slices of the splat (CPU threads; 1 with atomics).
+    shared_count : bool
+        The count ``C`` shares IWE channel 0 (unit weights, one channel).
+    gradient_magnitude : bool
+        Allocate the Sobel images of the gradient-magnitude objective.
+    """
+
+    def __init__(
+        self,
+        real,
+        *,
+        width: int,
+        height: int,
+        n_channels: int,
+        n_regs: int,
+        n_voted: int,
+        n_params: int,
+        radius: int,
+        n_slices: int,
+        shared_count: bool,
+        gradient_magnitude: bool,
+    ) -> None:
+        W, H, C = width, height, n_channels
+        self.n_acc = channel_layout(C, n_regs, n_voted, shared_count)[2]
+        self.acc = ti.field(real, shape=(n_slices, H, W, self.n_acc))  # votes; zero between calls
+        self.tmp = ti.field(real, shape=(H, W, C))  # blur-x output; then the blur-y adjoint
+        self.img = ti.field(real, shape=(H, W, C))  # the blurred IWE
+        self.adj = ti.field(real, shape=(H, W, self.n_acc))  # adjoints of the acc channels
+        self.sobel = ti.field(real, shape=(H, W, 2 * C) if gradient_magnitude else (1, 1, 1))
+        self.ibar = ti.field(real, shape=(H, W, C) if gradient_magnitude else (1, 1, 1))
+        self.taps = ti.field(real, shape=2 * radius + 1)
+        self.ctx = ti.Vector.field(5, real, shape=())
+        self.lam = ti.Vector.field(max(2 * n_regs, 1), real, shape=())  # lambda_r, then scales s_r
+        self.g0 = ti.field(real, shape=())
+        # 0-D scalars (Taichi accumulates them thread-locally): objective slots, sum m, sum m P_r
+        self.red = [ti.field(real, shape=()) for _ in range(2 * C + 1 + n_voted)]
+        self.gsum = [ti.field(ti.f64, shape=()) for _ in range(n_params)]
+        # theta as a 0-D vector: Taichi keeps its loads outside the event loop (not so for 0-D scalars,
+        # whose loads it moves into the loop, where they block hoisting the trigonometry)
+        self.thv = ti.Vector.field(n_params, real, shape=())
+        self.loss = ti.field(real, shape=())
+        self.graw = ti.field(real, shape=())
+        self.rvals = ti.field(real, shape=max(n_regs, 1))  # R_r as in J
+        self.rw = ti.field(real, shape=max(n_regs, 1))  # weight of sum m P_r / sum m in -J (0: flat hinge)
+
+    def nbytes(self) -> int:
+        """Bytes held by the image fields."""
+        total = 0
+        for f in (self.acc, self.tmp, self.img, self.adj, self.sobel, self.ibar):
+            size = 1
+            for s in f.shape:
+                size *= s
+            total += size * (4 if f.dtype == ti.f32 else 8)
+        return total
+
+
+def make_fused_kernels(
+    fields: FusedFields,
+    warp_fn,
+    quantity_fns: tuple,
+    penalty_fns: tuple,
+    penalty_grads: tuple,
+    one_sided: tuple,
+    *,
+    objective: str,
+    width: int,
+    height: int,
+    n_channels: int,
+    n_params: int,
+    radius: int,
+    n_slices: int,
+    atomic_scatter: bool,
+    weighted: bool,
+    split_polarity: bool,
+    shared_count: bool,
+    real,
+    param_jac=None,
+    quantity_kinds: tuple = (),
+    constant: tuple = (),
+):
+    """Build the kernel ``run`` closed over ``fields`` (see the module docstring).
+
+    ``ev`` is an ndarray of per-event vectors ``(x, y, dt[, w][, channel])`` (px, px, s).
+    Regularizer ``r`` enters J as ``-lambda_r R_r`` with ``R_r = s_r sum m P_r / sum m``
+    (``max(0, R_r)`` where ``one_sided[r]``); ``lam`` holds ``lambda_r`` then ``s_r``.
+    ``param_jac`` is the model's closed-form parameter Jacobian (``param_jac.py``) and
+    ``quantity_kinds`` names each quantity "div" or "absdet". ``constant[r]`` says quantity ``r``
+    is the same for every event: its map is that value
+    wherever ``C > 0``, so ``R_r = s_r P_r(q_r)`` (``sum m > 0``) and nothing is voted for it.
+    """
+    if objective not in OBJECTIVES:
+        raise ValueError(f"the fused pipeline has no objective {objective!r}")
+    if n_params > MAX_PARAMS:
+        raise ValueError(f"the fused pipeline takes at most {MAX_PARAMS} parameters")
+    if shared_count and (weighted or split_polarity or not quantity_fns):
+        raise ValueError("the count shares the IWE channel only with unit weights and one channel")
+    R = len(quantity_fns)
+    if param_jac is None:
+        raise ValueError("the fused pipeline needs the model's closed-form parameter Jacobian")
+    if len(quantity_kinds) != R or any(k not in QUANTITY_KINDS for k in quantity_kinds):
+        raise ValueError(f"quantity_kinds must name each quantity one of {QUANTITY_KINDS}")
+    constant = tuple(bool(c) for c in constant) if constant else (False,) * R
+    if len(constant) != R:
+        raise ValueError("constant needs one flag per quantity")
+    voted = tuple(r for r in range(R) if not constant[r])  # voted quantity -> its regularizer
+    vpos = tuple(voted.index(r) if r in voted else -1 for r in range(R))  # regularizer -> voted slot
+    RV = len(voted)
+    f = fields
+    W, H, C, P, S, r_ = width, height, n_channels, n_params, n_slices, radius
+    i_cnt, i_num, K = channel_layout(C, R, RV, shared_count)
+    n_pix = float(W * H)
+    gm = objective == "gradient_magnitude"
+    red, gsum = f.red, f.gsum
+    i_m = 2 * C  # red[i_m] = sum m, red[i_m + 1 + r] = sum m P_r
+    k_ev = 3 + (1 if weighted else 0) + (1 if split_polarity else 0)
+    i_w, i_ch = 3, (4 if weighted else 3)
+    ev_type = ti.types.ndarray(dtype=ti.types.vector(k_ev, real), ndim=1)
+    out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
+    zero = ti.cast(0.0, real)
+
+    @ti.func
+    def theta_vec():
+        return f.thv[None]
+
+    @ti.func
+    def event(e):
+        b = ti.cast(1.0, real)
+        if ti.static(weighted):
+            b = e[i_w]
+        ch = 0
+        if ti.static(split_polarity):
+            ch = ti.cast(e[i_ch], ti.i32)
+        return ti.Vector([e[0], e[1]]), e[2], b, ch
+
+    @ti.func
+    def inside(q):
+        return q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H
+
+    @ti.func
+    def quantities(p, dt, theta, c):
+        """The voted quantities of one event."""
+        vals = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])
+        for v in ti.static(range(RV)):
+            vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
+        return vals
+
+    @ti.func
+    def vote(s, iy, ix, k, v):
+        if ti.static(atomic_scatter):
+            f.acc[s, iy, ix, k] += v
+        else:  # slice s belongs to one thread: a plain read-modify-write, no atomic
+            f.acc[s, iy, ix, k] = f.acc[s, iy, ix, k] + v
+
+    @ti.func
+    def splat_event(s, e, theta, c):
+        p, dt, b, ch = event(e)
+        # everything that depends on theta only (trigonometry) must be computed unconditionally at
+        # the top of the event loop, or LLVM cannot hoist it out of the loop
+        q = warp_fn(p, dt, theta, c)
+        vals = quantities(p, dt, theta, c)
+        if inside(q):
+            ix, iy, ax, ay = bilinear_footprint(q)
+            ab = ti.abs(b)
+            for dy in ti.static(range(2)):
+                for dx in ti.static(range(2)):
+                    wx = ax if dx == 1 else 1.0 - ax
+                    wy = ay if dy == 1 else 1.0 - ay
+                    if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                        w = wx * wy
+                        vote(s, iy + dy, ix + dx, ch, b * w)
+                        if ti.static(R > 0):
+                            if ti.static(not shared_count):
+                                vote(s, iy + dy, ix + dx, i_cnt, ab * w)
+                            for v in ti.static(range(RV)):
+                                vote(s, iy + dy, ix + dx, i_num + v, ab * w * vals[v])
+
+    @ti.func
+    def corner_terms(iy, ix, ch, b, vals):
+        """The adjoint gathered at one pixel: (b adj_ch + |b| adj_C + |b| sum_r q_r adj_r, adj_r)."""
+        ab = ti.abs(b)
+        a = b * f.adj[iy, ix, ch]
+        nr = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])
+        if ti.static(R > 0):
+            if ti.static(not shared_count):
+                a += ab * f.adj[iy, ix, i_cnt]
+            for v in ti.static(range(RV)):
+                nr[v] = ab * f.adj[iy, ix, i_num + v]
+                a += vals[v] * nr[v]
+        return a, nr
+
+    @ti.func
+    def event_grad(e, theta, c):
+        """dJ/dtheta contribution of one event (hand-written, float64)."""
+        p, dt, b, ch = event(e)
+        q = warp_fn(p, dt, theta, c)
+        vals = quantities(p, dt, theta, c)
+        jx, ddet, ddiv = param_jac(p, dt, theta, c)  # unconditionally: see splat_event
+        g = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
+        if inside(q):
+            ix, iy, ax, ay = bilinear_footprint(q)
+            ga = zero  # dS/dax
+            gb = zero  # dS/day
+            gv = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])  # dS/dq_v
+            for dy in ti.static(range(2)):
+                for dx in ti.static(range(2)):
+                    if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                        a, nr = corner_terms(iy + dy, ix + dx, ch, b, vals)
+                        wx = ax if dx == 1 else 1.0 - ax
+                        wy = ay if dy == 1 else 1.0 - ay
+                        ga += (1.0 if dx == 1 else -1.0) * wy * a
+                        gb += (1.0 if dy == 1 else -1.0) * wx * a
+                        if ti.static(RV > 0):
+                            gv += wx * wy * nr
+            for j in ti.static(range(P)):
+                gj = ga * jx[0, j] + gb * jx[1, j]
+                for v in ti.static(range(RV)):
+                    if ti.static(quantity_kinds[voted[v]] == "div"):
+                        gj += gv[v] * ddiv[j]
+                    else:  # |det| = det: the built-in determinants are >= 0
+                        gj += gv[v] * ddet[j]
+                g[j] = ti.cast(gj, ti.f64)
+        return g
+
+    @ti.func
+    def blur_x_row(src: ti.template(), s0: ti.template(), dst: ti.template(), y, c: ti.template(), scale):
+        """dst[y, x, c] = scale * sum_k taps_k src[(s0,) y, x + k, c], zero padding; no bounds
+        checks in the interior (unrolled taps)."""
+        for x in range(W):
+            acc = zero
+            if x >= r_ and x < W - r_:
+                for k in ti.static(range(-r_, r_ + 1)):
+                    if ti.static(s0 >= 0):
+                        acc += f.taps[k + r_] * src[s0, y, x + k, c]
+                    else:
+                        acc += f.taps[k + r_] * src[y, x + k, c]
+            else:
+                for k in ti.static(range(-r_, r_ + 1)):
+                    if 0 <= x + k < W:
+                        if ti.static(s0 >= 0):
+                            acc += f.taps[k + r_] * src[s0, y, x + k, c]
+                        else:
+                            acc += f.taps[k + r_] * src[y, x + k, c]
+            dst[y, x, c] = scale * acc
+
+    @ti.kernel
+    def run(
+        n: ti.i32,
+        ev: ev_type,
+        a0: real,
+        a1: real,
+        a2: real,
+        a3: real,
+        a4: real,
+        a5: real,
+        a6: real,
+        a7: real,
+        grad: ti.i32,
+        out: out_type,
+    ):
+        # --- 1. serial: theta, cleared reductions ------------------------------------------------
+        args = ti.Vector([a0, a1, a2, a3, a4, a5, a6, a7])
+        for j in ti.static(range(P)):
+            f.thv[None][j] = args[j]
+            gsum[j][None] = 0.0
+        for j in ti.static(range(len(red))):
+            red[j][None] = 0.0
+        # --- 2. splat ----------------------------------------------------------------------------
+        if ti.static(atomic_scatter):
+            for i in range(n):
+                splat_event(0, ev[i], theta_vec(), f.ctx[None])
+        else:
+            for s in range(S):
+                chunk = n // S
+                lo = s * chunk
+                hi = lo + chunk
+                if s == S - 1:
+                    hi = n
+                theta = theta_vec()
+                c = f.ctx[None]
+                for i in range(lo, hi):
+                    splat_event(s, ev[i], theta, c)
+        # --- 3. rows: sum the slices, blur along x, reduce the maps -------------------------------------
+        for y in range(H):
+            if ti.static(S > 1):
+                for x in range(W):
+                    for k in ti.static(range(K)):
+                        v = f.acc[0, y, x, k]
+                        for s in ti.static(range(1, S)):
+                            v += f.acc[s, y, x, k]
+                            f.acc[s, y, x, k] = 0.0
+                        f.acc[0, y, x, k] = v
+            for c in ti.static(range(C)):
+                if ti.static(r_ > 0):
+                    blur_x_row(f.acc, 0, f.tmp, y, c, 1.0)
+                else:
+                    for x in range(W):
+                        f.tmp[y, x, c] = f.acc[0, y, x, c]
+            msum = zero
+            psum = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])
+            for x in range(W):
+                if ti.static(R > 0):
+                    cnt = f.acc[0, y, x, i_cnt]
+                    if cnt > 0.0:
+                        m = cnt / (cnt + _KAPPA)
+                        msum += m
+                        for v in ti.static(range(RV)):
+                            psum[v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
+                    if grad == 0:  # else the backward reads the maps and clears them
+                        for k in ti.static(range(i_cnt, K)):
+                            f.acc[0, y, x, k] = 0.0
+                for c in ti.static(range(C)):
+                    if ti.static(shared_count and c == i_cnt):
+                        if grad == 0:
+                            f.acc[0, y, x, c] = 0.0
+                    else:
+                        f.acc[0, y, x, c] = 0.0
+            if ti.static(R > 0):
+                red[i_m][None] += msum
+                for v in ti.static(range(RV)):
+                    red[i_m + 1 + v][None] += psum[v]
+        # --- 4. rows: blur along y, reduce the objective --------------------------------------------------
+        for y in range(H):
+            s0 = ti.Vector([zero for _ in ti.static(range(C))])
+            s1 = ti.Vector([zero for _ in ti.static(range(C))])
+            interior = y >= r_ and y < H - r_
+            for x in range(W):
+                for c in ti.static(range(C)):
+                    acc = zero
+                    if ti.static(r_ > 0):
+                        if interior:
+                            for k in ti.static(range(-r_, r_ + 1)):
+                                acc += f.taps[k + r_] * f.tmp[y + k, x, c]
+                        else:
+                            for k in ti.static(range(-r_, r_ + 1)):
+                                if 0 <= y + k < H:
+                                    acc += f.taps[k + r_] * f.tmp[y + k, x, c]
+                    else:
+                        acc = f.tmp[y, x, c]
+                    f.img[y, x, c] = acc
+                    s0[c] += acc
+                    s1[c] += acc * acc
+            if ti.static(not gm):
+                for c in ti.static(range(C)):
+                    if ti.static(objective == "variance"):
+                        red[2 * c][None] += s0[c]
+                        red[2 * c + 1][None] += s1[c]
+                    else:
+                        red[2 * c][None] += s1[c]
+        if ti.static(gm):
+            # Sobel / 8 images (kept for the backward) and the mean of their squares
+            for y in range(H):
+                sg = ti.Vector([zero for _ in ti.static(range(C))])
+                for x in range(W):
+                    for c in ti.static(range(C)):
+                        gx = zero
+                        gy = zero
+                        for dy in ti.static(range(-1, 2)):
+                            for dx in ti.static(range(-1, 2)):
+                                if ti.static(dx != 0 or dy != 0):  # noqa: SIM102 - compile-time if
+                                    if 0 <= y + dy < H and 0 <= x + dx < W:
+                                        v = f.img[y + dy, x + dx, c]
+                                        gx += ti.static(_SOBEL_X[dy + 1][dx + 1]) * v
+                                        gy += ti.static(_SOBEL_X[dx + 1][dy + 1]) * v
+                        f.sobel[y, x, 2 * c] = gx
+                        f.sobel[y, x, 2 * c + 1] = gy
+                        sg[c] += (gx * gx + gy * gy) / 64.0
+                for c in ti.static(range(C)):
+                    red[2 * c][None] += sg[c]
+        # --- 5. serial: J -------------------------------------------------------------------------------
+        g = zero
+        for c in ti.static(range(C)):
+            if ti.static(objective == "variance"):
+                mean = red[2 * c][None] / n_pix
+                g += red[2 * c + 1][None] / n_pix - mean * mean
+            else:
+                g += red[2 * c][None] / n_pix
+        jval = g / f.g0[None]
+        f.graw[None] = g
+        if ti.static(R > 0):
+            msum = red[i_m][None]
+            theta = theta_vec()
+            c = f.ctx[None]
+            centre = ti.Vector([c[0], c[1]])
+            for r in ti.static(range(R)):
+                ratio = zero  # sum m P_r / sum m
+                qc = zero
+                if ti.static(constant[r]):
+                    qc = quantity_fns[r](centre, zero, theta, c)
+                    if msum > 0.0:
+                        ratio = penalty_fns[r](qc)
+                elif msum > 0.0:
+                    ratio = red[i_m + 1 + ti.static(vpos[r])][None] / msum
+                rr = f.lam[None][R + r] * ratio
+                wr = f.lam[None][r] * f.lam[None][R + r]
+                if ti.static(one_sided[r]):
+                    if rr <= 0.0:  # at the kink no gradient passes (as autodiff of ti.max)
+                        wr = 0.0
+                    rr = ti.max(rr, 0.0)
+                jval -= f.lam[None][r] * rr
+                f.rvals[r] = rr
+                f.rw[r] = wr
+                if ti.static(constant[r]):  # noqa: SIM102 - compile-time if
+                    if grad != 0 and msum > 0.0:
+                        # R_r = s_r P_r(q_r): dJ/dtheta = -w_r P_r'(q_r) dq_r/dtheta
+                        _, ddet, ddiv = param_jac(centre, zero, theta, c)
+                        dpen = penalty_grads[r](qc)
+                        for j in ti.static(range(P)):
+                            dq = ddiv[j] if ti.static(quantity_kinds[r] == "div") else ddet[j]
+                            gsum[j][None] += ti.cast(-wr * dpen * dq, ti.f64)
+        f.loss[None] = jval
+        # --- 6. rows (grad): adjoint images ------------------------------------------------------------
+        if ti.static(gm):
+            # dJ/dI: transposed Sobel of the Sobel images
+            for y in range(H):
+                if grad != 0:
+                    for x in range(W):
+                        for c in ti.static(range(C)):
+                            a = zero
+                            for dy in ti.static(range(-1, 2)):
+                                for dx in ti.static(range(-1, 2)):
+                                    if ti.static(dx != 0 or dy != 0):  # noqa: SIM102 - compile-time if
+                                        if 0 <= y - dy < H and 0 <= x - dx < W:
+                                            sx = f.sobel[y - dy, x - dx, 2 * c]
+                                            sy = f.sobel[y - dy, x - dx, 2 * c + 1]
+                                            a += ti.static(_SOBEL_X[dy + 1][dx + 1]) * sx
+                                            a += ti.static(_SOBEL_X[dx + 1][dy + 1]) * sy
+                            f.ibar[y, x, c] = a * 2.0 / (64.0 * n_pix * f.g0[None])
+        for y in range(H):
+            if grad != 0:
+                # transposed blur along y of dJ/dI into tmp row y. Variance: dJ/dI = c1 (I - mean), so
+                # the row is c1 (blur(I) - mean * sum of the in-image taps).
+                interior = y >= r_ and y < H - r_
+                tapsum = zero
+                for k in ti.static(range(-r_, r_ + 1)):
+                    if 0 <= y + k < H:
+                        tapsum += f.taps[k + r_] if ti.static(r_ > 0) else 1.0
+                for c in ti.static(range(C)):
+                    c1 = 2.0 / (n_pix * f.g0[None])
+                    offset = zero
+                    if ti.static(objective == "variance"):
+                        offset = c1 * red[2 * c][None] / n_pix * tapsum
+                    if ti.static(gm):
+                        c1 = 1.0
+                    for x in range(W):
+                        acc = zero
+                        if ti.static(r_ > 0):
+                            if interior:
+                                for k in ti.static(range(-r_, r_ + 1)):
+                                    acc += f.taps[k + r_] * (
+                                        f.ibar[y + k, x, c] if ti.static(gm) else f.img[y + k, x, c]
+                                    )
+                            else:
+                                for k in ti.static(range(-r_, r_ + 1)):
+                                    if 0 <= y + k < H:
+                                        acc += f.taps[k + r_] * (
+                                            f.ibar[y + k, x, c] if ti.static(gm) else f.img[y + k, x, c]
+                                        )
+                        else:
+                            acc = f.ibar[y, x, c] if ti.static(gm) else f.img[y, x, c]
+                        f.tmp[y, x, c] = c1 * acc - offset
+                # transposed blur along x into adj; map adjoints; clear the maps
+                for c in ti.static(range(C)):
+                    if ti.static(r_ > 0):
+                        blur_x_row(f.tmp, -1, f.adj, y, c, 1.0)
+                    else:
+                        for x in range(W):
+                            f.adj[y, x, c] = f.tmp[y, x, c]
+                if ti.static(R > 0):
+                    msum = red[i_m][None]
+                    for x in range(W):
+                        cnt = f.acc[0, y, x, i_cnt]
+                        dc = zero
+                        for v in ti.static(range(RV)):
+                            f.adj[y, x, i_num + v] = 0.0
+                        if cnt > 0.0 and msum > 0.0:
+                            m = cnt / (cnt + _KAPPA)
+                            dm = _KAPPA / ((cnt + _KAPPA) * (cnt + _KAPPA))
+                            for v in ti.static(range(RV)):
+                                wr = f.rw[voted[v]]
+                                avg = f.acc[0, y, x, i_num + v] / cnt
+                                pen = penalty_fns[voted[v]](avg)
+                                dpen = penalty_grads[voted[v]](avg)
+                                ratio = red[i_m + 1 + v][None] / msum
+                                # d(sum m P / sum m)/dC = (dm P + m P' d(avg)/dC - ratio dm) / sum m
+                                dc -= wr * (dm * pen - m * dpen * avg / cnt - ratio * dm) / msum
+                                f.adj[y, x, i_num + v] = -wr * m * dpen / (cnt * msum)
+                        if ti.static(shared_count):
+                            f.adj[y, x, i_cnt] += dc
+                        else:
+                            f.adj[y, x, i_cnt] = dc
+                        for k in ti.static(range(i_cnt, K)):
+                            f.acc[0, y, x, k] = 0.0
+        # --- 7. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
+        if ti.static(atomic_scatter):
+            for i in range(n):
+                if grad != 0:
+                    gev = event_grad(ev[i], theta_vec(), f.ctx[None])
+                    for j in ti.static(range(P)):
+                        gsum[j][None] += gev[j]
+        else:
+            for s in range(S):
+                if grad != 0:
+                    chunk = n // S
+                    lo = s * chunk
+                    hi = lo + chunk
+                    if s == S - 1:
+                        hi = n
+                    theta = theta_vec()
+                    c = f.ctx[None]
+                    gacc = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
+                    for i in range(lo, hi):
+                        gacc += event_grad(ev[i], theta, c)
+                    for j in ti.static(range(P)):
+                        gsum[j][None] += gacc[j]
+        # --- 8. serial: results -------------------------------------------------------------------------
+        out[0] = ti.cast(f.loss[None], ti.f64)
+        out[1] = ti.cast(f.graw[None], ti.f64)
+        for j in ti.static(range(P)):
+            out[2 + j] = gsum[j][None]
+
+    return run

@@ -1,0 +1,204 @@
+"""The fused pipeline (kernels/fused.py) against the generic autodiff kernel chain it replaces, the
+atomic (GPU-style) splat against the per-thread slices, and the closed-form parameter Jacobians
+against Taichi autodiff; finite differences of the reference are in test_pipeline_gradients.py."""
+
+import numpy as np
+import pytest
+import taichi as ti
+from cmax_taichi.kernels import param_jac as kpj
+from conftest import CAMERA, SENSOR, THETAS, edge_events
+
+import cmax_taichi as cm
+from cmax_taichi.fused import FusedPipeline
+
+pytestmark = pytest.mark.usefixtures("f64")
+
+BOTH = {"divergence": 0.7, "deformation": 1.3}
+
+
+def _problem(warp, variant="fused", seed=0, n=400, **kwargs):
+    x, y, t, p = edge_events(n=n, seed=seed)
+    flags = {"fused": {}, "chain": {"enabled": False}, "atomic": {"force_atomic": True}}[variant]
+    saved = {k: getattr(FusedPipeline, k) for k in flags}
+    for k, v in flags.items():
+        setattr(FusedPipeline, k, v)
+    try:
+        kwargs.setdefault("camera", CAMERA)
+        return cm.ContrastMaximization(cm.Events(x, y, t, p, SENSOR), warp=warp, **kwargs)
+    finally:
+        for k, v in saved.items():
+            setattr(FusedPipeline, k, v)
+
+
+CASES = [
+    dict(objective="variance", regularizers=BOTH),
+    dict(objective="gradient_magnitude", regularizers={"deformation": 1.0}),
+    dict(objective="mean_square", regularizers={"divergence": 2.0}),
+    dict(objective="variance", polarity="split", regularizers=BOTH),
+    dict(objective="variance", polarity="signed", regularizers=BOTH, blur_sigma=2.0),
+    dict(objective="variance", weights=np.linspace(0.2, 1.5, 400), regularizers=BOTH, t_ref="last"),
+    dict(objective="variance", blur_sigma=0.0, regularizers=BOTH, normalize=False),
+]
+
+
+# every option on the richest model; the default configuration on every model (compile time)
+CHAIN_CASES = [("mitrokhin4", c) for c in range(len(CASES))] + [(w, 0) for w in THETAS if w != "mitrokhin4"]
+
+
+@pytest.mark.parametrize("warp,case", CHAIN_CASES)
+def test_fused_equals_generic_chain(warp, case):
+    options = CASES[case]
+    fused = _problem(warp, "fused", **options)
+    chain = _problem(warp, "chain", **options)
+    assert fused._fused is not None and chain._fused is None
+    rng = np.random.default_rng(case)
+    for scale in (0.0, 1.0, 2.5):
+        theta = np.asarray(THETAS[warp]) * scale * rng.uniform(0.7, 1.3, len(THETAS[warp]))
+        v1, g1 = fused.value_and_grad(theta)
+        v2, g2 = chain.value_and_grad(theta)
+        assert v1 == pytest.approx(v2, rel=1e-11, abs=1e-12)
+        np.testing.assert_allclose(g1, g2, rtol=1e-8, atol=1e-10 * max(1.0, np.max(np.abs(g2))))
+        assert fused.value(theta) == pytest.approx(v2, rel=1e-11, abs=1e-12)
+    np.testing.assert_allclose(fused.iwe(theta), chain.iwe(theta), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("warp", ["mitrokhin4", "rotation3"])
+def test_atomic_splat_equals_thread_slices(warp):
+    """The atomic splat (the GPU path, run here on the CPU) against the per-thread slices."""
+    ref = _problem(warp, "fused", regularizers=BOTH)
+    other = _problem(warp, "atomic", regularizers=BOTH)
+    assert ref._fused is not None and other._fused is not None
+    for scale in (0.5, 2.0):
+        theta = np.asarray(THETAS[warp]) * scale
+        v1, g1 = ref.value_and_grad(theta)
+        v2, g2 = other.value_and_grad(theta)
+        assert v1 == pytest.approx(v2, rel=1e-11)
+        np.testing.assert_allclose(g1, g2, rtol=1e-8, atol=1e-10 * np.max(np.abs(g2)))
+
+
+def _jacobian_kernels(warp_fn, det_fn, div_fn, pj_fn, n_params):
+    @ti.kernel
+    def closed(
+        n: ti.i32,
+        px: ti.template(),
+        py: ti.template(),
+        pdt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        jx: ti.template(),
+        jd: ti.template(),
+        jv: ti.template(),
+    ):
+        for i in range(n):
+            a, b, c = pj_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
+            for j in ti.static(range(n_params)):
+                jx[i, 0, j] = a[0, j]
+                jx[i, 1, j] = a[1, j]
+                jd[i, j] = b[j]
+                jv[i, j] = c[j]
+
+    @ti.kernel
+    def forward(
+        n: ti.i32,
+        px: ti.template(),
+        py: ti.template(),
+        pdt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        out: ti.template(),
+        sel: ti.template(),
+    ):
+        for i in range(n):
+            p = ti.Vector([px[i], py[i]])
+            q = warp_fn(p, pdt[i], th[None], ctx[None])
+            s = sel[None]
+            out[None] += (
+                s[0] * q[0]
+                + s[1] * q[1]
+                + s[2] * det_fn(p, pdt[i], th[None], ctx[None])
+                + s[3] * div_fn(p, th[None], ctx[None])
+            )
+
+    return closed, forward
+
+
+@pytest.mark.parametrize("warp", list(THETAS))
+def test_param_jacobians_equal_autodiff(warp):
+    """Each closed-form column against reverse-mode autodiff of warp, det and div (one event at a time
+    is not needed: the sum over events of a selected output has the summed Jacobian as gradient)."""
+    model = cm.get_warp(warp)
+    pj = kpj.PARAM_JACOBIANS[(model.warp, model.det, model.div)]
+    P = model.n_params
+    x, y, t, _ = edge_events(n=50, seed=4)
+    n = len(x)
+    f = {k: ti.field(ti.f64, shape=n) for k in ("x", "y", "dt")}
+    f["x"].from_numpy(x)
+    f["y"].from_numpy(y)
+    f["dt"].from_numpy(t - 0.02)  # negative and positive offsets
+    th = ti.Vector.field(P, ti.f64, shape=(), needs_grad=True)
+    ctx = ti.Vector.field(5, ti.f64, shape=())
+    ctx[None] = [CAMERA.cx, CAMERA.cy, CAMERA.fx, CAMERA.fy, 0.05]
+    jx = ti.field(ti.f64, shape=(n, 2, P))
+    jd = ti.field(ti.f64, shape=(n, P))
+    jv = ti.field(ti.f64, shape=(n, P))
+    out = ti.field(ti.f64, shape=(), needs_grad=True)
+    sel = ti.Vector.field(4, ti.f64, shape=())
+    closed, forward = _jacobian_kernels(model.warp, model.det, model.div, pj, P)
+    rng = np.random.default_rng(1)
+    for scale in (1e-6, 1.0, 3.0):
+        theta = np.asarray(THETAS[warp]) * scale * rng.uniform(0.5, 1.5, P)
+        th[None] = theta.tolist()
+        closed(n, f["x"], f["y"], f["dt"], th, ctx, jx, jd, jv)
+        sums = [
+            jx.to_numpy()[:, 0].sum(0),
+            jx.to_numpy()[:, 1].sum(0),
+            jd.to_numpy().sum(0),
+            jv.to_numpy().sum(0),
+        ]
+        for k in range(4):
+            sel[None] = [1.0 if i == k else 0.0 for i in range(4)]
+            out[None] = 0.0
+            out.grad[None] = 1.0
+            th.grad[None] = [0.0] * P
+            forward.grad(n, f["x"], f["y"], f["dt"], th, ctx, out, sel)
+            ad = th.grad.to_numpy().reshape(-1)
+            np.testing.assert_allclose(sums[k], ad, rtol=1e-9, atol=1e-9 * max(1.0, np.max(np.abs(ad))))
+
+
+def test_no_allocation_per_call_and_fields_reused(monkeypatch):
+    """Repeated evaluations create no Taichi field or ndarray; a window of another size reuses the
+    shared fields (and compiled kernels) and both problems keep evaluating correctly."""
+    prob = _problem("mitrokhin4", regularizers=BOTH)
+    fields = prob._fused.fields
+    theta = np.asarray(THETAS["mitrokhin4"])
+    prob.value_and_grad(theta)
+    created = []
+
+    def counting(original):
+        def wrapper(*args, **kwargs):
+            created.append(args)
+            return original(*args, **kwargs)
+
+        return wrapper
+
+    monkeypatch.setattr(ti, "field", counting(ti.field))
+    monkeypatch.setattr(ti, "ndarray", counting(ti.ndarray))
+    monkeypatch.setattr(ti.Vector, "field", counting(ti.Vector.field))
+    for _ in range(5):
+        prob.value_and_grad(theta)
+        prob.value(theta)
+    assert created == []
+    monkeypatch.undo()
+    other = _problem("mitrokhin4", n=300, seed=3, regularizers=BOTH)
+    assert other._fused.fields is fields
+    assert np.isfinite(other.value(theta))
+    v1, _ = prob.value_and_grad(theta)
+    chain = _problem("mitrokhin4", "chain", regularizers=BOTH)
+    assert v1 == pytest.approx(chain.value(theta), rel=1e-11)
+
+
+def test_user_objective_and_whitening_take_the_generic_chain():
+    prob = _problem("mitrokhin4", regularizers=BOTH, whitening=True)
+    assert prob._fused is None
+    v, g = prob.value_and_grad(THETAS["mitrokhin4"])
+    assert np.isfinite(v) and np.all(np.isfinite(g))
