@@ -14,7 +14,7 @@ import importlib
 import sys
 
 #: explicit list of sub-command modules (cmax_taichi.commands.<name>)
-COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce")
+COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce", "bench")
 
 
 class CliError(Exception):

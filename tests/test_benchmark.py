@@ -1,0 +1,98 @@
+"""The benchmark's agreement check (Taichi vs the NumPy reference and its finite differences, vs the
+PyTorch twin when torch is installed), its refusal to time a disagreeing implementation, and the
+--quick machinery end to end on a tiny configuration."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from cmax_taichi import bench
+
+pytestmark = pytest.mark.usefixtures("f64")
+
+HAS_TORCH = importlib.util.find_spec("torch") is not None
+TINY = "64x48"
+
+
+def _impls(cfg, win, names):
+    out = {}
+    for name in names:
+        if name == "taichi":
+            out[name] = bench.build_taichi(win, cfg)
+        elif name == "torch":
+            out[name] = bench.build_torch(win, cfg, "f64")
+        else:
+            out[name] = bench.build_numpy(win, cfg)
+    return out
+
+
+@pytest.mark.parametrize("warp", list(bench.THETAS))
+def test_taichi_agrees_with_reference_and_finite_differences(warp):
+    cfg = bench.BenchConfig(600, TINY, warp, "div+def")
+    win = bench.make_window(cfg.n, cfg.sensor, seed=1)
+    status = bench.check_agreement(_impls(cfg, win, ("taichi", "numpy")), win, cfg, "f64")
+    assert status == {"taichi": "ok", "numpy": "ok"}
+
+
+@pytest.mark.skipif(
+    not HAS_TORCH, reason="torch is not installed (optional benchmark extra: pip install torch)"
+)
+@pytest.mark.parametrize("warp", list(bench.THETAS))
+@pytest.mark.parametrize("regs", list(bench.REGS))
+def test_torch_twin_agrees(warp, regs):
+    cfg = bench.BenchConfig(600, TINY, warp, regs)
+    win = bench.make_window(cfg.n, cfg.sensor, seed=2)
+    impls = _impls(cfg, win, ("taichi", "torch", "numpy"))
+    assert bench.check_agreement(impls, win, cfg, "f64") == {"taichi": "ok", "torch": "ok", "numpy": "ok"}
+    theta = bench.THETAS[warp]
+    v1, g1 = impls["taichi"].vg(theta)
+    v2, g2 = impls["torch"].vg(theta)
+    assert v1 == pytest.approx(v2, rel=1e-10)
+    np.testing.assert_allclose(g1, g2, rtol=1e-7, atol=1e-9 * np.max(np.abs(g2)))
+
+
+def test_a_disagreeing_implementation_is_flagged_and_not_timed(monkeypatch):
+    cfg = bench.BenchConfig(500, TINY, "translation2", "none", impls=("taichi", "numpy"))
+    real_build = bench.build_taichi
+
+    def wrong(win, cfg, fused=True):
+        impl = real_build(win, cfg, fused=fused)
+        vg = impl.vg
+        impl.vg = lambda th: (vg(th)[0] * (1 + 1e-6), vg(th)[1])
+        return impl
+
+    monkeypatch.setattr(bench, "build_taichi", wrong)
+    rows = bench.run_config(
+        cfg, bench.Plan([cfg], min_repeats=1, max_repeats=2, budget_s=0.0), log=lambda s: None
+    )
+    by = {r.impl: r for r in rows}
+    assert by["taichi"].status.startswith("DISAGREES")
+    assert np.isnan(by["taichi"].median_ms) and by["taichi"].repeats == 0
+    assert by["numpy"].status == "ok" and by["numpy"].median_ms > 0
+
+
+def test_quick_machinery_writes_reports(tmp_path):
+    cfgs = [
+        bench.BenchConfig(400, TINY, "mitrokhin4", "div+def", impls=("taichi", "torch", "numpy")),
+        bench.BenchConfig(2000, TINY, "mitrokhin4", "div+def", impls=("taichi", "torch", "numpy")),
+    ]
+    plan = bench.Plan(cfgs, min_repeats=2, max_repeats=3, budget_s=0.0, solve=False, label="test")
+    result = bench.run_benchmark(plan, tmp_path, log=lambda s: None)
+    rows = result["rows"]
+    assert {r.impl for r in rows} == {"taichi", "torch", "numpy"}
+    for r in rows:
+        if r.impl == "torch" and not HAS_TORCH:
+            assert r.status.startswith("skipped")
+        else:
+            assert r.status == "ok", r.status
+            assert r.median_ms > 0 and r.repeats >= 2
+    assert (tmp_path / "results.csv").read_text().count("\n") == len(rows) + 1
+    md = (tmp_path / "results.md").read_text()
+    assert "| N | sensor |" in md and "Taichi" in md
+    assert (tmp_path / "results.png").stat().st_size > 1000
+    assert bench.quick_plan().label == "quick" and len(bench.full_plan().configs) > len(
+        bench.quick_plan().configs
+    )
