@@ -42,7 +42,11 @@ CASES = [
 
 
 # every option on the richest model; the default configuration on every model (compile time)
-CHAIN_CASES = [("mitrokhin4", c) for c in range(len(CASES))] + [(w, 0) for w in THETAS if w != "mitrokhin4"]
+# (rotation3's chain takes minutes to compile; its fused gradient is held against finite differences
+# of the reference in test_pipeline_gradients.py and its Jacobians against autodiff below)
+CHAIN_CASES = [("mitrokhin4", c) for c in range(len(CASES))] + [
+    (w, 0) for w in THETAS if w not in ("mitrokhin4", "rotation3")
+]
 
 
 @pytest.mark.parametrize("warp,case", CHAIN_CASES)
@@ -62,7 +66,7 @@ def test_fused_equals_generic_chain(warp, case):
     np.testing.assert_allclose(fused.iwe(theta), chain.iwe(theta), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("warp", ["mitrokhin4", "rotation3"])
+@pytest.mark.parametrize("warp", ["mitrokhin4", "sim2"])
 def test_atomic_splat_equals_thread_slices(warp):
     """The atomic splat (the GPU path, run here on the CPU) against the per-thread slices."""
     ref = _problem(warp, "fused", regularizers=BOTH)
