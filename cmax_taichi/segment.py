@@ -10,8 +10,9 @@ from event collapse by the regularizers of Shiba et al. (Sensors 2022).
     blurred, membership-weighted IWE at event i's position warped by cluster j (sharpened by a
     temperature, or hard),
 
-until the memberships stop changing. The clusters start from a coarse grid of translational motions
-scored by CMax on a subsample of the events and picked greedily for coverage (no ground truth needed).
+until the memberships stop changing. The clusters start from the translational motions that image
+patches vote for (each patch's sharpest candidate of a coarse, then a fine grid, scored by CMax on a
+subsample of the events; no ground truth needed).
 Algorithm and formulas: docs/SEGMENTATION.md.
 """
 
