@@ -246,3 +246,21 @@ def test_scaled_preset_keeps_the_flow_relative_to_the_image():
 def test_bad_parameters_give_clear_errors(make, message):
     with pytest.raises((ValueError, KeyError, TypeError), match=message):
         make()
+
+
+def test_readme_simulator_example_runs(tmp_path, monkeypatch):
+    import re
+    from pathlib import Path
+
+    readme = Path(__file__).resolve().parents[1] / "README.md"
+    section = readme.read_text().split("## Simulated data and the paper's experiments", 1)
+    if len(section) < 2:
+        pytest.fail("README has no simulator section")
+    code = re.search(r"```python\n(.*?)```", section[1], re.S).group(1)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(code, str(readme), "exec"), namespace)  # noqa: S102 - our own README
+    prob, theta = namespace["prob"], namespace["theta"]
+    assert prob.value(theta) > 1.05 * prob.value(np.zeros(4))
+    assert namespace["flow"].shape == (2, 180, 240)
+    assert namespace["h5_path"].exists() and namespace["flow_path"].exists()
