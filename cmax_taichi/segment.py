@@ -284,7 +284,7 @@ def _grid_init(
     ``max_displacement``) scores every event (:func:`_candidate_scores`, events binned 4 px); patches of
     an eighth of the sensor vote for their best candidate (:func:`_patch_votes`), and the ``K + 1``
     most voted candidates at least 8 px apart are kept. Fine stage at full resolution (blur 1 px): a
-    9 x 9 grid of step 1 px around each of them votes again, and the K most voted candidates at least
+    7 x 7 grid of step 1 px around each of them votes again, and the K most voted candidates at least
     3 px apart are the result. Patches are
     local, so a motion that half-sharpens two objects (which a global score may prefer) gets no votes.
     Returns (K, 2) flows in px/s.
@@ -299,7 +299,7 @@ def _grid_init(
     coarse = np.array([(dx, dy) for dy in steps for dx in steps])
     votes = _patch_votes(_candidate_scores(sub, coarse, 4.0, T, t_ref, batch), sub, patch)
     picks = _pick_by_votes(votes, coarse, n_clusters + 1, min_separation=8.0)
-    offsets = np.arange(-4, 5, dtype=np.float64)
+    offsets = np.arange(-3, 4, dtype=np.float64)
     fine = np.unique(
         np.array([coarse[c] + (dx, dy) for c in picks for dy in offsets for dx in offsets]).round(6), axis=0
     )
@@ -368,8 +368,8 @@ def segment(
     max_iterations : int
         Alternations of (a) the parameter step and (b) the membership update.
     steps : int
-        Adam iterations of the first parameter step (half as many in the later ones, which start
-        close to their optimum).
+        Adam iterations of the first parameter step (3/8 as many, at least 1, in the later ones, which
+        start close to their optimum).
     learning_rate : float
         Adam step, in pixels of displacement over the window: each parameter is scaled by how far it
         moves the events (at theta = 0), so one learning rate serves px/s, 1/s and rad/s alike. It
@@ -475,7 +475,7 @@ def segment(
 
         # (a) parameters: Adam ascent in pixel-scaled coordinates, keeping the best point seen
         lr = learning_rate * max(0.5**it, 0.1)
-        n_steps = steps if it == 0 else max(1, steps // 2)
+        n_steps = steps if it == 0 else max(1, (3 * steps) // 8)
         m1 = np.zeros_like(theta)
         m2 = np.zeros_like(theta)
         best_value, best_theta = -np.inf, theta.copy()
