@@ -598,16 +598,19 @@ class ContrastMaximization:
         images(count, numer, out)
         return names, count.to_numpy().astype(np.float64), out.to_numpy().astype(np.float64)
 
-    def _all_penalties(self, theta: np.ndarray) -> dict[str, float]:
-        names, count, out = self._map_fields(theta)
+    def _penalties_of(self, names: list[str], count: np.ndarray, out: np.ndarray) -> dict[str, float]:
+        """R of every named regularizer from its pixel penalties: the support-weighted mean
+        (``m = C / (C + kappa)``), scaled (and hinged) as in J."""
         support = count / (count + kmaps.SUPPORT_KAPPA)
         total = support.sum()
         result = {}
         for r, name in enumerate(names):
-            reg = REGULARIZERS.get(name)
             mean = float((support * out[2 * r + 1]).sum() / total) if total > 0 else 0.0
-            result[name] = penalty_value(reg, mean, self.duration, self.orientation)
+            result[name] = penalty_value(REGULARIZERS.get(name), mean, self.duration, self.orientation)
         return result
+
+    def _all_penalties(self, theta: np.ndarray) -> dict[str, float]:
+        return self._penalties_of(*self._map_fields(theta))
 
     def maps(self, theta) -> dict[str, np.ndarray | float]:
         """Regularizer maps at ``theta`` as (H, W) NumPy images.
@@ -623,14 +626,11 @@ class ContrastMaximization:
         theta = _check_theta(theta, self.model.n_params, self.model.name)
         names, count, out = self._map_fields(theta)
         result: dict[str, np.ndarray | float] = {"count": count}
-        support = count / (count + kmaps.SUPPORT_KAPPA)
-        total = support.sum()
         for r, name in enumerate(names):
-            reg = REGULARIZERS.get(name)
             result[name] = out[2 * r]
             result[name + "_penalty"] = out[2 * r + 1]
-            mean = float((support * out[2 * r + 1]).sum() / total) if total > 0 else 0.0
-            result["R_" + name] = penalty_value(reg, mean, self.duration, self.orientation)
+        for name, value in self._penalties_of(names, count, out).items():
+            result["R_" + name] = value
         return result
 
     def dense_flow(self, theta, dt: float = 0.0) -> np.ndarray:
