@@ -28,8 +28,9 @@ Protocol
 
 Every problem uses the library defaults (t_ref = first event, blur 1 px, polarity ignored, objective
 normalised by the identity warp) and :func:`cmax_taichi.maximize` (global grid search over its default
-box, then Adam from the best candidates). The regularizer weight is ``lam`` (default 1, chosen before
-any run: the normalised objective makes it comparable across windows; the paper's weights are not
+box, then Adam from the best candidates). The regularizer weight is ``lam``, by default
+:data:`cmax_taichi.regularizers.RECOMMENDED_LAMBDA`, which ``python -m cmax_taichi.experiments_real``
+selects on the real MVSEC cut before these simulated tables are made (the paper's weights are not
 known).
 """
 
@@ -53,6 +54,7 @@ from .events import Events
 from .metrics import angular_velocity_error, event_mask, flow_error, flow_from_warp, fwl_problem
 from .optimize import maximize
 from .problem import ContrastMaximization
+from .regularizers import RECOMMENDED_LAMBDA
 from .sequence import ProgressBar
 
 __all__ = [
@@ -187,7 +189,7 @@ class Settings:
     windows: int = 2
     sensitivity_windows: int = 1
     lambdas: tuple[float, ...] = (0.1, 0.3, 1.0, 3.0, 10.0, 100.0)
-    lam: float = 1.0
+    lam: float = RECOMMENDED_LAMBDA
     n_init_1dof: int = 101
     n_init_high: int = 625
     n_starts: int = 2

@@ -1,19 +1,22 @@
 """Real-data results of the estimation pipeline on the shared recordings (``../shared/data``).
 
 Run ``python -m cmax_taichi.experiments_real [--data DIR]``; it prints the tables that README.md
-quotes. Three experiments:
+quotes. Four experiments:
 
-1. ECD rotation cuts (4 windows, every event of each cut), ``rotation3`` with the camera of
+1. MVSEC indoor_flying1, the first 30,000 events, ``zoom1`` and ``mitrokhin4``, both objectives, with
+   no regularizer, the whitening baseline, and divergence, deformation and both at every weight of
+   :data:`LAMBDA_GRID`: FWL and the share of the identity warp's event-covered pixels that stay
+   covered. The smallest weight at which no regularized configuration collapses is selected (it is
+   :data:`cmax_taichi.regularizers.RECOMMENDED_LAMBDA`) and used by the next experiments. For
+   ``zoom1`` the global search is checked against a dense grid of 2001 values of ``h_z`` over the
+   search box.
+2. ECD rotation cuts (4 windows, every event of each cut), ``rotation3`` with the camera of
    ``calib.txt``, variance: the estimate's FWL against the gyro's (``motion.txt``, a sample at the
    window middle), the angular-velocity error relative to ``|w_gt|``, and how much the divergence or
-   the deformation regularizer (lambda = 1) changes the estimate.
-2. ECD slider_depth, ``translation2`` (undistorted with ``calib.txt``): the flow of the whole 50,000
+   the deformation regularizer (lambda = 1 and the selected weight) changes the estimate.
+3. ECD slider_depth, ``translation2`` (undistorted with ``calib.txt``): the flow of the whole 50,000
    event chunk as one window, and per window of 10,000 events.
-3. MVSEC indoor_flying1, the first 30,000 events, ``zoom1`` and ``mitrokhin4``, both objectives, with
-   no regularizer, the whitening baseline, divergence, deformation, and both (lambda = 1 each): FWL and
-   the share of the identity warp's event-covered pixels that stay covered. For ``zoom1`` the global
-   search is checked against a dense grid of 2001 values of ``h_z`` over the search box. Then zoom1
-   with one regularizer at lambda = 2, 5, 10 (a sensitivity check as in the paper's Sec. 4.4).
+4. zoom1 on a dense grid of ``h_z T`` beyond the search box (the time-to-contact bound).
 
 Every problem uses the library defaults (t_ref = first event, blur sigma = 1 px, polarity ignored,
 normalised objective) and :func:`cmax_taichi.maximize` with its defaults (global grid search over
@@ -36,15 +39,9 @@ import cmax_taichi as cm
 
 from .metrics import angular_velocity_error, covered_area_ratio, covered_share, fwl_problem
 from .optimize import METHODS, search_bounds
+from .regularizers import RECOMMENDED_LAMBDA
 
 ROTATION_CUTS = ("shapes_rotation", "boxes_rotation", "dynamic_rotation", "poster_rotation")
-REGULARIZER_ROWS = (
-    ("none", {}, False),
-    ("whitening", {}, True),
-    ("divergence", {"divergence": 1.0}, False),
-    ("deformation", {"deformation": 1.0}, False),
-    ("div + def", {"divergence": 1.0, "deformation": 1.0}, False),
-)
 #: less than this share of the identity warp's covered pixels stay covered: "collapse" when the IWE is
 #: sharper than with no motion (FWL > 1), "spread out" when it is blurrier
 COLLAPSE_SHARE = 0.5
@@ -61,21 +58,23 @@ def _fmt_vec(v) -> str:
 
 
 # --- 1. ECD rotation ------------------------------------------------------------------------------------
-def rotation_window(folder: Path, method: str = "adam", **options) -> dict:
-    """One ECD rotation cut: estimates without and with each regularizer, errors and FWLs."""
+def rotation_window(folder: Path, method: str = "adam", lambdas=(1.0,), **options) -> dict:
+    """One ECD rotation cut: estimates without and with each regularizer (at each weight of
+    ``lambdas``), errors and FWLs."""
     from . import io
 
     with io.open_recording(folder) as rec:
         events = rec.read()
         camera = rec.camera
         w_gt = np.asarray(rec.angular_velocity(0.5 * (rec.t_start + rec.t_end)), dtype=np.float64)
-    row: dict = {"name": folder.name, "w_gt": w_gt}
+    row: dict = {"name": folder.name, "w_gt": w_gt, "lambdas": tuple(float(lam) for lam in lambdas)}
     t0 = time.perf_counter()
-    for label, regs in (
-        ("none", {}),
-        ("divergence", {"divergence": 1.0}),
-        ("deformation", {"deformation": 1.0}),
-    ):
+    runs = [("none", {})] + [
+        (f"{name}@{lam:g}", {name: float(lam)})
+        for lam in row["lambdas"]
+        for name in ("divergence", "deformation")
+    ]
+    for label, regs in runs:
         prob = cm.ContrastMaximization(events, warp="rotation3", camera=camera, regularizers=regs)
         res = cm.maximize(prob, method=method, **options)
         row[label] = res.theta
@@ -89,24 +88,43 @@ def rotation_window(folder: Path, method: str = "adam", **options) -> dict:
     err = angular_velocity_error(est, w_gt)
     row["error_rel"] = float(err["relative"][0])
     row["error_deg_s"] = float(err["error_deg_s"][0])
-    for label in ("divergence", "deformation"):
+    for label, _ in runs[1:]:
         row[f"change_{label}"] = float(np.linalg.norm(row[label] - est) / np.linalg.norm(est))
+        row[f"error_{label}"] = float(angular_velocity_error(row[label], w_gt)["relative"][0])
     row["seconds"] = time.perf_counter() - t0
     return row
 
 
-ROTATION_HEADER = (
-    "| window | events / T | w_gt (rad/s) | w_est, no reg. (rad/s) | error / abs(w_gt) | FWL est. | FWL GT "
-    "| change with Div | change with Def | s |\n|---|---|---|---|---|---|---|---|---|---|"
-)
+def rotation_header(lambdas) -> str:
+    changes = [f"Div, lambda = {lam:g}: change / error" for lam in lambdas] + [
+        f"Def, lambda = {lam:g}: change / error" for lam in lambdas
+    ]
+    cols = [
+        "window",
+        "events / T",
+        "w_gt (rad/s)",
+        "w_est, no reg. (rad/s)",
+        "error / abs(w_gt)",
+        "FWL est.",
+        "FWL GT",
+        *changes,
+        "s",
+    ]
+    return "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols)
 
 
 def rotation_line(r: dict) -> str:
+    """One row; a regularized estimate's cell is ``|w_reg - w_est| / |w_est|`` (its change from the
+    unregularized estimate) and ``|w_reg - w_gt| / |w_gt|`` (its error)."""
+    changes = [
+        f"{100 * r[f'change_{name}@{lam:g}']:.2f}% / {100 * r[f'error_{name}@{lam:g}']:.1f}%"
+        for name in ("divergence", "deformation")
+        for lam in r["lambdas"]
+    ]
     return (
         f"| {r['name']} | {r['n_events']} / {1e3 * r['duration']:.1f} ms | {_fmt_vec(r['w_gt'])} | "
         f"{_fmt_vec(r['none'])} | {100 * r['error_rel']:.1f}% ({r['error_deg_s']:.1f} deg/s) | "
-        f"{r['fwl_est']:.4f} | {r['fwl_gt']:.4f} | {100 * r['change_divergence']:.2f}% | "
-        f"{100 * r['change_deformation']:.2f}% | {r['seconds']:.0f} |"
+        f"{r['fwl_est']:.4f} | {r['fwl_gt']:.4f} | " + " | ".join(changes) + f" | {r['seconds']:.0f} |"
     )
 
 
@@ -161,9 +179,56 @@ def slider_line(r: dict) -> str:
 
 
 # --- 3. MVSEC collapse -------------------------------------------------------------------------------------
+#: weights tried on the MVSEC cut; the smallest at which no regularized configuration collapses is the
+#: weight of the headline rows (and of ``cmax-taichi reproduce``: ``experiments.Settings.lam``)
+LAMBDA_GRID = (1.0, 2.0, 5.0, 10.0, 20.0)
+REGULARIZED = (
+    ("divergence", ("divergence",)),
+    ("deformation", ("deformation",)),
+    ("div + def", ("divergence", "deformation")),
+)
+
+
+def _collapse_row(events, camera, warp, objective, label, lam, regs, whitening, method, options) -> dict:
+    t0 = time.perf_counter()
+    prob = cm.ContrastMaximization(
+        events, warp=warp, objective=objective, camera=camera, regularizers=regs, whitening=whitening
+    )
+    res = cm.maximize(prob, method=method, **options)
+    fprob = fwl_problem(prob.events, warp, camera=camera)
+    row = {
+        "warp": warp,
+        "objective": objective,
+        "label": label,
+        "lambda": lam,
+        "theta": res.theta,
+        "params": res.param_names,
+        "J": res.value,
+        "fwl": fprob.value(res.theta),
+        "covered": covered_share(fprob, res.theta),
+        "area": covered_area_ratio(fprob, res.theta),
+        "duration": prob.duration,
+        "seconds": time.perf_counter() - t0,
+    }
+    if warp == "zoom1":  # the global search against a dense grid over the same box
+        lo, hi = search_bounds(prob)
+        grid = np.linspace(lo[0], hi[0], 2001)
+        values = np.array([prob.value([h]) for h in grid])
+        k = int(np.argmax(values))
+        row["dense_best"] = (float(grid[k]), float(values[k]))
+    return row
+
+
 def collapse_rows(
-    folder: Path, n_events: int = 30000, method: str = "adam", warps=("zoom1", "mitrokhin4"), **options
+    folder: Path,
+    n_events: int = 30000,
+    method: str = "adam",
+    warps=("zoom1", "mitrokhin4"),
+    lambdas=LAMBDA_GRID,
+    **options,
 ) -> Iterator[dict]:
+    """Per warp and objective: no regularizer, whitening, then each regularizer set at every weight
+    of ``lambdas`` (each regularizer of a set weighted by lambda)."""
     from . import io
 
     with io.open_recording(folder) as rec:
@@ -171,38 +236,53 @@ def collapse_rows(
         camera = rec.camera
     for warp in warps:
         for objective in ("variance", "gradient_magnitude"):
-            for label, regs, whitening in REGULARIZER_ROWS:
-                t0 = time.perf_counter()
-                prob = cm.ContrastMaximization(
-                    events,
-                    warp=warp,
-                    objective=objective,
-                    camera=camera,
-                    regularizers=regs,
-                    whitening=whitening,
+            for label, whitening in (("none", False), ("whitening", True)):
+                yield _collapse_row(
+                    events, camera, warp, objective, label, 0.0, {}, whitening, method, options
                 )
-                res = cm.maximize(prob, method=method, **options)
-                fprob = fwl_problem(prob.events, warp, camera=camera)
-                row = {
-                    "warp": warp,
-                    "objective": objective,
-                    "label": label,
-                    "theta": res.theta,
-                    "params": res.param_names,
-                    "J": res.value,
-                    "fwl": fprob.value(res.theta),
-                    "covered": covered_share(fprob, res.theta),
-                    "area": covered_area_ratio(fprob, res.theta),
-                    "duration": prob.duration,
-                    "seconds": time.perf_counter() - t0,
-                }
-                if warp == "zoom1":
-                    lo, hi = search_bounds(prob)
-                    grid = np.linspace(lo[0], hi[0], 2001)
-                    values = np.array([prob.value([h]) for h in grid])
-                    k = int(np.argmax(values))
-                    row["dense_best"] = (float(grid[k]), float(values[k]))
-                yield row
+            for lam in lambdas:
+                for label, names in REGULARIZED:
+                    regs = {name: float(lam) for name in names}
+                    yield _collapse_row(
+                        events, camera, warp, objective, label, lam, regs, False, method, options
+                    )
+
+
+def collapse_outcome(r: dict) -> str:
+    """ "no", or, when most covered pixels are emptied, "collapse" (gathered: FWL > 1) or "spread out"."""
+    if r["covered"] >= COLLAPSE_SHARE:
+        return "no"
+    return "collapse" if r["fwl"] > 1.0 else "spread out"
+
+
+def select_lambda(rows: list[dict]) -> float | None:
+    """The smallest weight at which no regularized row collapses (None: none of the grid)."""
+    for lam in sorted({r["lambda"] for r in rows if r["lambda"] > 0}):
+        at = [r for r in rows if r["lambda"] == lam]
+        if at and all(collapse_outcome(r) == "no" for r in at):
+            return lam
+    return None
+
+
+def lambda_table(rows: list[dict]) -> str:
+    """Outcome and FWL of every regularized configuration against lambda."""
+    lambdas = sorted({r["lambda"] for r in rows if r["lambda"] > 0})
+    lines = [
+        "| warp | objective | regularizer | " + " | ".join(f"lambda = {lam:g}" for lam in lambdas) + " |",
+        "|---|---|---|" + "---|" * len(lambdas),
+    ]
+    keys = []
+    for r in rows:
+        key = (r["warp"], r["objective"], r["label"])
+        if r["lambda"] > 0 and key not in keys:
+            keys.append(key)
+    for key in keys:
+        cells = []
+        for lam in lambdas:
+            match = [r for r in rows if (r["warp"], r["objective"], r["label"]) == key and r["lambda"] == lam]
+            cells.append(f"{collapse_outcome(match[0])}, FWL {match[0]['fwl']:.2f}" if match else "-")
+        lines.append(f"| {key[0]} | {key[1]} | {key[2]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 COLLAPSE_HEADER = (
@@ -214,50 +294,16 @@ COLLAPSE_HEADER = (
 def collapse_line(r: dict) -> str:
     T = r["duration"]
     est = ", ".join(f"{n} T = {v * T:+.3f}" for n, v in zip(r["params"], r["theta"], strict=True))
-    if r["covered"] >= COLLAPSE_SHARE:
-        outcome = "no"
-    else:  # most covered pixels emptied: gathered (sharper than no motion) or spread out (blurrier)
-        outcome = "collapse" if r["fwl"] > 1.0 else "spread out"
+    label = r["label"] if r["lambda"] == 0 else f"{r['label']}, lambda = {r['lambda']:g}"
     return (
-        f"| {r['warp']} | {r['objective']} | {r['label']} | {est} | {r['J']:.3f} | {r['fwl']:.3f} | "
-        f"{100 * r['covered']:.1f}% | {r['area']:.2f} | {outcome} | {r['seconds']:.0f} |"
+        f"| {r['warp']} | {r['objective']} | {label} | {est} | {r['J']:.3f} | {r['fwl']:.3f} | "
+        f"{100 * r['covered']:.1f}% | {r['area']:.2f} | {collapse_outcome(r)} | {r['seconds']:.0f} |"
     )
 
 
-def sensitivity_rows(
-    folder: Path, lambdas=(2.0, 5.0, 10.0), n_events: int = 30000, method: str = "adam", **options
+def beyond_box_rows(
+    folder: Path, n_events: int = 30000, limit: float = 1.5, n: int = 1501, lam: float = 1.0
 ) -> Iterator[dict]:
-    """zoom1 with one regularizer at larger weights (the paper's sensitivity analysis, Sec. 4.4)."""
-    from . import io
-
-    with io.open_recording(folder) as rec:
-        events = rec.read(0, n_events)
-        camera = rec.camera
-    fprob = fwl_problem(events, "zoom1", camera=camera)
-    for objective in ("variance", "gradient_magnitude"):
-        for reg in ("divergence", "deformation"):
-            for lam in lambdas:
-                t0 = time.perf_counter()
-                prob = cm.ContrastMaximization(
-                    events, warp="zoom1", objective=objective, camera=camera, regularizers={reg: lam}
-                )
-                res = cm.maximize(prob, method=method, **options)
-                yield {
-                    "warp": "zoom1",
-                    "objective": objective,
-                    "label": f"{reg}, lambda = {lam:g}",
-                    "theta": res.theta,
-                    "params": res.param_names,
-                    "J": res.value,
-                    "fwl": fprob.value(res.theta),
-                    "covered": covered_share(fprob, res.theta),
-                    "area": covered_area_ratio(fprob, res.theta),
-                    "duration": prob.duration,
-                    "seconds": time.perf_counter() - t0,
-                }
-
-
-def beyond_box_rows(folder: Path, n_events: int = 30000, limit: float = 1.5, n: int = 1501) -> Iterator[dict]:
     """zoom1 on a dense grid of ``h_z T`` in ``[-limit, limit]``: past ``h_z T = 1`` the window's last
     events pass through the centre (outside the default search box of :func:`cmax_taichi.maximize`)."""
     from . import io
@@ -266,8 +312,12 @@ def beyond_box_rows(folder: Path, n_events: int = 30000, limit: float = 1.5, n: 
         events = rec.read(0, n_events)
         camera = rec.camera
     fprob = fwl_problem(events, "zoom1", camera=camera)
+    configs = [("none", {}, False), ("whitening", {}, True)] + [
+        (f"{label}, lambda = {lam:g}", {name: float(lam) for name in names}, False)
+        for label, names in REGULARIZED
+    ]
     for objective in ("variance", "gradient_magnitude"):
-        for label, regs, whitening in REGULARIZER_ROWS:
+        for label, regs, whitening in configs:
             prob = cm.ContrastMaximization(
                 events,
                 warp="zoom1",
@@ -301,39 +351,6 @@ def beyond_line(r: dict) -> str:
     return f"| {r['objective']} | {r['label']} | {hi:+.3f}, {vi:.3f} | {h:+.3f}, {v:.3f} | {f:.3f} |"
 
 
-def sensitivity4_rows(
-    folder: Path, lambdas=(2.0, 5.0, 10.0), n_events: int = 30000, method: str = "adam", **options
-) -> Iterator[dict]:
-    """mitrokhin4 with both regularizers at larger weights."""
-    from . import io
-
-    with io.open_recording(folder) as rec:
-        events = rec.read(0, n_events)
-        camera = rec.camera
-    fprob = fwl_problem(events, "mitrokhin4", camera=camera)
-    for objective in ("variance", "gradient_magnitude"):
-        for lam in lambdas:
-            t0 = time.perf_counter()
-            regs = {"divergence": lam, "deformation": lam}
-            prob = cm.ContrastMaximization(
-                events, warp="mitrokhin4", objective=objective, camera=camera, regularizers=regs
-            )
-            res = cm.maximize(prob, method=method, **options)
-            yield {
-                "warp": "mitrokhin4",
-                "objective": objective,
-                "label": f"div + def, lambda = {lam:g}",
-                "theta": res.theta,
-                "params": res.param_names,
-                "J": res.value,
-                "fwl": fprob.value(res.theta),
-                "covered": covered_share(fprob, res.theta),
-                "area": covered_area_ratio(fprob, res.theta),
-                "duration": prob.duration,
-                "seconds": time.perf_counter() - t0,
-            }
-
-
 def dense_grid_table(rows: list[dict]) -> str:
     lines = [
         "zoom1: the global search against a dense grid of 2001 values of h_z over the search box "
@@ -344,8 +361,9 @@ def dense_grid_table(rows: list[dict]) -> str:
     ]
     for r in rows:
         h, v = r["dense_best"]
+        label = r["label"] if r["lambda"] == 0 else f"{r['label']}, lambda = {r['lambda']:g}"
         lines.append(
-            f"| {r['objective']} | {r['label']} | {r['theta'][0] * r['duration']:+.4f}, {r['J']:.4f} | "
+            f"| {r['objective']} | {label} | {r['theta'][0] * r['duration']:+.4f}, {r['J']:.4f} | "
             f"{h * r['duration']:+.4f}, {v:.4f} |"
         )
     return "\n".join(lines)
@@ -368,25 +386,66 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--only",
         default=None,
-        choices=["rotation", "slider", "collapse", "beyond", "sensitivity4"],
+        choices=["collapse", "rotation", "slider", "beyond"],
         help="run one experiment only",
+    )
+    parser.add_argument(
+        "--lam",
+        type=float,
+        default=None,
+        help="regularizer weight of the rotation and beyond-the-box tables when the collapse study "
+        f"(which selects it) does not run (default {RECOMMENDED_LAMBDA:g})",
     )
     args = parser.parse_args(argv)
     data = args.data or default_data_dir()
     if not data.is_dir():
         print(f"experiments_real: error: data folder {data} not found (pass --data)", file=sys.stderr)
         return 2
+    if args.lam is not None and not args.lam > 0:
+        print(f"experiments_real: error: --lam must be > 0, got {args.lam}", file=sys.stderr)
+        return 2
     warnings.filterwarnings("ignore", message=".*dropping events outside.*")
     cm.init(arch=args.arch, precision="f64")
     info = cm.backend_info()
     _emit(f"cmax-taichi {cm.__version__}, backend {info.arch} {info.precision}, method {args.method}")
     t_all = time.perf_counter()
+    lam = args.lam if args.lam is not None else RECOMMENDED_LAMBDA
+    if args.only in (None, "collapse"):
+        grid = ", ".join(f"{g:g}" for g in LAMBDA_GRID)
+        _emit(
+            f"\n### MVSEC indoor_flying1, first 30,000 events: collapse-enabled warps, lambda in {{{grid}}}\n"
+        )
+        rows = []
+        for row in collapse_rows(data / "mvsec_indoor_flying1", method=args.method):
+            rows.append(row)
+            print(collapse_line(row), file=sys.stderr, flush=True)  # progress
+        selected = select_lambda(rows)
+        if args.lam is None and selected is not None:
+            lam = selected
+        _emit("Outcome (collapse / no / spread out) and FWL against lambda:\n")
+        _emit(lambda_table(rows))
+        _emit(
+            f"\ncollapse: less than {100 * COLLAPSE_SHARE:.0f}% of the identity warp's covered pixels stay "
+            "covered and FWL > 1 (events gathered); spread out: the same share lost with FWL <= 1."
+        )
+        _emit(
+            "\nSmallest lambda of the grid at which no regularized configuration collapses: "
+            + (f"**{selected:g}**" if selected is not None else "none of the grid")
+            + f" (RECOMMENDED_LAMBDA = {RECOMMENDED_LAMBDA:g})."
+        )
+        shown = [r for r in rows if r["lambda"] in (0.0, 1.0, lam)]
+        _emit(f"\n#### No regularizer, whitening, and each regularizer at lambda = 1 and lambda = {lam:g}\n")
+        _emit(COLLAPSE_HEADER)
+        for row in shown:
+            _emit(collapse_line(row))
+        _emit("\n" + dense_grid_table([r for r in shown if "dense_best" in r]))
     if args.only in (None, "rotation"):
-        _emit("\n### ECD rotation cuts: rotation3, variance, lambda = 1\n")
-        _emit(ROTATION_HEADER)
+        lambdas = (1.0,) if lam == 1.0 else (1.0, lam)
+        _emit("\n### ECD rotation cuts: rotation3, variance\n")
+        _emit(rotation_header(lambdas))
         rows = []
         for name in ROTATION_CUTS:
-            rows.append(rotation_window(data / "ecd_rotation" / name, method=args.method))
+            rows.append(rotation_window(data / "ecd_rotation" / name, method=args.method, lambdas=lambdas))
             _emit(rotation_line(rows[-1]))
         _emit("\n" + rotation_footer(rows))
     if args.only in (None, "slider"):
@@ -394,31 +453,13 @@ def main(argv: list[str] | None = None) -> int:
         _emit(SLIDER_HEADER)
         for row in slider_rows(data / "ecd_slider_depth", method=args.method):
             _emit(slider_line(row))
-    if args.only in (None, "collapse"):
-        _emit("\n### MVSEC indoor_flying1, first 30,000 events: collapse-enabled warps, lambda = 1\n")
-        _emit(COLLAPSE_HEADER)
-        rows = []
-        for row in collapse_rows(data / "mvsec_indoor_flying1", method=args.method):
-            rows.append(row)
-            _emit(collapse_line(row))
-        _emit(
-            f"\ncollapse: less than {100 * COLLAPSE_SHARE:.0f}% of the identity warp's covered pixels stay "
-            "covered and FWL > 1 (events gathered); spread out: the same share lost with FWL <= 1."
-        )
-        _emit("\n" + dense_grid_table([r for r in rows if "dense_best" in r]))
-        _emit("\n#### Sensitivity: zoom1 with one regularizer at larger lambda\n")
-        _emit(COLLAPSE_HEADER)
-        for row in sensitivity_rows(data / "mvsec_indoor_flying1", method=args.method):
-            _emit(collapse_line(row))
-    if args.only in (None, "sensitivity4"):
-        _emit("\n#### Sensitivity: mitrokhin4 with both regularizers at larger lambda\n")
-        _emit(COLLAPSE_HEADER)
-        for row in sensitivity4_rows(data / "mvsec_indoor_flying1", method=args.method):
-            _emit(collapse_line(row))
     if args.only in (None, "beyond"):
-        _emit("\n#### zoom1 beyond the search box: dense grid of h_z T over [-1.5, 1.5] (1501 values)\n")
+        _emit(
+            "\n#### zoom1 beyond the search box: dense grid of h_z T over [-1.5, 1.5] (1501 values), "
+            f"lambda = {lam:g}\n"
+        )
         _emit(BEYOND_HEADER)
-        for row in beyond_box_rows(data / "mvsec_indoor_flying1"):
+        for row in beyond_box_rows(data / "mvsec_indoor_flying1", lam=lam):
             _emit(beyond_line(row))
     _emit(f"\ntotal {time.perf_counter() - t_all:.0f} s")
     return 0

@@ -82,3 +82,30 @@ def test_mvsec_zoom_collapses_without_a_regularizer_and_not_with_both():
         assert fwl > 3.0 and share < 0.5 and area < 1.0, (label, outcome[label])
     fwl, share, area = outcome["div + def"]
     assert fwl < 1.2 and area > 0.9, outcome
+
+
+def test_mvsec_mitrokhin4_divergence_alone_needs_the_recommended_lambda():
+    """The hardest configuration of the lambda sweep (mitrokhin4, gradient magnitude, divergence
+    alone): it collapses at lambda = 1 and not at RECOMMENDED_LAMBDA, the weight that
+    ``experiments_real`` selects."""
+    from cmax_taichi.regularizers import RECOMMENDED_LAMBDA
+
+    with io.open_recording(shared_data_dir("mvsec_indoor_flying1")) as rec, warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        events, camera = rec.read(0, 30000), rec.camera
+    fprob = fwl_problem(events, "mitrokhin4", camera=camera)
+    outcome = {}
+    for lam in (1.0, RECOMMENDED_LAMBDA):
+        prob = cm.ContrastMaximization(
+            events,
+            warp="mitrokhin4",
+            objective="gradient_magnitude",
+            camera=camera,
+            regularizers={"divergence": lam},
+        )
+        theta = cm.maximize(prob).theta
+        outcome[lam] = (fprob.value(theta), covered_share(fprob, theta))
+    fwl, share = outcome[1.0]
+    assert fwl > 3.0 and share < 0.5, outcome
+    fwl, share = outcome[RECOMMENDED_LAMBDA]
+    assert fwl < 1.5 and share >= 0.5, outcome

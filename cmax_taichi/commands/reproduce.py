@@ -27,7 +27,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--windows", type=int, default=None, help="evaluation intervals per preset")
     parser.add_argument(
-        "--lam", type=float, default=None, help="regularizer weight of the tables (default 1)"
+        "--lam",
+        type=float,
+        default=None,
+        help="regularizer weight of the tables (default: cmax_taichi.regularizers.RECOMMENDED_LAMBDA)",
     )
     parser.add_argument("--seed", type=int, default=None, help="simulator seed (default 0)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
