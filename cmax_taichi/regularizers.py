@@ -31,7 +31,9 @@ __all__ = [
 #: and gradient magnitude; divergence, deformation, both) collapses on the real MVSEC cut; then used
 #: unchanged on the ECD rotation cuts and the simulated tables (``cmax-taichi reproduce``). The
 #: objective is normalised by the identity warp's, so it is comparable across windows; it is not a
-#: universal constant: README.md, "Results on real recordings", shows how the outcome depends on it.
+#: universal constant: README.md, "Results on real recordings", shows how the outcome depends on it
+#: (at this weight the penalties also move well-posed rotation estimates and over-regularize a strong
+#: true approach). Motion segmentation (``segment_eval``) keeps its own ``--lam`` (default 1).
 RECOMMENDED_LAMBDA = 10.0
 
 

@@ -20,6 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--precision", default="f64", choices=["f64", "f32"], help="Taichi and PyTorch precision"
     )
     parser.add_argument("--no-solve", action="store_true", help="skip the window-solve timing")
+    parser.add_argument(
+        "--no-segment", action="store_true", help="skip the motion-segmentation timing (full run only)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,6 +31,8 @@ def run(args: argparse.Namespace) -> int:
     plan = bench.quick_plan(args.precision) if args.quick else bench.full_plan(args.precision)
     if args.no_solve:
         plan.solve = False
+    if args.no_segment:
+        plan.segment = False
     result = bench.run_benchmark(plan, args.out)
     print()
     print(result["markdown"])
