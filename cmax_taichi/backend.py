@@ -62,7 +62,13 @@ def _running_arch_name() -> str:
     return "cpu" if name in ("x64", "arm64") else name
 
 
-def init(arch: str | None = None, precision: str | None = None, *, quiet: bool = True) -> BackendInfo:
+def init(
+    arch: str | None = None,
+    precision: str | None = None,
+    *,
+    quiet: bool = True,
+    kernel_profiler: bool = False,
+) -> BackendInfo:
     """Initialise (or re-initialise) Taichi for cmax-taichi.
 
     Parameters
@@ -76,6 +82,8 @@ def init(arch: str | None = None, precision: str | None = None, *, quiet: bool =
         no f64 at all).
     quiet : bool
         Show only Taichi's errors (not its info logs and compiler warnings).
+    kernel_profiler : bool
+        Time every task of every kernel launch (``ti.profiler``; used by ``benchmarks/profile_stages.py``).
 
     Returns
     -------
@@ -112,6 +120,7 @@ def init(arch: str | None = None, precision: str | None = None, *, quiet: bool =
             default_ip=ti.i32,
             log_level=log_level,
             offline_cache=True,
+            kernel_profiler=kernel_profiler,
         )
     used = _running_arch_name()
     if arch != "cpu" and used == "cpu":

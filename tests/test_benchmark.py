@@ -133,3 +133,35 @@ def test_segmentation_table_of_the_full_run():
     lines = bench.segmentation_markdown(rows)
     assert lines[-1] == "| 30000 | 3 | 1.95 | 2.69 | 10 | 23.1 | 40.5 | 0.450 |"
     assert bench.full_plan().segment and not bench.quick_plan().segment
+
+
+def test_stage_profiler_prints_every_task(tmp_path):
+    """benchmarks/profile_stages.py (the source of the per-stage figures in README.md, Performance)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.profile_stages", "--events", "2000", "--repeats", "3"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for task in (
+        "events: warp + splat",
+        "rows: adjoint images",
+        "events: gradient gather",
+        "sum of the tasks",
+    ):
+        assert task in proc.stdout, proc.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "benchmarks.profile_stages", "--sensor", "1x1"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "--sensor must be one of" in bad.stderr

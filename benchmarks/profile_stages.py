@@ -1,0 +1,92 @@
+"""Where one fused value-and-gradient evaluation spends its time, stage by stage.
+
+``python -m benchmarks.profile_stages [--events N] [--warp W] [--sensor WxH] [--regs none|div+def]``
+
+Runs Taichi's kernel profiler over repeated ``value_and_grad`` calls of the fused pipeline
+(``kernels/fused.py``) on the benchmark's synthetic window and prints the median time of each task of
+the kernel: 1 splat (events), 2 slice sums + blur along x + map reductions (rows), 3 blur along y +
+objective (rows), 5 adjoint images (rows), 6 gradient gather (events); 0, 4 and 7 are serial steps.
+The wall-clock median of the whole call is printed too (it includes launching the kernel and the
+thread-pool dispatch of each task).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from collections import defaultdict
+
+import numpy as np
+
+STAGES = {
+    0: "serial: theta, clear reductions",
+    1: "events: warp + splat",
+    2: "rows: slice sums, blur x, map reductions",
+    3: "rows: blur y, objective",
+    4: "serial: J",
+    5: "rows: adjoint images",
+    6: "events: gradient gather",
+    7: "serial: results",
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.profile_stages", description=__doc__.split("\n\n")[0]
+    )
+    parser.add_argument("--events", type=int, default=30_000)
+    parser.add_argument("--warp", default="mitrokhin4")
+    parser.add_argument("--sensor", default="346x260")
+    parser.add_argument("--regs", default="div+def", choices=["none", "div+def"])
+    parser.add_argument("--repeats", type=int, default=50)
+    args = parser.parse_args(argv)
+
+    import taichi as ti
+
+    from cmax_taichi import backend, bench
+
+    if args.sensor not in bench.SENSORS:
+        parser.error(f"--sensor must be one of {', '.join(bench.SENSORS)}")
+    if args.warp not in bench.THETAS:
+        parser.error(f"--warp must be one of {', '.join(bench.THETAS)}")
+    if args.events < 1 or args.repeats < 1:
+        parser.error("--events and --repeats must be at least 1")
+    backend.init(precision="f64", kernel_profiler=True)
+    cfg = bench.BenchConfig(args.events, args.sensor, args.warp, args.regs)
+    win = bench.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+    impl = bench.build_taichi(win, cfg)
+    theta = np.asarray(bench.THETAS[args.warp], dtype=np.float64)
+    impl.vg(theta)  # compile
+    walls = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        impl.vg(theta)
+        walls.append(time.perf_counter() - t0)
+    ti.profiler.clear_kernel_profiler_info()
+    for _ in range(args.repeats):
+        impl.vg(theta)
+    # Taichi 1.7 exposes the per-launch records only through its profiler object (no public getter)
+    profiler = ti.profiler.kernel_profiler.get_default_kernel_profiler()
+    profiler._update_records()
+    per_task: dict[int, list[float]] = defaultdict(list)
+    for rec in profiler._traced_records:
+        m = re.match(r"run_c\d+_\d+_kernel_(\d+)_", rec.name)
+        if m:
+            per_task[int(m.group(1))].append(rec.kernel_time)
+    print(f"{args.events} events, {args.sensor}, {args.warp}, {args.regs}, f64, {args.repeats} calls")
+    print("| task | stage | median ms |\n|---:|---|---:|")
+    total = 0.0
+    for task in sorted(per_task):
+        med = float(np.median(per_task[task]))
+        total += med
+        print(f"| {task} | {STAGES.get(task, '?')} | {med:.3f} |")
+    print(f"| | sum of the tasks | {total:.3f} |")
+    wall = 1e3 * float(np.median(walls))
+    print(f"| | wall time of value_and_grad (median, profiler on) | {wall:.3f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
