@@ -12,7 +12,13 @@ from .jacobians import event_jacobians
 from .objectives import OBJECTIVES, Objective, objective_names, register_objective
 from .optimize import OptimizeResult, maximize
 from .problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
-from .regularizers import REGULARIZERS, Regularizer, register_regularizer, regularizer_names
+from .regularizers import (
+    RECOMMENDED_LAMBDA,
+    REGULARIZERS,
+    Regularizer,
+    register_regularizer,
+    regularizer_names,
+)
 from .segment import SegmentationResult, segment
 from .simulate import SimulatedRecording, Simulator, SimulatorConfig, read_simulation, simulate_preset
 from .warps import WARPS, WarpModel, get_warp, register_warp, warp_names
@@ -29,6 +35,7 @@ __all__ = [
     "Objective",
     "OptimizeResult",
     "POLARITY_MODES",
+    "RECOMMENDED_LAMBDA",
     "REGULARIZERS",
     "Regularizer",
     "SegmentationResult",
