@@ -699,3 +699,23 @@ def evaluate(
         "det": det,
         "div": div,
     }
+
+
+def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> np.ndarray:
+    """dJ/dtheta by central differences of :func:`evaluate` (2P evaluations), with the step
+    ``rel_step * max(1, |theta_i|)`` per parameter; ``kwargs`` go to :func:`evaluate`.
+
+    J is piecewise smooth (bilinear votes have kinks where a warped event crosses a pixel boundary), so
+    the step must be small enough not to cross many kinks: see ``cmax_taichi.bench.reference_fd_grad``.
+    """
+    theta = np.asarray(theta, dtype=np.float64)
+    grad = np.empty_like(theta)
+    for i in range(theta.size):
+        h = rel_step * max(1.0, abs(theta[i]))
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        jp = evaluate(x, y, t, p, tp, **kwargs)["J"]
+        jm = evaluate(x, y, t, p, tm, **kwargs)["J"]
+        grad[i] = (jp - jm) / (2 * h)
+    return grad

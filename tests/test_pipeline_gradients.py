@@ -50,17 +50,7 @@ def _ref_kwargs(options):
 
 
 def _ref_fd_grad(raw, theta, kwargs, rel_step=1e-6):
-    theta = np.asarray(theta, dtype=np.float64)
-    grad = np.empty_like(theta)
-    for i in range(theta.size):
-        h = rel_step * max(1.0, abs(theta[i]))
-        tp, tm = theta.copy(), theta.copy()
-        tp[i] += h
-        tm[i] -= h
-        jp = reference.evaluate(*raw, tp, **kwargs)["J"]
-        jm = reference.evaluate(*raw, tm, **kwargs)["J"]
-        grad[i] = (jp - jm) / (2 * h)
-    return grad
+    return reference.central_difference_grad(*raw, theta, rel_step=rel_step, **kwargs)
 
 
 def check_against_reference(precision: str, options: dict, seed: int = 0) -> None:
