@@ -66,6 +66,7 @@ SENSORS = {"240x180": (240, 180), "346x260": (346, 260), "640x480": (640, 480), 
 REGS = {"none": {}, "div+def": {"divergence": 1.0, "deformation": 1.0}}
 DURATION = 0.05  # s, window length
 FD_CHECK_MAX_EVENTS = 10_000  # central differences of the reference (2P evaluations) up to this N
+FD_STEPS = (1e-7, 1e-8)  # relative steps: the second is tried when a pixel kink spoils the first
 TOLERANCES = {  # relative to max(1, |J|) for values, to max |grad| for gradients
     "f64": {"value": 1e-9, "grad": 1e-6, "fd": 1e-4},
     "f32": {"value": 2e-3, "grad": 5e-2, "fd": 5e-2},
@@ -153,22 +154,10 @@ def build_torch(win, cfg, precision: str) -> Impl:
     from .torch_cmax import TorchCMax
 
     x, y, t, _ = win
-    cam = camera_for(cfg.sensor)
-    regs = REGS[cfg.regs]
     t0 = time.perf_counter()
-    twin = TorchCMax(
-        x,
-        y,
-        t,
-        warp=cfg.warp,
-        sensor_size=cfg.sensor,
-        center=(cam.cx, cam.cy),
-        focal=(cam.fx, cam.fy),
-        blur_sigma=1.0,
-        lambda_div=regs.get("divergence", 0.0),
-        lambda_def=regs.get("deformation", 0.0),
-        dtype=torch.float64 if precision == "f64" else torch.float32,
-    )
+    # the twin takes the same problem description as the reference
+    dtype = torch.float64 if precision == "f64" else torch.float32
+    twin = TorchCMax(x, y, t, **reference_kwargs(cfg), dtype=dtype)
     twin.value_and_grad(THETAS[cfg.warp])
     return Impl("torch", twin.value_and_grad, twin.value, time.perf_counter() - t0)
 
@@ -206,18 +195,7 @@ def reference_fd_grad(win, cfg, theta, rel_step: float = 1e-7) -> np.ndarray:
     missed the exact gradient by 3e-4 to 1.4e-3 (relative) while Taichi and PyTorch agreed to 1e-15;
     1e-7 agreed to 1e-8. In float64 the rounding error of a 1e-7 step is about 1e-9.
     """
-    kwargs = reference_kwargs(cfg)
-    theta = np.asarray(theta, dtype=np.float64)
-    grad = np.empty_like(theta)
-    for i in range(theta.size):
-        h = rel_step * max(1.0, abs(theta[i]))
-        tp, tm = theta.copy(), theta.copy()
-        tp[i] += h
-        tm[i] -= h
-        grad[i] = (
-            reference.evaluate(*win, tp, **kwargs)["J"] - reference.evaluate(*win, tm, **kwargs)["J"]
-        ) / (2 * h)
-    return grad
+    return reference.central_difference_grad(*win, theta, rel_step=rel_step, **reference_kwargs(cfg))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -262,16 +240,16 @@ def check_agreement(impls: dict[str, Impl], win, cfg, precision: str) -> dict[st
             if not (np.all(np.isfinite(g)) and err <= tol["grad"]) and status[name] == "ok":
                 status[name] = f"DISAGREES: gradient vs {anchor_name} (rel {err:.1e})"
     if cfg.n <= FD_CHECK_MAX_EVENTS and grads:
-        fds = [reference_fd_grad(win, cfg, theta)]
+        fds: dict[float, np.ndarray] = {}  # computed on first use, shared by the implementations
         for name, g in grads.items():
             if status[name] != "ok":
                 continue
             errs = []
-            for k in range(2):
-                if k == len(fds):
-                    fds.append(reference_fd_grad(win, cfg, theta, rel_step=1e-8))
-                scale = max(float(np.max(np.abs(fds[k]))), 1e-300)
-                errs.append(_rel(g, fds[k], scale))
+            for step in FD_STEPS:
+                if step not in fds:
+                    fds[step] = reference_fd_grad(win, cfg, theta, rel_step=step)
+                scale = max(float(np.max(np.abs(fds[step]))), 1e-300)
+                errs.append(_rel(g, fds[step], scale))
                 if np.all(np.isfinite(g)) and errs[-1] <= tol["fd"]:
                     break
             else:
@@ -637,25 +615,17 @@ def _fmt(v, digits=3) -> str:
 
 
 def segmentation_markdown(seg: list[dict]) -> list[str]:
-    """The segmentation timing table (``segment_eval.timing`` rows)."""
-    lines = [
+    """The segmentation timing table (``segment_eval.timing`` rows) with its caption."""
+    from .segment_eval import timing_table
+
+    return [
         "",
         "Motion segmentation (`cmax_taichi.segment`, mitrokhin4 with both regularizers, lambda = 1, "
         "simulated 3-object windows; medians of 5 complete segmentations after one that compiles; CPU = "
         "process time of all threads; value_and_grad of all clusters: median of 20):",
         "",
-        "| events | K | segmentation wall s | CPU s | iterations | value_and_grad wall ms | CPU ms "
-        "| CPU us per event and cluster |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|",
+        *timing_table(seg),
     ]
-    for r in seg:
-        per = 1e3 * r["value_and_grad_cpu_ms"] / (r["events"] * r["K"])
-        lines.append(
-            f"| {r['events']} | {r['K']} | {r['segment_wall_s']:.2f} | {r['segment_cpu_s']:.2f} | "
-            f"{r['iterations']:.0f} | {r['value_and_grad_wall_ms']:.1f} | {r['value_and_grad_cpu_ms']:.1f} | "
-            f"{per:.3f} |"
-        )
-    return lines
 
 
 def markdown_report(

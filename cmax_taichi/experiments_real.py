@@ -248,6 +248,11 @@ def collapse_rows(
                     )
 
 
+def _weighted_label(label: str, lam: float) -> str:
+    """A configuration's name with its weight (unregularized rows, lambda 0, keep the bare name)."""
+    return label if lam == 0 else f"{label}, lambda = {lam:g}"
+
+
 def collapse_outcome(r: dict) -> str:
     """ "no", or, when most covered pixels are emptied, "collapse" (gathered: FWL > 1) or "spread out"."""
     if r["covered"] >= COLLAPSE_SHARE:
@@ -294,7 +299,7 @@ COLLAPSE_HEADER = (
 def collapse_line(r: dict) -> str:
     T = r["duration"]
     est = ", ".join(f"{n} T = {v * T:+.3f}" for n, v in zip(r["params"], r["theta"], strict=True))
-    label = r["label"] if r["lambda"] == 0 else f"{r['label']}, lambda = {r['lambda']:g}"
+    label = _weighted_label(r["label"], r["lambda"])
     return (
         f"| {r['warp']} | {r['objective']} | {label} | {est} | {r['J']:.3f} | {r['fwl']:.3f} | "
         f"{100 * r['covered']:.1f}% | {r['area']:.2f} | {collapse_outcome(r)} | {r['seconds']:.0f} |"
@@ -313,7 +318,7 @@ def beyond_box_rows(
         camera = rec.camera
     fprob = fwl_problem(events, "zoom1", camera=camera)
     configs = [("none", {}, False), ("whitening", {}, True)] + [
-        (f"{label}, lambda = {lam:g}", {name: float(lam) for name in names}, False)
+        (_weighted_label(label, lam), {name: float(lam) for name in names}, False)
         for label, names in REGULARIZED
     ]
     for objective in ("variance", "gradient_magnitude"):
@@ -361,7 +366,7 @@ def dense_grid_table(rows: list[dict]) -> str:
     ]
     for r in rows:
         h, v = r["dense_best"]
-        label = r["label"] if r["lambda"] == 0 else f"{r['label']}, lambda = {r['lambda']:g}"
+        label = _weighted_label(r["label"], r["lambda"])
         lines.append(
             f"| {r['objective']} | {label} | {r['theta'][0] * r['duration']:+.4f}, {r['J']:.4f} | "
             f"{h * r['duration']:+.4f}, {v:.4f} |"
