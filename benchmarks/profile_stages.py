@@ -45,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import taichi as ti
 
-    from cmax_taichi import backend, bench
+    from cmax_taichi.core import backend
+    from cmax_taichi.lab import bench
 
     if args.sensor not in bench.SENSORS:
         parser.error(f"--sensor must be one of {', '.join(bench.SENSORS)}")

@@ -4,24 +4,29 @@ Shiba, Aoki and Gallego (Sensors 2022), as Taichi kernels that run on the CPU an
 Public names only; see README.md for a worked example and docs/FORMULAS.md for every formula.
 """
 
-from . import _kernels_path  # noqa: F401  (maps cmax_taichi.kernels in a source checkout)
-from .backend import BackendInfo, init
-from .backend import info as backend_info
-from .events import Camera, Events
-from .jacobians import event_jacobians
-from .objectives import OBJECTIVES, Objective, objective_names, register_objective
-from .optimize import OptimizeResult, maximize
-from .problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
-from .regularizers import (
+from cmax_taichi.core.backend import BackendInfo, init
+from cmax_taichi.core.backend import info as backend_info
+from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.models.objectives import OBJECTIVES, Objective, objective_names, register_objective
+from cmax_taichi.models.regularizers import (
     RECOMMENDED_LAMBDA,
     REGULARIZERS,
     Regularizer,
     register_regularizer,
     regularizer_names,
 )
-from .segment import SegmentationResult, segment
-from .simulate import SimulatedRecording, Simulator, SimulatorConfig, read_simulation, simulate_preset
-from .warps import WARPS, WarpModel, get_warp, register_warp, warp_names
+from cmax_taichi.models.warps import WARPS, WarpModel, get_warp, register_warp, warp_names
+from cmax_taichi.pipeline.jacobians import event_jacobians
+from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
+from cmax_taichi.sim.simulate import (
+    SimulatedRecording,
+    Simulator,
+    SimulatorConfig,
+    read_simulation,
+    simulate_preset,
+)
+from cmax_taichi.solve.optimize import OptimizeResult, maximize
+from cmax_taichi.solve.segment import SegmentationResult, segment
 
 __version__ = "0.1.0"
 

@@ -30,9 +30,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .events import Camera, Events
-from .problem import ContrastMaximization, dense_flow
-from .warps import WarpModel
+from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.models.warps import WarpModel
+from cmax_taichi.pipeline.problem import ContrastMaximization, dense_flow
 
 __all__ = [
     "angular_velocity_error",

@@ -18,16 +18,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .regularizers import REGULARIZERS
-from .warps import WarpModel, get_warp
+from cmax_taichi.models.regularizers import REGULARIZERS
+from cmax_taichi.models.warps import WarpModel, get_warp
 
 if TYPE_CHECKING:  # pragma: no cover - typing only, keeps matplotlib out of the import path
     from matplotlib.axes import Axes
     from matplotlib.colors import Normalize
     from matplotlib.image import AxesImage
 
-    from .events import Events
-    from .problem import ContrastMaximization
+    from cmax_taichi.core.events import Events
+    from cmax_taichi.pipeline.problem import ContrastMaximization
 
 __all__ = [
     "param_label",
@@ -438,7 +438,7 @@ def regularizer_variants(
     dict
         Legend label -> problem, starting with ``"no regularizer"``.
     """
-    from .problem import ContrastMaximization
+    from cmax_taichi.pipeline.problem import ContrastMaximization
 
     variants = {"no regularizer": ContrastMaximization(events, regularizers=None, **problem_kwargs)}
     for name in names:

@@ -27,7 +27,7 @@ import _common
 
 import cmax_taichi as cm
 from cmax_taichi import viz
-from cmax_taichi.segment import segment
+from cmax_taichi.solve.segment import segment
 
 COLOURS = np.array(
     [[0.12, 0.47, 0.71], [0.84, 0.15, 0.16], [0.17, 0.63, 0.17], [0.58, 0.40, 0.74], [1.0, 0.50, 0.05]]

@@ -9,7 +9,7 @@ import importlib.util
 import numpy as np
 import pytest
 
-from cmax_taichi import bench
+from cmax_taichi.lab import bench
 
 pytestmark = pytest.mark.usefixtures("f64")
 

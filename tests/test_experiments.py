@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from conftest import shared_data_dir
 
-from cmax_taichi import experiments as ex
 from cmax_taichi.cli import main
+from cmax_taichi.lab import experiments as ex
 
 SPEC = Path(__file__).resolve().parents[2] / "shared" / "paper" / "SPEC.md"
 

@@ -1,11 +1,11 @@
-"""The bookkeeping of ``python -m cmax_taichi.experiments_real``: collapse outcome, lambda selection
+"""The bookkeeping of ``python -m cmax_taichi.lab.experiments_real``: collapse outcome, lambda selection
 and the tables it prints (synthetic rows; the real runs are in test_real_data.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from cmax_taichi.experiments_real import (
+from cmax_taichi.lab.experiments_real import (
     COLLAPSE_SHARE,
     collapse_line,
     collapse_outcome,

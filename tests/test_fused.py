@@ -9,7 +9,7 @@ from cmax_taichi.kernels import param_jac as kpj
 from conftest import CAMERA, SENSOR, THETAS, edge_events
 
 import cmax_taichi as cm
-from cmax_taichi.fused import FusedPipeline
+from cmax_taichi.pipeline.fused import FusedPipeline
 
 pytestmark = pytest.mark.usefixtures("f64")
 

@@ -8,7 +8,7 @@ import pytest
 from conftest import CAMERA, SENSOR, THETAS, edge_events
 
 import cmax_taichi as cm
-from cmax_taichi import reference
+from cmax_taichi.testing import reference
 
 pytestmark = pytest.mark.usefixtures("f64")
 

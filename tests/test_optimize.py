@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import cmax_taichi as cm
-from cmax_taichi.optimize import parameter_scales, search_bounds
+from cmax_taichi.solve.optimize import parameter_scales, search_bounds
 
 pytestmark = pytest.mark.usefixtures("f64")
 

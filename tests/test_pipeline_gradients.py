@@ -11,7 +11,7 @@ import pytest
 from conftest import CAMERA, SENSOR, THETAS, edge_events, use_precision
 
 import cmax_taichi as cm
-from cmax_taichi import reference
+from cmax_taichi.testing import reference
 
 WARPS = list(THETAS)
 OBJECTIVES = ["variance", "gradient_magnitude"]

@@ -1,6 +1,6 @@
 """The real-data claims of README.md ("Results on real recordings"), one test per claim, on the shared
 recordings (skipped with a message when ../shared/data is absent). The full table comes from
-``python -m cmax_taichi.experiments_real``; these tests use the same pipeline with smaller global
+``python -m cmax_taichi.lab.experiments_real``; these tests use the same pipeline with smaller global
 searches where noted, to stay within the test-time budget."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from conftest import shared_data_dir
 
 import cmax_taichi as cm
 from cmax_taichi import io
-from cmax_taichi.experiments_real import ROTATION_CUTS
+from cmax_taichi.lab.experiments_real import ROTATION_CUTS
 from cmax_taichi.metrics import angular_velocity_error, covered_area_ratio, covered_share, fwl_problem
 
 pytestmark = pytest.mark.usefixtures("f64")
@@ -88,7 +88,7 @@ def test_mvsec_mitrokhin4_divergence_alone_needs_the_recommended_lambda():
     """The hardest configuration of the lambda sweep (mitrokhin4, gradient magnitude, divergence
     alone): it collapses at lambda = 1 and not at RECOMMENDED_LAMBDA, the weight that
     ``experiments_real`` selects."""
-    from cmax_taichi.regularizers import RECOMMENDED_LAMBDA
+    from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 
     with io.open_recording(shared_data_dir("mvsec_indoor_flying1")) as rec, warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -11,8 +11,8 @@ import pytest
 from conftest import shared_data_dir
 
 import cmax_taichi as cm
-from cmax_taichi import segment_eval as se
 from cmax_taichi.cli import main as cli_main
+from cmax_taichi.lab import segment_eval as se
 
 pytestmark = pytest.mark.usefixtures("f64")
 

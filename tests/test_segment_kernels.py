@@ -1,4 +1,4 @@
-"""Multi-cluster kernels (kernels/clusters.py via cmax_taichi.clusters.MultiClusterCMax) against the
+"""Multi-cluster kernels (kernels/clusters.py via cmax_taichi.pipeline.clusters.MultiClusterCMax) against the
 float64 NumPy reference: the multi-cluster J equals the sum over clusters of the reference J with the
 cluster's memberships as event weights (per-cluster G0_j of the identity warp with the same weights),
 its gradient equals central finite differences of that sum (f64 tight, f32 looser), and the per-event
@@ -11,8 +11,9 @@ import pytest
 from conftest import CAMERA, SENSOR, THETAS, edge_events, use_precision
 
 import cmax_taichi as cm
-from cmax_taichi import reference, workspace
-from cmax_taichi.clusters import MultiClusterCMax
+from cmax_taichi.core import workspace
+from cmax_taichi.pipeline.clusters import MultiClusterCMax
+from cmax_taichi.testing import reference
 
 TOL = {"f64": dict(value=1e-10, grad=2e-6), "f32": dict(value=2e-4, grad=2e-2)}
 BOTH = {"divergence": 0.7, "deformation": 1.3}

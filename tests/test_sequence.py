@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import cmax_taichi as cm
-from cmax_taichi import sequence, workspace
+from cmax_taichi.core import workspace
+from cmax_taichi.solve import sequence
 
 pytestmark = pytest.mark.usefixtures("f64")
 

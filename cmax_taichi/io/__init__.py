@@ -19,9 +19,9 @@ import importlib
 import os
 from pathlib import Path
 
-from ..events import Events
-from .base import Recording
-from .text import EVENT_FILE_NAMES, count_columns, find_events_file
+from cmax_taichi.core.events import Events
+from cmax_taichi.io.base import Recording
+from cmax_taichi.io.text import EVENT_FILE_NAMES, count_columns, find_events_file
 
 __all__ = ["FORMATS", "Recording", "detect_format", "open_recording", "read_events"]
 

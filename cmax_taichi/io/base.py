@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..events import Camera, Events
+from cmax_taichi.core.events import Camera, Events
 
 #: rows read at once when a time is searched through ``_times`` (bounded memory)
 _SEARCH_BLOCK = 4096

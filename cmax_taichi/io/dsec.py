@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..events import Camera
-from . import _hdf5
-from ._flow import accumulate_flow
-from ._png import read_png
-from .base import Recording
+from cmax_taichi.core.events import Camera
+from cmax_taichi.io import _hdf5
+from cmax_taichi.io._flow import accumulate_flow
+from cmax_taichi.io._png import read_png
+from cmax_taichi.io.base import Recording
 
 SENSOR_SIZE = (640, 480)
 

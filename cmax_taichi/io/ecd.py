@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import interpolate_rows
-from .text import TextRecording
+from cmax_taichi.io.base import interpolate_rows
+from cmax_taichi.io.text import TextRecording
 
 
 def _load_table(path: Path, ncols: int) -> np.ndarray:

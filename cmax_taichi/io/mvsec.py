@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..events import Camera
-from . import _hdf5
-from ._flow import NpzFrames, accumulate_flow
-from .base import Recording
+from cmax_taichi.core.events import Camera
+from cmax_taichi.io import _hdf5
+from cmax_taichi.io._flow import NpzFrames, accumulate_flow
+from cmax_taichi.io.base import Recording
 
 SENSOR_SIZE = (346, 260)
 

@@ -17,9 +17,9 @@ from typing import BinaryIO
 
 import numpy as np
 
-from ..events import Camera
-from ._cache import cached_table
-from .base import Recording
+from cmax_taichi.core.events import Camera
+from cmax_taichi.io._cache import cached_table
+from cmax_taichi.io.base import Recording
 
 #: the column layouts recognised by their count when ``columns=`` is not given
 DEFAULT_COLUMNS = {4: ("t", "x", "y", "p"), 5: ("t", "x", "y", "depth", "p")}

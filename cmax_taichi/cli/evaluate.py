@@ -1,0 +1,160 @@
+"""Compare the estimates of 'cmax-taichi estimate' with the recording's ground truth.
+
+For each window of RESULTS (the results.json that 'estimate' wrote, or its folder):
+
+* angular velocity (rotation3, recordings with a gyro or motion.txt): error |w_est - w_gt| in deg/s,
+  relative to |w_gt|, and the FWL of the ground truth;
+* optical flow (recordings with flow ground truth): AEE (px) and NPE (% of pixels with endpoint
+  error > N px) of the flow the estimate implies over the window, on pixels with valid ground truth
+  and at least one event;
+* the estimate's FWL (variance of its IWE over the identity warp's) as 'estimate' computed it.
+
+Writes OUT/metrics.csv and OUT/metrics.json (OUT defaults to the results folder) and prints a summary
+with the RMS angular-velocity error (deg/s) and the mean AEE / NPE.
+
+example:
+  cmax-taichi estimate ../shared/data/ecd_rotation/boxes_rotation --warp rotation3 --out out_boxes
+  cmax-taichi evaluate out_boxes
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+from pathlib import Path
+
+NAME = "evaluate"
+HELP = "metrics of 'estimate' results against ground truth (angular-velocity error, AEE, NPE, FWL)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument(
+        "results", metavar="RESULTS", help="results.json written by 'estimate' (or its folder)"
+    )
+    parser.add_argument(
+        "--data", default=None, metavar="PATH", help="the recording (default: the one the results name)"
+    )
+    parser.add_argument(
+        "--format", default=None, help="ecd | text | mvsec | dsec | aedat4 (default: detected)"
+    )
+    parser.add_argument(
+        "--npe", default="3,10,20", metavar="N,N,...", help="NPE thresholds in px (default 3,10,20)"
+    )
+    parser.add_argument(
+        "--out", default=None, metavar="DIR", help="output folder (default: the results folder)"
+    )
+    parser.add_argument("--arch", default=None, help="cpu | gpu | cuda | vulkan | metal (default cpu)")
+
+
+def _thresholds(text: str) -> tuple[float, ...]:
+    from cmax_taichi.cli import CliError
+
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise CliError(f"--npe expects comma-separated numbers of pixels, got {text!r}") from None
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise CliError(f"--npe expects positive numbers of pixels, got {text!r}")
+    return values
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    import cmax_taichi as cm
+    from cmax_taichi import io
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.cli.estimate import init_backend
+    from cmax_taichi.metrics import angular_velocity_error, event_mask, flow_error, flow_from_warp, fwl
+    from cmax_taichi.solve.sequence import read_results
+
+    thresholds = _thresholds(args.npe)
+    results_path = Path(args.results)
+    if results_path.is_dir():
+        results_path = results_path / "results.json"
+    if not results_path.is_file():
+        raise CliError(f"{results_path}: no such results file (run 'cmax-taichi estimate' first)")
+    result = read_results(results_path)
+    data = args.data or result.settings.get("source")
+    if not data:
+        raise CliError(f"{results_path} names no recording: pass --data PATH")
+    fmt = args.format or result.settings.get("format")
+    init_backend(args.arch, None)
+    model = cm.get_warp(result.warp)
+    rows = []
+    with io.open_recording(data, format=fmt) as rec:
+        camera = rec.camera
+        for w in result.windows:
+            row: dict = {"index": w.index, "t_start": w.t_start, "t_end": w.t_end, "fwl": w.fwl}
+            events = rec.read_time(w.t_start, float(np.nextafter(w.t_end, np.inf)))
+            if camera is not None and camera.has_distortion and not events.undistorted:
+                events = events.undistort(camera)
+            t_mid = 0.5 * (w.t_start + w.t_end)
+            w_gt = rec.angular_velocity(t_mid)
+            if w_gt is not None and model.name == "rotation3":
+                err = angular_velocity_error(w.theta, w_gt)
+                row["w_gt"] = [float(v) for v in np.asarray(w_gt).reshape(-1)]
+                row["error_deg_s"] = float(err["error_deg_s"][0])
+                row["relative_error"] = float(err["relative"][0])
+                row["fwl_gt"] = fwl(events, model, w_gt, camera=camera) if len(events) > 1 else math.nan
+            duration = w.t_end - w.t_start
+            gt_flow = rec.flow(w.t_start, w.t_end) if duration > 0 else None
+            if gt_flow is not None:
+                pred = flow_from_warp(
+                    model, w.theta, rec.sensor_size, camera=camera, duration=duration, dt=duration
+                )
+                row.update(flow_error(pred, gt_flow, event_mask(events), thresholds))
+            rows.append(row)
+    if not any(("error_deg_s" in r) or ("AEE" in r) for r in rows):
+        raise CliError(
+            f"{data}: no ground truth to compare with (angular velocity for rotation3, or optical flow)"
+        )
+    out = Path(args.out) if args.out else results_path.parent
+    out.mkdir(parents=True, exist_ok=True)
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    with (out / "metrics.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(keys)
+        for r in rows:
+            writer.writerow([json.dumps(r[k]) if isinstance(r.get(k), list) else r.get(k, "") for k in keys])
+    summary: dict = {"windows": len(rows), "warp": result.warp, "recording": str(data)}
+    ang = [r for r in rows if "error_deg_s" in r]
+    print(f"{len(rows)} window(s) of {data}, warp {result.warp}")
+    if ang:
+        err = angular_velocity_error(
+            [result.windows[i].theta for i, r in enumerate(rows) if "error_deg_s" in r],
+            [r["w_gt"] for r in ang],
+        )
+        summary["rms_angular_error_deg_s"] = err["rms_deg_s"]
+        summary["rms_angular_error_axes_deg_s"] = [float(v) for v in err["rms_axes_deg_s"]]
+        summary["mean_relative_error"] = float(np.mean([r["relative_error"] for r in ang]))
+        print(
+            f"  angular velocity: RMS error {err['rms_deg_s']:.3f} deg/s "
+            f"(x, y, z: {', '.join(f'{v:.3f}' for v in err['rms_axes_deg_s'])}), "
+            f"mean relative error {100 * summary['mean_relative_error']:.1f}%"
+        )
+        fwl_gt = [r["fwl_gt"] for r in ang if math.isfinite(r["fwl_gt"])]
+        if fwl_gt:
+            summary["mean_fwl_gt"] = float(np.mean(fwl_gt))
+            print(f"  FWL of the ground truth: mean {summary['mean_fwl_gt']:.4f}")
+    flows = [r for r in rows if "AEE" in r and math.isfinite(r["AEE"])]
+    if flows:
+        summary["mean_AEE"] = float(np.mean([r["AEE"] for r in flows]))
+        print(f"  flow: mean AEE {summary['mean_AEE']:.3f} px", end="")
+        for t in thresholds:
+            key = f"{t:g}PE"
+            summary[f"mean_{key}"] = float(np.mean([r[key] for r in flows]))
+            print(f", {key} {summary[f'mean_{key}']:.2f}%", end="")
+        print()
+    fwls = [r["fwl"] for r in rows if math.isfinite(r["fwl"])]
+    if fwls:
+        summary["mean_fwl"] = float(np.mean(fwls))
+        print(f"  FWL of the estimate: mean {summary['mean_fwl']:.4f}")
+    (out / "metrics.json").write_text(json.dumps({"summary": summary, "windows": rows}, indent=1))
+    print(f"wrote: {out / 'metrics.csv'}, {out / 'metrics.json'}")
+    return 0

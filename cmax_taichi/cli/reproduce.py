@@ -1,0 +1,68 @@
+"""Reproduce the paper's experiments (Shiba, Aoki, Gallego, Sensors 2022) on simulated MVSEC-like data
+and the real ECD rotation cuts: Tables 1-3, the lambda sensitivity and the computational complexity.
+
+Writes Markdown, CSV (and PNG plots) into --out and prints each table; progress goes to stderr.
+See cmax_taichi/experiments.py for the protocol.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+NAME = "reproduce"
+HELP = "run the paper's experiments (table1|table2|table3|sensitivity|complexity|all)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from cmax_taichi.lab.experiments import EXPERIMENTS
+
+    parser.add_argument("experiment", choices=[*EXPERIMENTS, "all"], help="which experiment")
+    parser.add_argument("--out", required=True, help="output folder (created if needed)")
+    parser.add_argument("--quick", action="store_true", help="small sizes: a smoke run of a few minutes")
+    parser.add_argument(
+        "--data",
+        default=None,
+        help="folder of the ECD rotation cuts for table3 (default: ../shared/data/ecd_rotation "
+        "beside the checkout, or $CMAX_SHARED_DATA/ecd_rotation)",
+    )
+    parser.add_argument("--windows", type=int, default=None, help="evaluation intervals per preset")
+    parser.add_argument(
+        "--lam",
+        type=float,
+        default=None,
+        help="regularizer weight of the tables (default: cmax_taichi.RECOMMENDED_LAMBDA)",
+    )
+    parser.add_argument("--seed", type=int, default=None, help="simulator seed (default 0)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from cmax_taichi.lab.experiments import Settings, reproduce
+
+    settings = Settings.quick() if args.quick else Settings()
+    changes = {}
+    if args.windows is not None:
+        if args.windows < 1:
+            raise ValueError(f"--windows must be at least 1, got {args.windows}")
+        changes["windows"] = args.windows
+        changes["sensitivity_windows"] = min(settings.sensitivity_windows, args.windows)
+    if args.lam is not None:
+        if not args.lam >= 0:
+            raise ValueError(f"--lam must be >= 0, got {args.lam}")
+        changes["lam"] = args.lam
+    if args.seed is not None:
+        changes["seed"] = args.seed
+    settings = replace(settings, **changes)
+    written = reproduce(
+        args.experiment,
+        args.out,
+        quick=args.quick,
+        data_dir=args.data,
+        settings=settings,
+        progress=not args.no_progress,
+    )
+    for name, files in written.items():
+        print(f"{name}: " + ", ".join(str(f) for f in files))
+    return 0

@@ -1,1 +1,0 @@
-"""Sub-commands of the ``cmax-taichi`` command line (see ``cmax_taichi/cli.py``)."""

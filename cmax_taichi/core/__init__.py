@@ -1,0 +1,1 @@
+"""Core objects: events and camera, backend, registries, pooled workspaces."""

@@ -1,0 +1,1 @@
+"""Motion models, objectives and regularizers: one registry each, capabilities declared on the entries."""

@@ -1,0 +1,725 @@
+"""The Contrast Maximization problem: events + warp + objective + regularizers -> value and gradient.
+
+:class:`ContrastMaximization` owns the Taichi fields of one problem and runs the kernel chain
+
+    splat (warp, IWE votes, map votes) -> blur x -> blur y -> objective reduce -> maps reduce -> loss
+
+forward, then the same kernels' ``.grad`` in reverse order for dJ/dtheta. Fields are allocated once;
+repeated evaluations allocate nothing. Formulas: docs/FORMULAS.md.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from cmax_taichi.core import backend, workspace
+from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.kernels import iwe as kiwe
+from cmax_taichi.kernels import loss as kloss
+from cmax_taichi.kernels import maps as kmaps
+from cmax_taichi.kernels import warps as kwarps
+from cmax_taichi.kernels import whitening as kwhite
+from cmax_taichi.models.objectives import OBJECTIVES, Objective
+from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
+from cmax_taichi.models.warps import WarpModel, get_warp
+from cmax_taichi.pipeline.fused import FusedPipeline
+
+__all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
+
+POLARITY_MODES = ("ignore", "signed", "split")
+
+# Compiled kernels, keyed by everything that is static in them; cleared when Taichi is reset.
+_KERNELS: dict = {}
+backend.on_reset(_KERNELS.clear)
+
+
+def _cached(key, factory):
+    kernel = _KERNELS.get(key)
+    if kernel is None:
+        kernel = _KERNELS[key] = factory()
+    return kernel
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Everything one evaluation computed (all floats; R values dimensionless).
+
+    Attributes
+    ----------
+    J : float
+        Augmented objective ``G - sum lambda_r R_r``.
+    G : float
+        Objective used in J (normalised by ``G0`` when the problem normalises).
+    G_raw : float
+        Raw objective of the IWE.
+    G0 : float
+        Raw objective of the identity warp.
+    R : dict
+        Penalty of every registered regularizer (computed whether or not it is weighted in J).
+    """
+
+    J: float
+    G: float
+    G_raw: float
+    G0: float
+    R: dict
+
+
+def _check_theta(theta, n: int, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(theta, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise TypeError(f"theta must be a sequence of {n} numbers, got {theta!r}") from None
+    if arr.size != n:
+        raise ValueError(f"warp {name!r} takes {n} parameter(s), got theta of length {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"theta has non-finite values: {arr}")
+    return arr
+
+
+class ContrastMaximization:
+    """A CMax problem on one window of events.
+
+    Parameters
+    ----------
+    events : Events
+        The window (at least 2 events spanning a positive time).
+    warp : str or WarpModel
+        Motion model; see :func:`cmax_taichi.warp_names`.
+    objective : str
+        Focus measure; see :func:`cmax_taichi.objective_names`.
+    regularizers : mapping of str to float, optional
+        Weights ``lambda`` of the regularizers, e.g. ``{"divergence": 1.0, "deformation": 1.0}``.
+        A weight of 0 keeps the map but not its penalty.
+    camera : Camera, optional
+        Intrinsics (required by ``rotation3``). Its principal point is the centre of the zoom /
+        rotation models; events are undistorted with it unless ``events.undistorted``.
+    t_ref : {"first", "middle", "last"} or float
+        Reference time (a float is seconds on the events' clock).
+    blur_sigma : float
+        Gaussian blur of the IWE, px (0 = none).
+    polarity : {"ignore", "signed", "split"}
+        How polarity enters the IWE.
+    weights : array_like, optional
+        Per-event vote weights (finite); default 1.
+    normalize : bool
+        Use ``G(theta) / G(0)`` (default) rather than the raw objective in J.
+    whitening : bool
+        Whitening baseline: build the IWE from whitened warped positions.
+
+    Notes
+    -----
+    ``value_and_grad(theta)`` returns ``(J, dJ/dtheta)`` for ``theta`` in the model's physical units.
+    """
+
+    def __init__(
+        self,
+        events: Events,
+        warp: str | WarpModel = "mitrokhin4",
+        objective: str = "variance",
+        regularizers: Mapping[str, float] | None = None,
+        camera: Camera | None = None,
+        t_ref: str | float = "first",
+        blur_sigma: float = 1.0,
+        polarity: str = "ignore",
+        weights: Sequence[float] | np.ndarray | None = None,
+        normalize: bool = True,
+        whitening: bool = False,
+    ) -> None:
+        self._backend = backend.ensure_initialized()
+        if not isinstance(events, Events):
+            raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
+        self.model: WarpModel = get_warp(warp)
+        self.objective: Objective = OBJECTIVES.get(objective)
+        if camera is not None and not isinstance(camera, Camera):
+            raise TypeError(f"camera must be cmax_taichi.Camera, got {type(camera).__name__}")
+        if self.model.needs_camera and camera is None:
+            raise ValueError(f"warp {self.model.name!r} needs a camera (intrinsics): pass camera=")
+        self.camera = camera
+        self.regularizer_weights = self._check_regularizers(regularizers)
+        if polarity not in POLARITY_MODES:
+            raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
+        self.polarity = polarity
+        blur_sigma = float(blur_sigma)
+        if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
+            raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
+        self.blur_sigma = blur_sigma
+        self.normalize = bool(normalize)
+        self.whitening = bool(whitening)
+
+        # --- events (NumPy, float64) ---------------------------------------------------------------
+        if len(events) < 2:
+            raise ValueError(f"a CMax problem needs at least 2 events, got {len(events)}")
+        user_weights = None
+        if weights is not None:
+            user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+            if user_weights.size != len(events):
+                raise ValueError(f"weights has {user_weights.size} values for {len(events)} events")
+            if not np.all(np.isfinite(user_weights)):
+                raise ValueError("weights has non-finite values")
+        if camera is not None and camera.has_distortion and not events.undistorted:
+            events, kept = events.undistort(camera, return_mask=True)
+            if user_weights is not None:
+                user_weights = user_weights[kept]
+            if len(events) < 2:
+                raise ValueError("fewer than 2 events remain inside the sensor after undistortion")
+        self.events = events
+        duration = events.duration
+        if not duration > 0:
+            raise ValueError("the events span zero time: a CMax window needs a positive duration")
+        self.duration = duration
+        self.t_ref = self._resolve_t_ref(t_ref, events)
+        self.orientation = 1.0 if self.t_ref <= float(np.mean(events.t)) else -1.0
+        self.width, self.height = events.sensor_size
+        if camera is not None:
+            self.center = (camera.cx, camera.cy)
+            focal = (camera.fx, camera.fy)
+        else:
+            self.center = ((self.width - 1) / 2.0, (self.height - 1) / 2.0)
+            focal = (1.0, 1.0)
+        self.n_events = len(events)
+        self.n_channels = 2 if polarity == "split" else 1
+
+        self._weighted = polarity == "signed" or user_weights is not None
+        vote_w = None  # per-event vote weights, only where they are not all 1
+        if self._weighted:
+            vote_w = np.ones(self.n_events) if user_weights is None else user_weights
+            if polarity == "signed":
+                vote_w = vote_w * events.p
+        self._focal = focal
+        self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
+        # The fused kernels (cmax_taichi/fused.py) serve value and gradient where they apply; the
+        # generic chain's fields are then allocated only if maps(), evaluate() or jacobians need them.
+        self._fused = FusedPipeline.for_problem(self, vote_w)
+        self._generic_args = (vote_w, focal)
+        self._generic_ready = False
+        if self._fused is None:
+            self._ensure_generic()
+        self.G0 = 1.0
+        g0 = self._forward(np.zeros(self.model.n_params))[1]
+        if not (math.isfinite(g0) and g0 > 0):
+            raise ValueError(
+                f"the identity warp's {self.objective.name} is {g0}: the events give a flat image "
+                "(nothing to maximise)"
+            )
+        self.G0 = g0 if self.normalize else 1.0
+        self._identity_objective = g0
+        if self._fused is not None:
+            self._fused.set_g0(self.G0)
+
+    # --- validation helpers --------------------------------------------------------------------
+    @staticmethod
+    def _check_regularizers(regularizers) -> dict[str, float]:
+        if regularizers is None:
+            return {}
+        if not isinstance(regularizers, Mapping):
+            raise TypeError("regularizers must be a mapping name -> weight, e.g. {'divergence': 1.0}")
+        out = {}
+        for name, weight in regularizers.items():
+            REGULARIZERS.get(name)
+            try:
+                w = float(weight)
+            except (TypeError, ValueError):
+                raise TypeError(f"weight of regularizer {name!r} must be a number") from None
+            if not (math.isfinite(w) and w >= 0):
+                raise ValueError(f"weight of regularizer {name!r} must be finite and >= 0, got {w}")
+            out[name] = w
+        return out
+
+    @staticmethod
+    def _resolve_t_ref(t_ref, events: Events) -> float:
+        if isinstance(t_ref, str):
+            choices = {
+                "first": events.t[0],
+                "middle": 0.5 * (events.t[0] + events.t[-1]),
+                "last": events.t[-1],
+            }
+            if t_ref not in choices:
+                raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
+            return float(choices[t_ref])
+        try:
+            value = float(t_ref)
+        except (TypeError, ValueError):
+            raise TypeError(f"t_ref must be a string or a number, got {t_ref!r}") from None
+        if not math.isfinite(value):
+            raise ValueError(f"t_ref must be finite, got {value}")
+        return value
+
+    # --- fields and kernels ----------------------------------------------------------------------
+    def _ensure_generic(self) -> None:
+        """Allocate and load the generic kernel chain's fields and kernels (once)."""
+        if self._generic_ready:
+            return
+        self._generic_ready = True
+        self._allocate(*self._generic_args)
+        self._build_kernels()
+
+    def _allocate(self, vote_w: np.ndarray | None, focal) -> None:
+        """Take the pooled fields of this problem's shape and load this problem into them."""
+        C, W, H = self.n_channels, self.width, self.height
+        self._reg_names = list(self.regularizer_weights)
+        n_r = len(self._reg_names)
+        self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
+        key = (
+            "problem",
+            self._backend.generation,
+            workspace.capacity_for(self.n_events),
+            W,
+            H,
+            C,
+            self.model.n_params,
+            n_r,
+            self._radius,
+            self.objective.slots_per_channel,
+            self._weighted,
+            self.polarity == "split",
+            self.whitening,
+        )
+        self._ws = workspace.acquire(key, self._build_fields)
+        ev = self.events
+        self._host = {
+            "ex": ev.x,
+            "ey": ev.y,
+            "edt": ev.t - self.t_ref,
+            "ew": vote_w if self._weighted else None,
+            "ech": (ev.p < 0).astype(np.int8) if self.polarity == "split" else None,
+            "ctx": [self.center[0], self.center[1], focal[0], focal[1], self.duration],
+        }
+        if self.blur_sigma > 0:
+            r = self._radius
+            taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * self.blur_sigma**2))
+            self._host["taps"] = taps / taps.sum()
+        if n_r:
+            # weights lambda_r, then the scales s_r (the loss kernel applies one-sided hinges to s_r R_r)
+            regs = [REGULARIZERS.get(name) for name in self._reg_names]
+            self._host["lam"] = [self.regularizer_weights[r.name] for r in regs] + [
+                r.scale(self.duration, self.orientation) for r in regs
+            ]
+        if self.whitening:
+            mu0 = np.array([ev.x.mean(), ev.y.mean()])
+            S0 = np.cov(np.stack([ev.x, ev.y]), bias=True)
+            evals, evecs = np.linalg.eigh(S0)
+            L0 = evecs @ np.diag(np.sqrt(np.maximum(evals, 0.0))) @ evecs.T
+            self._wconst = [float(self.n_events), mu0[0], mu0[1], L0[0, 0], L0[0, 1], L0[1, 1]]
+        for name in (
+            "ex",
+            "ey",
+            "edt",
+            "ew",
+            "ech",
+            "th",
+            "ctx",
+            "vote",
+            "tmp",
+            "img",
+            "taps",
+            "count",
+            "numer",
+            "macc",
+            "lam",
+            "acc",
+            "loss",
+            "diag",
+            "wmom",
+        ):
+            setattr(self, "_" + name, getattr(self._ws, name))
+        self._load()
+
+    def _build_fields(self, ws) -> None:
+        """Allocate the fields of a workspace (called once per problem shape)."""
+        real = backend.real()
+        cap = workspace.capacity_for(self.n_events)
+        C, W, H, n_r = self.n_channels, self.width, self.height, len(self.regularizer_weights)
+        ws.ex = ti.field(real, shape=cap)
+        ws.ey = ti.field(real, shape=cap)
+        ws.edt = ti.field(real, shape=cap)
+        ws.ew = ti.field(real, shape=cap) if self._weighted else workspace.dummy(real)
+        ws.ech = ti.field(ti.i8, shape=cap) if self.polarity == "split" else workspace.dummy(ti.i8)
+        ws.th = ti.Vector.field(self.model.n_params, real, shape=(), needs_grad=True)
+        ws.ctx = ti.Vector.field(5, real, shape=())
+        ws.vote = ti.field(real, shape=(C, H, W), needs_grad=True)
+        if self.blur_sigma > 0:
+            ws.taps = ti.field(real, shape=2 * self._radius + 1)
+            ws.tmp = ti.field(real, shape=(C, H, W), needs_grad=True)
+            ws.img = ti.field(real, shape=(C, H, W), needs_grad=True)
+        else:
+            ws.taps = workspace.dummy(real)
+            ws.tmp = ws.img = ws.vote
+        if n_r:
+            ws.count = ti.field(real, shape=(H, W), needs_grad=True)
+            ws.numer = ti.field(real, shape=(n_r, H, W), needs_grad=True)
+        else:
+            ws.count = workspace.dummy(real, (1, 1))
+            ws.numer = workspace.dummy(real, (1, 1, 1))
+        ws.macc = ti.Vector.field(1 + n_r, real, shape=(), needs_grad=True)
+        ws.lam = ti.Vector.field(max(2 * n_r, 1), real, shape=())
+        ws.acc = ti.Vector.field(self.objective.slots_per_channel * C, real, shape=(), needs_grad=True)
+        ws.loss = ti.field(real, shape=(), needs_grad=True)
+        ws.diag = ti.Vector.field(1 + max(n_r, 1), real, shape=())
+        n_w = kwhite.N_SLOTS if self.whitening else 1
+        ws.wmom = ti.Vector.field(n_w, real, shape=(), needs_grad=True)
+        ws.maps = {}
+
+    def _load(self) -> None:
+        """Upload this problem's events and constants into the shared workspace if needed."""
+        self._ensure_generic()
+        ws = self._ws
+        if ws.owned_by(self):
+            return
+        npr = backend.numpy_real()
+        n = self.n_events
+        for name in ("ex", "ey", "edt", "ew", "ech"):
+            values = self._host[name]
+            if values is None:
+                continue
+            f = getattr(ws, name)
+            buf = np.zeros(f.shape[0], dtype=np.int8 if name == "ech" else npr)
+            buf[:n] = values
+            f.from_numpy(buf)
+        ws.ctx[None] = self._host["ctx"]
+        if "taps" in self._host:
+            ws.taps.from_numpy(self._host["taps"].astype(npr))
+        if "lam" in self._host:
+            ws.lam[None] = self._host["lam"]
+        ws.take(self)
+
+    def _build_kernels(self) -> None:
+        m, W, H, C = self.model, self.width, self.height, self.n_channels
+        regs: list[Regularizer] = [REGULARIZERS.get(n) for n in self._reg_names]
+        quantities = tuple(r.quantity(m) for r in regs)
+        penalties = tuple(r.penalty for r in regs)
+        reg_key = tuple((r.name, id(r)) for r in regs)
+        flags = dict(
+            width=W,
+            height=H,
+            n_channels=C,
+            split_polarity=self.polarity == "split",
+            weighted=self._weighted,
+            do_iwe=not self.whitening,
+            whiten=False,
+        )
+        self._k_splat = _cached(
+            ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
+            lambda: kiwe.make_splat_kernel(m.warp, quantities, **flags),
+        )
+        if self.whitening:
+            wflags = dict(flags, do_iwe=True, whiten=True)
+            self._k_wsplat = _cached(
+                ("splat", m.name, id(m), (), tuple(sorted(wflags.items()))),
+                lambda: kiwe.make_splat_kernel(m.warp, (), **wflags),
+            )
+            self._k_moments = _cached(("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp))
+        if self.blur_sigma > 0:
+            r = self._radius
+            self._k_blur_x = _cached(("blur", r, 1, W, H, C), lambda: kiwe.make_blur_kernel(r, 1, W, H, C))
+            self._k_blur_y = _cached(("blur", r, 0, W, H, C), lambda: kiwe.make_blur_kernel(r, 0, W, H, C))
+        obj = self.objective
+        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, C), lambda: obj.make_reduce(W, H, C))
+        if regs:
+            self._k_maps = _cached(("maps", reg_key, W, H), lambda: kmaps.make_maps_reduce(penalties, W, H))
+        self._k_loss = _cached(
+            ("loss", obj.name, id(obj), C, W * H, tuple(r.one_sided for r in regs)),
+            lambda: kloss.make_loss_kernel(obj.finalize, C, W * H, tuple(r.one_sided for r in regs)),
+        )
+
+    # --- evaluation ------------------------------------------------------------------------------
+    def _check_alive(self) -> None:
+        if backend.info().generation != self._backend.generation:
+            raise RuntimeError(
+                "this problem was built before cmax_taichi.init() reset the backend; build it again"
+            )
+
+    def _args_splat(self, vote):
+        return (
+            self.n_events,
+            self._ex,
+            self._ey,
+            self._edt,
+            self._ew,
+            self._ech,
+            self._th,
+            self._ctx,
+            self._wmom,
+            vote,
+            self._count,
+            self._numer,
+        )
+
+    def _kernel_chain(self):
+        """The forward kernels with their arguments, in order."""
+        chain = []
+        if self.whitening:
+            chain.append(
+                (
+                    self._k_moments,
+                    (self.n_events, self._ex, self._ey, self._edt, self._th, self._ctx, self._wmom),
+                )
+            )
+            chain.append((self._k_wsplat, self._args_splat(self._vote)))
+        chain.append((self._k_splat, self._args_splat(self._vote)))
+        if self.blur_sigma > 0:
+            chain.append((self._k_blur_x, (self._vote, self._tmp, self._taps)))
+            chain.append((self._k_blur_y, (self._tmp, self._img, self._taps)))
+        chain.append((self._k_reduce, (self._img, self._acc)))
+        if self._reg_names:
+            chain.append((self._k_maps, (self._count, self._numer, self._macc)))
+        chain.append(
+            (
+                self._k_loss,
+                (self._acc, self._macc, self._lam, float(self.G0), self._loss, self._diag),
+            )
+        )
+        return chain
+
+    def _buffers(self):
+        bufs = [self._vote, self._acc, self._macc, self._loss]
+        if self.blur_sigma > 0:
+            bufs += [self._tmp, self._img]
+        if self._reg_names:
+            bufs += [self._count, self._numer]
+        return bufs
+
+    def _forward(self, theta: np.ndarray) -> tuple[float, float]:
+        """``(J, G_raw)`` at ``theta``."""
+        if self._fused is not None:
+            return self._fused.evaluate(theta)
+        self._load()
+        self._th[None] = theta.tolist()
+        for buf in self._buffers():
+            buf.fill(0)
+        if self.whitening:
+            self._wmom[None] = [0.0] * 5 + self._wconst
+        for kernel, args in self._kernel_chain():
+            kernel(*args)
+        return float(self._loss[None]), float(self._diag[None][0])
+
+    def _backward(self) -> np.ndarray:
+        for buf in self._buffers() + [self._th, self._wmom]:
+            buf.grad.fill(0)
+        self._loss.grad[None] = 1.0
+        for kernel, args in reversed(self._kernel_chain()):
+            kernel.grad(*args)
+        return self._th.grad.to_numpy().astype(np.float64).reshape(-1)
+
+    def value(self, theta) -> float:
+        """Augmented objective J at ``theta`` (physical units)."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        if self._fused is not None:
+            return self._fused.value(theta)
+        return self._forward(theta)[0]
+
+    def value_and_grad(self, theta) -> tuple[float, np.ndarray]:
+        """``(J, dJ/dtheta)`` at ``theta`` (physical units), by Taichi reverse-mode autodiff."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        if self._fused is not None:
+            return self._fused.value_and_grad(theta)
+        value = self._forward(theta)[0]
+        return value, self._backward()
+
+    def evaluate(self, theta) -> Evaluation:
+        """J, G, G_raw, G0 and the penalty of every registered regularizer at ``theta``."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        value, g_raw = self._forward(theta)
+        penalties = self._all_penalties(theta)
+        return Evaluation(J=value, G=g_raw / self.G0, G_raw=g_raw, G0=self._identity_objective, R=penalties)
+
+    # --- images -----------------------------------------------------------------------------------
+    def iwe(self, theta) -> np.ndarray:
+        """The blurred IWE at ``theta``: (H, W), or (2, H, W) for per-polarity images."""
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        self._forward(theta)
+        if self._fused is not None:
+            img = self._fused.image()
+        else:
+            img = self._img.to_numpy().astype(np.float64)
+        return img[0] if self.n_channels == 1 else img
+
+    def _map_fields(self, theta: np.ndarray):
+        """Vote every registered regularizer's quantity; return the (count, out) images as NumPy."""
+        self._ensure_generic()
+        names = REGULARIZERS.names()
+        regs = [REGULARIZERS.get(n) for n in names]
+        m, W, H = self.model, self.width, self.height
+        key = tuple(names)
+        if key not in self._ws.maps:
+            real = backend.real()
+            self._ws.maps[key] = (
+                ti.field(real, shape=(H, W)),
+                ti.field(real, shape=(len(regs), H, W)),
+                ti.field(real, shape=(2 * len(regs), H, W)),
+            )
+        count, numer, out = self._ws.maps[key]
+        self._load()
+        reg_key = tuple((r.name, id(r)) for r in regs)
+        flags = dict(
+            width=W,
+            height=H,
+            n_channels=self.n_channels,
+            split_polarity=self.polarity == "split",
+            weighted=self._weighted,
+            do_iwe=False,
+            whiten=False,
+        )
+        splat = _cached(
+            ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
+            lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity(m) for r in regs), **flags),
+        )
+        images = _cached(
+            ("map_images", reg_key, W, H),
+            lambda: kmaps.make_maps_image_kernel(tuple(r.penalty for r in regs), W, H),
+        )
+        self._th[None] = theta.tolist()
+        count.fill(0)
+        numer.fill(0)
+        splat(
+            self.n_events,
+            self._ex,
+            self._ey,
+            self._edt,
+            self._ew,
+            self._ech,
+            self._th,
+            self._ctx,
+            self._wmom,
+            self._vote,
+            count,
+            numer,
+        )
+        images(count, numer, out)
+        return names, count.to_numpy().astype(np.float64), out.to_numpy().astype(np.float64)
+
+    def _penalties_of(self, names: list[str], count: np.ndarray, out: np.ndarray) -> dict[str, float]:
+        """R of every named regularizer from its pixel penalties: the support-weighted mean
+        (``m = C / (C + kappa)``), scaled (and hinged) as in J."""
+        support = count / (count + kmaps.SUPPORT_KAPPA)
+        total = support.sum()
+        result = {}
+        for r, name in enumerate(names):
+            mean = float((support * out[2 * r + 1]).sum() / total) if total > 0 else 0.0
+            result[name] = penalty_value(REGULARIZERS.get(name), mean, self.duration, self.orientation)
+        return result
+
+    def _all_penalties(self, theta: np.ndarray) -> dict[str, float]:
+        return self._penalties_of(*self._map_fields(theta))
+
+    def maps(self, theta) -> dict[str, np.ndarray | float]:
+        """Regularizer maps at ``theta`` as (H, W) NumPy images.
+
+        Returns
+        -------
+        dict
+            ``"count"``: the vote count C(x); for each registered regularizer ``name``: its map
+            (``"divergence"`` in 1/s, ``"deformation"`` unitless; 0 where no event landed),
+            ``name + "_penalty"``: the pixel penalty, and ``"R_" + name``: the scalar penalty.
+        """
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        names, count, out = self._map_fields(theta)
+        result: dict[str, np.ndarray | float] = {"count": count}
+        for r, name in enumerate(names):
+            result[name] = out[2 * r]
+            result[name + "_penalty"] = out[2 * r + 1]
+        for name, value in self._penalties_of(names, count, out).items():
+            result["R_" + name] = value
+        return result
+
+    def dense_flow(self, theta, dt: float = 0.0) -> np.ndarray:
+        """Flow implied by ``theta`` on the pixel grid, shape (2, H, W).
+
+        ``dt = 0``: the instantaneous flow (px/s); else the displacement over ``dt`` seconds (px).
+        """
+        self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name)
+        return dense_flow(
+            self.model,
+            theta,
+            self.events.sensor_size,
+            camera=self.camera,
+            duration=self.duration,
+            dt=dt,
+        )
+
+    def timed_value_and_grad(self, theta, repeats: int = 10) -> float:
+        """Median seconds of one ``value_and_grad`` over ``repeats`` runs (after one warm-up)."""
+        self.value_and_grad(theta)
+        times = []
+        for _ in range(max(1, int(repeats))):
+            t0 = time.perf_counter()
+            self.value_and_grad(theta)
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+
+    def __repr__(self) -> str:
+        regs = ", ".join(f"{k}={v:g}" for k, v in self.regularizer_weights.items()) or "none"
+        return (
+            f"ContrastMaximization(warp={self.model.name}, objective={self.objective.name}, "
+            f"regularizers={regs}, events={self.n_events}, sensor={self.width}x{self.height}, "
+            f"T={self.duration * 1e3:.3f} ms)"
+        )
+
+
+def dense_flow(
+    warp: str | WarpModel,
+    theta,
+    sensor_size: tuple[int, int],
+    *,
+    camera: Camera | None = None,
+    duration: float = 1.0,
+    dt: float = 0.0,
+) -> np.ndarray:
+    """Flow field of a parametric warp on the pixel grid, shape (2, H, W) (x then y component).
+
+    Parameters
+    ----------
+    warp : str or WarpModel
+        The model.
+    theta : array_like
+        Parameters, physical units.
+    sensor_size : (int, int)
+        ``(W, H)``.
+    camera : Camera, optional
+        Centre (and intrinsics for ``rotation3``); default the image centre.
+    duration : float
+        Window duration T (s) for ``mitrokhin4``.
+    dt : float
+        0: instantaneous flow (px/s). Otherwise the displacement ``-(W(x, dt) - x)`` in px.
+    """
+    backend.ensure_initialized()
+    model = get_warp(warp)
+    theta = _check_theta(theta, model.n_params, model.name)
+    W, H = (int(v) for v in sensor_size)
+    if model.needs_camera and camera is None:
+        raise ValueError(f"warp {model.name!r} needs a camera (intrinsics): pass camera=")
+    if not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be positive seconds, got {duration}")
+    info = backend.info()
+
+    def build(ws):
+        real = backend.real()
+        ws.th = ti.Vector.field(model.n_params, real, shape=())
+        ws.ctx = ti.Vector.field(5, real, shape=())
+        ws.out = ti.field(real, shape=(2, H, W))
+
+    ws = workspace.acquire(("dense_flow", info.generation, model.n_params, W, H), build)
+    th, ctx, out = ws.th, ws.ctx, ws.out
+    th[None] = theta.tolist()
+    if camera is not None:
+        ctx[None] = [camera.cx, camera.cy, camera.fx, camera.fy, duration]
+    else:
+        ctx[None] = [(W - 1) / 2.0, (H - 1) / 2.0, 1.0, 1.0, duration]
+    kernel = _cached(
+        ("dense_flow", model.name, id(model), W, H),
+        lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H),
+    )
+    kernel(th, ctx, float(dt), out)
+    return out.to_numpy().astype(np.float64)

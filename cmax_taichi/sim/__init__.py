@@ -1,0 +1,1 @@
+"""The event simulator: scenes, exact motions, presets and the out-of-the-box examples."""

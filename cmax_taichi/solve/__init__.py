@@ -1,0 +1,1 @@
+"""Drivers over the pipeline: optimizers, sequences of windows, motion segmentation."""

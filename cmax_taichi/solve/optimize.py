@@ -1,0 +1,696 @@
+"""Maximizing a CMax problem: global initialisation, then local gradient ascent.
+
+:func:`maximize` drives ``prob.value`` (forward only) for the global search and ``prob.value_and_grad``
+for the local refinement. Three local methods:
+
+* ``"adam"``: Adam gradient ascent with a plateau schedule (the step halves when the value has not
+  improved for ``patience`` iterations, restarting from the best point), keeping the best iterate;
+* ``"armijo"``: gradient ascent with a backtracking (Armijo) line search;
+* ``"lbfgs"``: SciPy's L-BFGS-B on ``-J`` (needs SciPy).
+
+Internal units
+--------------
+Parameters differ in scale by orders of magnitude (px/s, 1/s, rad/s, and all of them with the window
+duration T). The optimizer works on ``u = theta * s`` where ``s`` (:func:`parameter_scales`) makes one
+unit of ``u`` about **one pixel of displacement over the window**:
+
+==============================================  =====================  ===========================
+parameter                                        scale ``s`` (px per     default search range
+                                                 unit of theta)          (:func:`search_bounds`)
+==============================================  =====================  ===========================
+velocity, px/s (``v_x``, ``v_y``, ``h_x``, ...)  ``T``                  ``|theta T| <= max(W, H)/2``
+rate, 1/s (``h_z``, ``s``)                       ``T r``                ``|theta T| <= 1``
+in-plane angular velocity, rad/s (``w``,         ``T r``                ``|theta T| <= 1`` rad
+``theta``, rotation3 ``w_z``)
+out-of-plane angular velocity, rad/s             ``T sqrt(f_x f_y)``    ``f |theta| T <= max(W, H)/2``
+(rotation3 ``w_x``, ``w_y``)
+==============================================  =====================  ===========================
+
+``r`` is the RMS distance (px) of the pixel grid from the warp's centre (principal point or image
+centre). Velocities are searched up to half the image per window. Rates are searched up to
+``|h_z| T = 1``: at ``h_z T = 1`` the zoom sends the window's last events into the centre (time to
+contact = T), and beyond it the events pass through the centre (a non-physical, mirrored warp).
+A warp registered by a user gets its scales numerically (the RMS over the pixel grid of the flow a
+unit parameter causes, times T) and the velocity range for every parameter.
+
+Learning rates, tolerances and grid spacings below are in these units (px over the window).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cmax_taichi.models.warps import WarpModel
+from cmax_taichi.pipeline.problem import ContrastMaximization
+
+__all__ = [
+    "METHODS",
+    "INITS",
+    "History",
+    "OptimizeResult",
+    "maximize",
+    "parameter_scales",
+    "search_bounds",
+]
+
+METHODS = ("adam", "armijo", "lbfgs")
+INITS = ("auto", "grid", "random", "tpe", "local", "none")
+
+#: default evaluation budget of the global search, per init
+_DEFAULT_N_INIT = {"grid": 1000, "random": 1000, "tpe": 200, "local": 300}
+
+
+@dataclass(frozen=True)
+class History:
+    """Iterates of the local run that gave the result (iteration 0 = its start point).
+
+    Attributes
+    ----------
+    theta : ndarray, shape (K, P)
+        Parameters, physical units.
+    value : ndarray, shape (K,)
+        J at each iterate.
+    grad_norm : ndarray, shape (K,)
+        Norm of dJ/du in internal units (1/px); NaN where no gradient was computed.
+    """
+
+    theta: np.ndarray
+    value: np.ndarray
+    grad_norm: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.value)
+
+
+@dataclass
+class OptimizeResult:
+    """The outcome of :func:`maximize`.
+
+    Attributes
+    ----------
+    theta : ndarray
+        Best parameters found, physical units (see ``param_names`` / ``units``).
+    value : float
+        J at ``theta``.
+    history : History
+        Iterates of the winning local run.
+    n_iterations : int
+        Iterations of the winning local run.
+    n_evaluations : int
+        All objective evaluations (global search and every local run).
+    seconds : float
+        Wall time of the whole call.
+    converged : bool
+        The winning local run met a stopping rule (not just ``max_iter``).
+    message : str
+        Why it stopped.
+    method, init : str
+        Local method and global initialisation used.
+    theta_init : ndarray
+        Start of the winning local run (physical units).
+    value_init : float
+        J at ``theta_init``.
+    scales : ndarray
+        ``s`` of ``u = theta * s`` (px of displacement over the window per unit of theta).
+    param_names, units : tuple of str
+        Names and units of the parameters.
+    """
+
+    theta: np.ndarray
+    value: float
+    history: History
+    n_iterations: int
+    n_evaluations: int
+    seconds: float
+    converged: bool
+    message: str
+    method: str
+    init: str
+    theta_init: np.ndarray
+    value_init: float
+    scales: np.ndarray
+    param_names: tuple[str, ...] = field(default=())
+    units: tuple[str, ...] = field(default=())
+
+    def as_dict(self) -> dict:
+        """A JSON-friendly summary (no history)."""
+        return {
+            "theta": {n: float(v) for n, v in zip(self.param_names, self.theta, strict=True)},
+            "units": dict(zip(self.param_names, self.units, strict=True)),
+            "value": float(self.value),
+            "n_iterations": int(self.n_iterations),
+            "n_evaluations": int(self.n_evaluations),
+            "seconds": float(self.seconds),
+            "converged": bool(self.converged),
+            "message": self.message,
+            "method": self.method,
+            "init": self.init,
+        }
+
+    def __repr__(self) -> str:
+        params = ", ".join(
+            f"{n}={v:.6g} {u}" for n, v, u in zip(self.param_names, self.theta, self.units, strict=True)
+        )
+        return (
+            f"OptimizeResult({params}; J={self.value:.6g}, {self.n_iterations} it, "
+            f"{self.n_evaluations} evals, {self.seconds:.2f} s, converged={self.converged})"
+        )
+
+
+# --- scales and ranges ---------------------------------------------------------------------------
+def _rms_radius(prob: ContrastMaximization) -> float:
+    """RMS distance (px) of the pixel centres from the warp's centre."""
+    W, H = prob.width, prob.height
+    cx, cy = prob.center
+    var_x = (W * W - 1) / 12.0 + (cx - (W - 1) / 2.0) ** 2
+    var_y = (H * H - 1) / 12.0 + (cy - (H - 1) / 2.0) ** 2
+    return math.sqrt(var_x + var_y)
+
+
+# (model name) -> per parameter "velocity" (range: half the image) or "rate" (range: |theta T| <= 1),
+# and the scale per second of window.
+_BUILTIN_KINDS = {
+    "zoom1": ("rate",),
+    "translation2": ("velocity", "velocity"),
+    "rotation3": ("focal", "focal", "rate"),
+    "se2": ("velocity", "velocity", "rate"),
+    "sim2": ("velocity", "velocity", "rate", "rate"),
+    "mitrokhin4": ("velocity", "velocity", "rate", "rate"),
+}
+
+_NUMERIC_SCALES: dict = {}
+
+
+def _kinds(model: WarpModel) -> tuple[str, ...] | None:
+    from cmax_taichi.models.warps import WARPS
+
+    kinds = _BUILTIN_KINDS.get(model.name)
+    if kinds is None or model.name not in WARPS or WARPS.get(model.name) is not model:
+        return None  # a user model (or a replaced built-in): numeric scales
+    return kinds
+
+
+def _numeric_scales_per_second(prob: ContrastMaximization) -> np.ndarray:
+    """RMS flow (px/s) over the pixel grid per unit of each parameter, at theta = 0 (cached)."""
+    from cmax_taichi.pipeline.problem import dense_flow
+
+    model = prob.model
+    key = (model.name, id(model), prob.width, prob.height, prob.camera, prob.center)
+    if key not in _NUMERIC_SCALES:
+        out = np.empty(model.n_params)
+        for i in range(model.n_params):
+            # two passes: a unit step, then one sized to move pixels by about 1 px per second
+            step = 1.0
+            for _ in range(2):
+                theta = np.zeros(model.n_params)
+                theta[i] = step
+                flow = dense_flow(model, theta, (prob.width, prob.height), camera=prob.camera, duration=1.0)
+                rms = float(np.sqrt(np.nanmean(flow[0] ** 2 + flow[1] ** 2))) / step
+                if not (math.isfinite(rms) and rms > 0):
+                    rms = 1.0
+                step = 1.0 / rms
+            out[i] = rms
+        _NUMERIC_SCALES[key] = out
+    return _NUMERIC_SCALES[key]
+
+
+def parameter_scales(prob: ContrastMaximization) -> np.ndarray:
+    """Scale ``s`` of each parameter: px of displacement over the window per unit of theta.
+
+    See the module docstring for the rule per parameter kind. ``u = theta * s`` are the optimizer's
+    internal units.
+    """
+    T = prob.duration
+    kinds = _kinds(prob.model)
+    if kinds is None:
+        return _numeric_scales_per_second(prob) * T
+    r = _rms_radius(prob)
+    f = math.sqrt(prob.camera.fx * prob.camera.fy) if prob.camera is not None else 1.0
+    per_kind = {"velocity": T, "rate": T * r, "focal": T * f}
+    return np.array([per_kind[k] for k in kinds])
+
+
+def _half_ranges_u(prob: ContrastMaximization) -> np.ndarray:
+    """Half-width of the default search box in internal units (px)."""
+    half_image = 0.5 * max(prob.width, prob.height)
+    kinds = _kinds(prob.model)
+    if kinds is None:
+        return np.full(prob.model.n_params, half_image)
+    r = _rms_radius(prob)
+    return np.array([r if k == "rate" else half_image for k in kinds])
+
+
+def search_bounds(prob: ContrastMaximization) -> tuple[np.ndarray, np.ndarray]:
+    """Default global search box ``(lo, hi)`` in physical units (see the module docstring)."""
+    half = _half_ranges_u(prob) / parameter_scales(prob)
+    return -half, half
+
+
+# --- the objective in internal units --------------------------------------------------------------
+class _Objective:
+    """J and dJ/du in internal units, counting evaluations; non-finite values read as -inf."""
+
+    def __init__(self, prob: ContrastMaximization, scales: np.ndarray) -> None:
+        self.prob = prob
+        self.scales = scales
+        self.n_evaluations = 0
+
+    def theta(self, u: np.ndarray) -> np.ndarray:
+        return np.asarray(u, dtype=np.float64) / self.scales
+
+    def value(self, u: np.ndarray) -> float:
+        self.n_evaluations += 1
+        v = self.prob.value(self.theta(u))
+        return v if math.isfinite(v) else -math.inf
+
+    def value_and_grad(self, u: np.ndarray) -> tuple[float, np.ndarray]:
+        self.n_evaluations += 1
+        v, g = self.prob.value_and_grad(self.theta(u))
+        g = np.asarray(g, dtype=np.float64) / self.scales
+        if not (math.isfinite(v) and np.all(np.isfinite(g))):
+            return -math.inf, np.zeros_like(g)
+        return v, g
+
+
+@dataclass
+class _Run:
+    u: np.ndarray
+    value: float
+    us: list
+    values: list
+    gnorms: list
+    converged: bool
+    message: str
+
+    @property
+    def n_iterations(self) -> int:
+        return max(0, len(self.values) - 1)
+
+
+class _Recorder:
+    def __init__(self, callback, obj: _Objective) -> None:
+        self.callback = callback
+        self.obj = obj
+        self.us: list = []
+        self.values: list = []
+        self.gnorms: list = []
+
+    def add(self, u: np.ndarray, value: float, gnorm: float = math.nan) -> bool:
+        """Record an iterate; True when the user's callback asks to stop."""
+        self.us.append(np.array(u, dtype=np.float64))
+        self.values.append(float(value))
+        self.gnorms.append(float(gnorm))
+        if self.callback is not None:
+            return bool(self.callback(len(self.values) - 1, self.obj.theta(u), float(value)))
+        return False
+
+
+# --- local methods ---------------------------------------------------------------------------------
+def _adam(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, patience, rec) -> _Run:
+    beta1, beta2, eps = 0.9, 0.999, 1e-12
+    u = np.clip(np.array(u0, dtype=np.float64), lo, hi)
+    m = np.zeros_like(u)
+    v = np.zeros_like(u)
+    best_u, best_val = u.copy(), -math.inf
+    stall, k_adam = 0, 0
+    step = float(lr)
+    converged, message = False, f"reached max_iter={max_iter}"
+    for k in range(max_iter + 1):
+        val, g = obj.value_and_grad(u)
+        gnorm = float(np.linalg.norm(g))
+        if rec.add(u, val, gnorm):
+            converged, message = False, "stopped by callback"
+            break
+        if val > best_val + 1e-12 * max(1.0, abs(val)):
+            best_u, best_val, stall = u.copy(), val, 0
+        else:
+            stall += 1
+        if gnorm < gtol:
+            converged, message = True, f"gradient norm {gnorm:.3g} < gtol={gtol:g}"
+            break
+        if k == max_iter:
+            break
+        if stall >= patience:
+            # plateau: halve the step and restart the moments from the best point
+            step *= 0.5
+            if step < xtol:
+                converged, message = True, f"step {step:.3g} px < xtol={xtol:g} px"
+                break
+            u, m, v, k_adam, stall = best_u.copy(), np.zeros_like(u), np.zeros_like(u), 0, 0
+            val, g = obj.value_and_grad(u)
+        k_adam += 1
+        m = beta1 * m + (1 - beta1) * g
+        v = beta2 * v + (1 - beta2) * g * g
+        mhat = m / (1 - beta1**k_adam)
+        vhat = v / (1 - beta2**k_adam)
+        u = np.clip(u + step * mhat / (np.sqrt(vhat) + eps), lo, hi)
+    return _Run(best_u, best_val, rec.us, rec.values, rec.gnorms, converged, message)
+
+
+def _armijo(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
+    c1, max_backtracks = 1e-4, 40
+    u = np.clip(np.array(u0, dtype=np.float64), lo, hi)
+    val, g = obj.value_and_grad(u)
+    gnorm = float(np.linalg.norm(g))
+    alpha = lr / max(gnorm, 1e-300)  # the first trial step moves lr px
+    converged, message = False, f"reached max_iter={max_iter}"
+    stop = rec.add(u, val, gnorm)
+    for _ in range(max_iter):
+        if stop:
+            converged, message = False, "stopped by callback"
+            break
+        if gnorm < gtol:
+            converged, message = True, f"gradient norm {gnorm:.3g} < gtol={gtol:g}"
+            break
+        accepted = False
+        for _ in range(max_backtracks):
+            u_new = np.clip(u + alpha * g, lo, hi)
+            step = u_new - u
+            if float(np.max(np.abs(step))) < xtol:
+                break
+            val_new = obj.value(u_new)
+            if val_new >= val + c1 * float(g @ step):
+                accepted = True
+                break
+            alpha *= 0.5
+        if not accepted:
+            converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
+            break
+        gain = val_new - val
+        u = u_new
+        val, g = obj.value_and_grad(u)
+        gnorm = float(np.linalg.norm(g))
+        stop = rec.add(u, val, gnorm)
+        if gain < rtol * max(1.0, abs(val)):
+            converged, message = True, f"relative change {gain / max(1.0, abs(val)):.3g} < rtol={rtol:g}"
+            break
+        alpha *= 2.0  # let the step grow again after a successful one
+    best = int(np.argmax(rec.values))
+    return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
+
+
+def _lbfgs(obj, u0, lo, hi, *, max_iter, gtol, rtol, rec) -> _Run:
+    try:
+        from scipy.optimize import minimize as scipy_minimize
+    except ImportError:
+        raise ImportError(
+            "method='lbfgs' needs SciPy: pip install scipy (or 'cmax-taichi[scipy]'), "
+            "or use method='adam' / 'armijo'"
+        ) from None
+    last: dict = {}
+
+    def fun(u):
+        val, g = obj.value_and_grad(u)
+        last["u"], last["val"], last["g"] = np.array(u), val, g
+        if not math.isfinite(val):
+            return 1e30, np.zeros_like(g)
+        return -val, -g
+
+    class _StopRequestError(Exception):
+        pass
+
+    def callback(u):
+        val = last["val"] if "u" in last and np.array_equal(last["u"], u) else obj.value(u)
+        g = last.get("g")
+        if rec.add(u, val, float(np.linalg.norm(g)) if g is not None else math.nan):
+            raise _StopRequestError
+
+    u0 = np.clip(np.array(u0, dtype=np.float64), lo, hi)
+    rec.add(u0, obj.value(u0))
+    try:
+        res = scipy_minimize(
+            fun,
+            u0,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=list(zip(lo, hi, strict=True)),
+            callback=callback,
+            options={"maxiter": max_iter, "gtol": gtol, "ftol": rtol},
+        )
+        converged, message = bool(res.success), f"L-BFGS-B: {res.message}"
+    except _StopRequestError:
+        converged, message = False, "stopped by callback"
+    best = int(np.argmax(rec.values))
+    return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
+
+
+# --- global initialisation ---------------------------------------------------------------------------
+def _odd_points_per_dim(budget: int, n_dims: int) -> int:
+    n = max(3, int(math.floor(budget ** (1.0 / n_dims) + 1e-9)))
+    n = min(n, 101)
+    return n if n % 2 else n - 1
+
+
+def _distinct_top(points: list[tuple[float, np.ndarray]], k: int, min_dist: np.ndarray) -> list:
+    """The ``k`` best points, skipping any within ``min_dist`` (per dimension) of a better one."""
+    out: list[tuple[float, np.ndarray]] = []
+    for val, u in sorted(points, key=lambda p: -p[0]):
+        if not math.isfinite(val):
+            continue
+        if all(np.any(np.abs(u - w) > min_dist) for _, w in out):
+            out.append((val, u))
+            if len(out) == k:
+                break
+    return out
+
+
+def _grid_search(obj, lo, hi, *, budget, beam, min_spacing, extra) -> list[tuple[float, np.ndarray]]:
+    """Coarse grid over the box, then a beam of zooming 3^P grids (spacing halves) down to
+    ``min_spacing`` px. Returns every evaluated (value, u)."""
+    P = len(lo)
+    n = _odd_points_per_dim(budget, P)
+    axes = [np.linspace(lo[i], hi[i], n) for i in range(P)]
+    mesh = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, P)
+    seen: dict[tuple, float] = {}
+
+    def evaluate(u):
+        key = tuple(np.round(u, 9))
+        if key not in seen:
+            seen[key] = obj.value(u)
+        return seen[key]
+
+    for u in list(mesh) + list(extra):
+        evaluate(np.clip(u, lo, hi))
+    spacing = (hi - lo) / (n - 1)
+    offsets = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * P), indexing="ij"), -1).reshape(-1, P)
+    while np.max(spacing) > min_spacing:
+        spacing = spacing / 2.0
+        points = [(v, np.array(k)) for k, v in seen.items()]
+        for _, c in _distinct_top(points, beam, spacing):
+            for off in offsets:
+                evaluate(np.clip(c + off * spacing, lo, hi))
+    return [(v, np.array(k)) for k, v in seen.items()]
+
+
+def _random_search(obj, lo, hi, *, budget, rng, extra) -> list[tuple[float, np.ndarray]]:
+    samples = rng.uniform(lo, hi, size=(max(1, budget), len(lo)))
+    return [(obj.value(u), np.array(u)) for u in list(samples) + list(extra)]
+
+
+def _tpe_search(obj, lo, hi, *, budget, seed, extra) -> list[tuple[float, np.ndarray]]:
+    try:
+        import optuna
+    except ImportError:
+        raise ImportError(
+            "init='tpe' needs optuna: pip install optuna (or 'cmax-taichi[tpe]'), or use init='grid'"
+        ) from None
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=max(10, budget // 10))
+    study = optuna.create_study(direction="maximize", sampler=sampler)
+    names = [f"u{i}" for i in range(len(lo))]
+    for u in extra:
+        study.enqueue_trial({n: float(np.clip(x, a, b)) for n, x, a, b in zip(names, u, lo, hi, strict=True)})
+    out: list[tuple[float, np.ndarray]] = []
+
+    def objective(trial):
+        u = np.array([trial.suggest_float(n, a, b) for n, a, b in zip(names, lo, hi, strict=True)])
+        val = obj.value(u)
+        out.append((val, u))
+        return val if math.isfinite(val) else -1e30
+
+    study.optimize(objective, n_trials=max(1, budget) + len(extra))
+    return out
+
+
+# --- the driver --------------------------------------------------------------------------------------
+def maximize(
+    prob: ContrastMaximization,
+    theta0: Sequence[float] | np.ndarray | None = None,
+    method: str = "adam",
+    *,
+    init: str = "auto",
+    bounds: tuple[Sequence[float], Sequence[float]] | None = None,
+    n_init: int | None = None,
+    n_starts: int = 3,
+    max_iter: int | None = None,
+    lr: float = 1.0,
+    gtol: float = 1e-7,
+    rtol: float = 1e-9,
+    xtol: float = 0.01,
+    patience: int = 5,
+    min_spacing: float = 1.0,
+    seed: int = 0,
+    callback: Callable[[int, np.ndarray, float], bool | None] | None = None,
+) -> OptimizeResult:
+    """Maximize ``J`` of a CMax problem: a global search over a box, then local ascent from the best
+    few candidates.
+
+    Parameters
+    ----------
+    prob : ContrastMaximization
+        The problem (its warp, objective and regularizers define J).
+    theta0 : array_like, optional
+        Start or warm start (physical units), e.g. the previous window's estimate.
+    method : {"adam", "armijo", "lbfgs"}
+        Local ascent (see the module docstring). ``"lbfgs"`` needs SciPy.
+    init : {"auto", "grid", "random", "tpe", "local", "none"}
+        Global initialisation. ``"grid"``: a coarse grid over the box (``n_init`` points) refined by a
+        beam of zooming grids down to ``min_spacing`` px; ``"random"``: ``n_init`` uniform samples;
+        ``"tpe"``: ``n_init`` trials of optuna's TPE sampler (needs optuna); ``"local"``: a grid search
+        in a box around ``theta0`` of half-width ``0.5 |u0| + 5`` px per parameter (inside the global
+        box); ``"none"``: start at ``theta0`` (or 0). ``"auto"`` is ``"grid"`` without ``theta0`` and
+        ``"local"`` with it. ``theta0`` (when given) and the identity are always candidates.
+    bounds : (lo, hi), optional
+        Global search box in physical units; default :func:`search_bounds`. Local runs stay inside it.
+    n_init : int, optional
+        Evaluation budget of the global search (default 1000 for grid / random, 200 for TPE, 300
+        for local).
+    n_starts : int
+        Local runs, from the best distinct candidates of the global search.
+    max_iter : int, optional
+        Iterations per local run (default 150 for Adam, 100 otherwise).
+    lr : float
+        Adam step / first Armijo trial step, px of displacement over the window.
+    gtol : float
+        Stop when ``|dJ/du|`` (1/px) is below it.
+    rtol : float
+        Armijo / L-BFGS-B: stop when J improves by less than ``rtol * max(1, |J|)``.
+    xtol : float
+        Stop when the step (px) falls below it (Adam's halved step, Armijo's backtracked step).
+    patience : int
+        Adam: iterations without improvement before the step halves.
+    min_spacing : float
+        Grid search: finest spacing, px.
+    seed : int
+        Seed of random and TPE searches.
+    callback : callable, optional
+        ``callback(iteration, theta, value)`` after each iterate of each local run; return True to
+        stop that run.
+
+    Returns
+    -------
+    OptimizeResult
+        ``.theta`` in physical units, ``.value``, ``.history``, ``.n_iterations``, ``.seconds``,
+        ``.converged``, ``.message``.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(prob, ContrastMaximization):
+        raise TypeError(f"prob must be a ContrastMaximization, got {type(prob).__name__}")
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; valid: {', '.join(METHODS)}")
+    if init not in INITS:
+        raise ValueError(f"unknown init {init!r}; valid: {', '.join(INITS)}")
+    for name, v in (("lr", lr), ("xtol", xtol), ("min_spacing", min_spacing)):
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive number (px), got {v}")
+    if int(n_starts) < 1:
+        raise ValueError(f"n_starts must be at least 1, got {n_starts}")
+    model = prob.model
+    P = model.n_params
+    scales = parameter_scales(prob)
+    obj = _Objective(prob, scales)
+
+    if bounds is None:
+        lo_t, hi_t = search_bounds(prob)
+    else:
+        lo_t, hi_t = (np.asarray(b, dtype=np.float64).reshape(-1) for b in bounds)
+        if lo_t.size != P or hi_t.size != P or not np.all(lo_t < hi_t):
+            raise ValueError(f"bounds must be (lo, hi) with {P} values each and lo < hi")
+    lo, hi = lo_t * scales, hi_t * scales
+
+    u0 = None
+    if theta0 is not None:
+        arr = np.asarray(theta0, dtype=np.float64).reshape(-1)
+        if arr.size != P or not np.all(np.isfinite(arr)):
+            raise ValueError(f"theta0 must hold {P} finite numbers for warp {model.name!r}, got {theta0!r}")
+        u0 = arr * scales
+        lo, hi = np.minimum(lo, u0), np.maximum(hi, u0)  # a warm start outside the box widens it
+    if init == "auto":
+        init = "grid" if u0 is None else "local"
+    if max_iter is None:
+        max_iter = 150 if method == "adam" else 100
+    max_iter = int(max_iter)
+    rng = np.random.default_rng(seed)
+
+    extra = [np.zeros(P)] if np.all((lo <= 0) & (hi >= 0)) else []
+    if u0 is not None:
+        extra.append(u0)
+    budget = int(n_init) if n_init is not None else _DEFAULT_N_INIT.get(init, 0)
+    if init == "grid":
+        candidates = _grid_search(
+            obj, lo, hi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=extra
+        )
+    elif init == "local":
+        centre = u0 if u0 is not None else np.zeros(P)
+        half = 0.5 * np.abs(centre) + 5.0
+        llo, lhi = np.maximum(lo, centre - half), np.minimum(hi, centre + half)
+        candidates = _grid_search(
+            obj, llo, lhi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=extra
+        )
+    elif init == "random":
+        candidates = _random_search(obj, lo, hi, budget=budget, rng=rng, extra=extra)
+    elif init == "tpe":
+        candidates = _tpe_search(obj, lo, hi, budget=budget, seed=seed, extra=extra)
+    else:  # "none"
+        start = u0 if u0 is not None else np.zeros(P)
+        candidates = [(obj.value(np.clip(start, lo, hi)), np.clip(start, lo, hi))]
+    min_dist = np.maximum(min_spacing, 1e-9 * (hi - lo))
+    starts = _distinct_top(candidates, int(n_starts), min_dist)
+    if not starts:
+        raise ValueError("the objective is not finite anywhere in the search box")
+
+    runs: list[tuple[_Run, float, np.ndarray]] = []
+    for val0, start in starts:
+        rec = _Recorder(callback, obj)
+        if method == "adam":
+            run = _adam(
+                obj, start, lo, hi, lr=lr, max_iter=max_iter, gtol=gtol, xtol=xtol, patience=patience, rec=rec
+            )
+        elif method == "armijo":
+            run = _armijo(
+                obj, start, lo, hi, lr=lr, max_iter=max_iter, gtol=gtol, xtol=xtol, rtol=rtol, rec=rec
+            )
+        else:
+            run = _lbfgs(obj, start, lo, hi, max_iter=max_iter, gtol=gtol, rtol=rtol, rec=rec)
+        if run.value < val0:  # never return worse than the start
+            run.u, run.value = start.copy(), val0
+        runs.append((run, val0, start))
+    best, best_val0, best_start = max(runs, key=lambda r: r[0].value)
+    us = np.array(best.us) if best.us else best_start[None, :]
+    history = History(
+        theta=us / scales,
+        value=np.array(best.values, dtype=np.float64),
+        grad_norm=np.array(best.gnorms, dtype=np.float64),
+    )
+    return OptimizeResult(
+        theta=obj.theta(best.u),
+        value=float(best.value),
+        history=history,
+        n_iterations=best.n_iterations,
+        n_evaluations=obj.n_evaluations,
+        seconds=time.perf_counter() - t_start,
+        converged=best.converged,
+        message=best.message,
+        method=method,
+        init=init,
+        theta_init=obj.theta(best_start),
+        value_init=float(best_val0),
+        scales=scales,
+        param_names=tuple(model.params),
+        units=tuple(model.units),
+    )

@@ -1,0 +1,430 @@
+"""Motion estimation over a whole recording, window by window.
+
+:func:`process` slides a window over the events (by event count, 30,000 by default as in the paper's
+MVSEC setup, or by duration), builds one :class:`~cmax_taichi.ContrastMaximization` per window (the
+core pools the Taichi fields per problem shape, so windows of the same size compile once), maximizes it
+warm-started from the previous window, and records one row per window. :class:`SequenceResult` writes
+the rows as CSV and JSON.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.metrics import fwl_problem
+from cmax_taichi.models.warps import get_warp
+from cmax_taichi.pipeline.problem import ContrastMaximization
+from cmax_taichi.solve.optimize import OptimizeResult, maximize
+
+__all__ = ["WindowResult", "SequenceResult", "ProgressBar", "process", "read_results"]
+
+
+@dataclass
+class WindowResult:
+    """The estimate of one window.
+
+    Attributes
+    ----------
+    index : int
+        Window number (0-based).
+    t_start, t_end : float
+        Time of the window's first and last event, s.
+    n_events : int
+        Events in the window (after undistortion, those that stay on the sensor).
+    theta : ndarray
+        Estimate, physical units.
+    value : float
+        Objective J at the estimate.
+    fwl : float
+        Flow Warp Loss of the estimate (NaN when not computed).
+    iterations : int
+        Local iterations of the optimizer.
+    seconds : float
+        Wall time of the window (problem, optimisation, FWL), s.
+    converged : bool
+        The optimizer met a stopping rule.
+    """
+
+    index: int
+    t_start: float
+    t_end: float
+    n_events: int
+    theta: np.ndarray
+    value: float
+    fwl: float
+    iterations: int
+    seconds: float
+    converged: bool
+
+
+@dataclass
+class SequenceResult:
+    """Per-window estimates of a recording, with the settings that produced them."""
+
+    warp: str
+    param_names: tuple[str, ...]
+    units: tuple[str, ...]
+    windows: list[WindowResult] = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    @property
+    def theta(self) -> np.ndarray:
+        """``(K, P)`` estimates, physical units."""
+        return np.array([w.theta for w in self.windows]).reshape(len(self.windows), len(self.param_names))
+
+    @property
+    def t_mid(self) -> np.ndarray:
+        """``(K,)`` window middle times, s."""
+        return np.array([0.5 * (w.t_start + w.t_end) for w in self.windows])
+
+    def columns(self) -> list[str]:
+        """CSV header: times, event count, each parameter as ``name [unit]``, then the diagnostics."""
+        params = [f"{n} [{u}]" for n, u in zip(self.param_names, self.units, strict=True)]
+        return ["index", "t_start [s]", "t_end [s]", "n_events", *params] + [
+            "value",
+            "fwl",
+            "iterations",
+            "seconds",
+            "converged",
+        ]
+
+    def to_csv(self, path: str | os.PathLike) -> Path:
+        """Write one row per window (see :meth:`columns`); returns the path."""
+        path = Path(path)
+        with path.open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(self.columns())
+            for w in self.windows:
+                writer.writerow(
+                    [w.index, repr(w.t_start), repr(w.t_end), w.n_events]
+                    + [repr(float(v)) for v in w.theta]
+                    + [
+                        repr(float(w.value)),
+                        repr(float(w.fwl)),
+                        w.iterations,
+                        f"{w.seconds:.4f}",
+                        int(w.converged),
+                    ]
+                )
+        return path
+
+    def as_dict(self) -> dict:
+        """JSON-friendly: warp, parameter names and units, settings, and one dict per window."""
+
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {
+            "warp": self.warp,
+            "params": list(self.param_names),
+            "units": list(self.units),
+            "settings": self.settings,
+            "windows": [
+                {
+                    "index": w.index,
+                    "t_start": w.t_start,
+                    "t_end": w.t_end,
+                    "n_events": w.n_events,
+                    "theta": {n: float(v) for n, v in zip(self.param_names, w.theta, strict=True)},
+                    "value": num(w.value),
+                    "fwl": num(w.fwl),
+                    "iterations": w.iterations,
+                    "seconds": w.seconds,
+                    "converged": w.converged,
+                }
+                for w in self.windows
+            ],
+        }
+
+    def to_json(self, path: str | os.PathLike) -> Path:
+        """Write :meth:`as_dict` as JSON; returns the path."""
+        path = Path(path)
+        path.write_text(json.dumps(self.as_dict(), indent=1))
+        return path
+
+
+def read_results(path: str | os.PathLike) -> SequenceResult:
+    """Read a JSON file written by :meth:`SequenceResult.to_json` (ValueError naming what is wrong)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not a results JSON file ({exc})") from None
+    try:
+        names = tuple(data["params"])
+        result = SequenceResult(
+            warp=data["warp"],
+            param_names=names,
+            units=tuple(data["units"]),
+            settings=data.get("settings", {}),
+        )
+        for w in data["windows"]:
+            result.windows.append(
+                WindowResult(
+                    index=int(w["index"]),
+                    t_start=float(w["t_start"]),
+                    t_end=float(w["t_end"]),
+                    n_events=int(w["n_events"]),
+                    theta=np.array([float(w["theta"][n]) for n in names]),
+                    value=math.nan if w["value"] is None else float(w["value"]),
+                    fwl=math.nan if w["fwl"] is None else float(w["fwl"]),
+                    iterations=int(w["iterations"]),
+                    seconds=float(w["seconds"]),
+                    converged=bool(w["converged"]),
+                )
+            )
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
+    return result
+
+
+class ProgressBar:
+    """A plain progress bar on stderr (no dependency): redrawn in place on a terminal, one line per
+    10% otherwise (logs)."""
+
+    def __init__(self, total: int | None, label: str = "windows", stream: TextIO | None = None) -> None:
+        self.total = total
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.count = 0
+        self.t0 = time.perf_counter()
+        self._last_decile = -1
+
+    def update(self, note: str = "") -> None:
+        self.count += 1
+        elapsed = time.perf_counter() - self.t0
+        rate = elapsed / self.count
+        if self.total:
+            frac = min(1.0, self.count / self.total)
+            bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
+            eta = rate * max(0, self.total - self.count)
+            text = (
+                f"[{bar}] {self.count}/{self.total} {self.label} {100 * frac:3.0f}% "
+                f"{rate:.2f} s/window, ETA {eta:.0f} s {note}"
+            )
+            decile = int(10 * frac)
+        else:
+            text = f"{self.count} {self.label}, {rate:.2f} s/window {note}"
+            decile = self.count
+        if self.tty:
+            self.stream.write("\r" + text[:150].ljust(150))
+        elif decile != self._last_decile:
+            self.stream.write(text.rstrip() + "\n")
+        self._last_decile = decile
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _count_windows(n_total: int, n_events: int, stride: int | None) -> int:
+    step = n_events if stride is None else stride
+    return 0 if n_total < n_events else (n_total - n_events) // step + 1
+
+
+def _windows_of(
+    source, n_events: int, duration: float | None, stride
+) -> tuple[Iterator[Events], int | None, Camera | None, dict]:
+    """(window iterator, number of windows if known, the source's camera, a description)."""
+    if isinstance(source, Events):
+        if duration is not None:
+            it: Iterator[Events] = source.windows_by_duration(duration, stride)
+            total = None
+            if len(source) > 1:
+                step = duration if stride is None else float(stride)
+                total = int((source.t[-1] - source.t[0]) // step) + 1
+        else:
+            it = source.windows_by_count(n_events, None if stride is None else int(stride))
+            total = _count_windows(len(source), n_events, None if stride is None else int(stride))
+        return it, total, None, {"source": f"Events(n={len(source)})"}
+    if hasattr(source, "windows"):  # an open Recording
+        it = source.windows(n_events=n_events, duration=duration, stride=stride)
+        total = None
+        if duration is None:
+            total = _count_windows(source.n_events, n_events, None if stride is None else int(stride))
+        desc = {"source": str(getattr(source, "path", source)), "format": getattr(source, "format", None)}
+        return it, total, getattr(source, "camera", None), desc
+    raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
+
+
+def process(
+    source: Events | Any | str | os.PathLike,
+    warp: str = "translation2",
+    *,
+    objective: str = "variance",
+    regularizers: Mapping[str, float] | None = None,
+    camera: Camera | None = None,
+    n_events: int = 30000,
+    duration: float | None = None,
+    stride: int | float | None = None,
+    method: str = "adam",
+    warm_start: bool = True,
+    compute_fwl: bool = True,
+    max_windows: int | None = None,
+    progress: bool | TextIO = True,
+    problem_options: Mapping[str, Any] | None = None,
+    optimize_options: Mapping[str, Any] | None = None,
+    on_window: Callable[[WindowResult, ContrastMaximization, OptimizeResult], None] | None = None,
+    format: str | None = None,
+) -> SequenceResult:
+    """Estimate the motion of every window of a recording.
+
+    Parameters
+    ----------
+    source : Events, Recording or path
+        The events: an :class:`~cmax_taichi.Events`, a recording opened with
+        :func:`cmax_taichi.io.open_recording`, or a path that is opened with it (and closed after).
+    warp, objective, regularizers
+        As for :class:`~cmax_taichi.ContrastMaximization`.
+    camera : Camera, optional
+        Intrinsics; default the recording's own (needed by ``rotation3``).
+    n_events : int
+        Events per window (default 30,000), used when ``duration`` is None.
+    duration : float, optional
+        Window length, s (then windows are by time).
+    stride : int or float, optional
+        Start-to-start step (events, or s for time windows); default the window size.
+    method : str
+        Local optimizer of :func:`~cmax_taichi.maximize`.
+    warm_start : bool
+        Start each window from the previous window's estimate (``init="local"``); the first window
+        gets the global search.
+    compute_fwl : bool
+        Compute the FWL of each estimate on the window's events.
+    max_windows : int, optional
+        Stop after this many windows.
+    progress : bool or stream
+        Draw a progress bar on stderr (or on the given stream).
+    problem_options : mapping, optional
+        More keyword arguments of ``ContrastMaximization`` (``blur_sigma``, ``t_ref``, ``polarity``,
+        ``whitening``, ...).
+    optimize_options : mapping, optional
+        More keyword arguments of ``maximize`` (``init``, ``n_init``, ``lr``, ...). An ``init`` given
+        here applies to every window (no warm-start search).
+    on_window : callable, optional
+        ``on_window(row, prob, result)`` after each window (e.g. to save figures).
+    format : str, optional
+        Format name when ``source`` is a path.
+
+    Returns
+    -------
+    SequenceResult
+    """
+    if isinstance(source, (str, os.PathLike)):
+        from cmax_taichi import io
+
+        with io.open_recording(source, format=format) as rec:
+            return process(
+                rec,
+                warp,
+                objective=objective,
+                regularizers=regularizers,
+                camera=camera,
+                n_events=n_events,
+                duration=duration,
+                stride=stride,
+                method=method,
+                warm_start=warm_start,
+                compute_fwl=compute_fwl,
+                max_windows=max_windows,
+                progress=progress,
+                problem_options=problem_options,
+                optimize_options=optimize_options,
+                on_window=on_window,
+            )
+    model = get_warp(warp)
+    windows, total, rec_camera, desc = _windows_of(source, n_events, duration, stride)
+    camera = camera if camera is not None else rec_camera
+    if model.needs_camera and camera is None:
+        raise ValueError(f"warp {model.name!r} needs a camera: the recording has none, pass camera=")
+    popts = dict(problem_options or {})
+    oopts = dict(optimize_options or {})
+    if max_windows is not None:
+        total = min(total, int(max_windows)) if total is not None else int(max_windows)
+    settings = {
+        **desc,
+        "warp": model.name,
+        "objective": objective,
+        "regularizers": dict(regularizers or {}),
+        "camera": None if camera is None else [camera.fx, camera.fy, camera.cx, camera.cy, *camera.dist],
+        "window_events": None if duration is not None else int(n_events),
+        "window_duration": duration,
+        "stride": stride,
+        "method": method,
+        "warm_start": warm_start,
+        "problem_options": {k: v for k, v in popts.items() if isinstance(v, (int, float, str, bool))},
+        "optimize_options": {k: v for k, v in oopts.items() if isinstance(v, (int, float, str, bool))},
+    }
+    result = SequenceResult(warp=model.name, param_names=model.params, units=model.units, settings=settings)
+    bar = None
+    if progress:
+        bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
+    previous = None
+    try:
+        for index, events in enumerate(_limited(windows, max_windows)):
+            t0 = time.perf_counter()
+            if len(events) < 2 or not events.duration > 0:
+                continue  # nothing to estimate (a window with all events at one time stamp)
+            prob = ContrastMaximization(
+                events, warp=model, objective=objective, regularizers=regularizers, camera=camera, **popts
+            )
+            theta0 = previous if warm_start else None
+            res = maximize(prob, theta0=theta0, method=method, **oopts)
+            value_fwl = math.nan
+            if compute_fwl:
+                fprob = fwl_problem(
+                    prob.events,  # already undistorted: the same events as the estimate
+                    model,
+                    camera=camera,
+                    blur_sigma=prob.blur_sigma,
+                    t_ref=popts.get("t_ref", "first"),
+                    polarity=prob.polarity,
+                )
+                value_fwl = fprob.value(res.theta)
+            row = WindowResult(
+                index=index,
+                t_start=float(events.t[0]),
+                t_end=float(events.t[-1]),
+                n_events=prob.n_events,
+                theta=np.asarray(res.theta, dtype=np.float64),
+                value=float(res.value),
+                fwl=float(value_fwl),
+                iterations=res.n_iterations,
+                seconds=time.perf_counter() - t0,
+                converged=res.converged,
+            )
+            result.windows.append(row)
+            if on_window is not None:
+                on_window(row, prob, res)
+            previous = res.theta
+            if bar is not None:
+                bar.update(f"J={res.value:.3f}")
+    finally:
+        if bar is not None:
+            bar.close()
+    return result
+
+
+def _limited(windows: Iterable[Events], max_windows: int | None) -> Iterator[Events]:
+    for k, w in enumerate(windows):
+        if max_windows is not None and k >= max_windows:
+            return
+        yield w

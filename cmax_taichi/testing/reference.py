@@ -1,0 +1,721 @@
+"""Independent float64 NumPy reference ("oracle") of the Contrast Maximization pipeline.
+
+This module implements, literally and in float64, every formula of ``docs/FORMULAS.md``: the
+parametric warps (with their Jacobian determinants and flow divergences), the image of warped
+events (bilinear voting and Gaussian blur), the objectives, the divergence and deformation
+regularizers, the augmented objective and the whitening baseline. It is written independently of
+the Taichi kernels and is used by the tests (as the oracle the kernels are held against) and by the
+benchmark. It favours readability over speed and depends on NumPy only.
+
+Units: positions in pixels (px), times in seconds (s), parameters in physical units (px/s, 1/s,
+rad/s), flows in px/s, divergences in 1/s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+WARP_NAMES = ("zoom1", "translation2", "rotation3", "se2", "sim2", "mitrokhin4")
+N_PARAMS = {"zoom1": 1, "translation2": 2, "rotation3": 3, "se2": 3, "sim2": 4, "mitrokhin4": 4}
+OBJECTIVE_NAMES = ("variance", "gradient_magnitude", "mean_square")
+POLARITY_MODES = ("ignore", "signed", "split")
+T_REF_NAMES = ("first", "middle", "last")
+
+#: soft-support constant of the regularizer maps, ``m(x) = C(x) / (C(x) + KAPPA)``
+KAPPA = 0.05
+#: guard of the deformation map against collapse, ``D = max(DEF(x), DEF_FLOOR)``
+DEF_FLOOR = 1e-3
+#: Tikhonov term of the whitening baseline (px^2)
+WHITEN_EPS = 1e-6
+#: rotation3: rays with ``X'_z <= Z_MIN`` (behind the camera) are dropped
+Z_MIN = 1e-6
+#: rotation3: below this angle ``phi = |dt| |w|`` (rad) the Rodrigues series is used
+ROT_SERIES_PHI = 1e-4
+#: se2 / sim2: below this ``|z|`` the series of ``E(z) = (e^z - 1) / z`` is used
+EXP_SERIES_Z = 1e-4
+
+# Sobel kernels (correlation; rows are y, columns x), divided by 8 as in FORMULAS.md.
+_SOBEL_X = np.array([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]])
+_SOBEL_Y = _SOBEL_X.T.copy()
+
+
+# ----------------------------------------------------------------------------------------------
+# validation helpers
+# ----------------------------------------------------------------------------------------------
+def _check_warp(warp: str) -> None:
+    if warp not in N_PARAMS:
+        raise ValueError(f"unknown warp {warp!r}; expected one of {WARP_NAMES}")
+
+
+def _check_theta(warp: str, theta) -> np.ndarray:
+    _check_warp(warp)
+    theta = np.asarray(theta, dtype=np.float64).reshape(-1)
+    if theta.size != N_PARAMS[warp]:
+        raise ValueError(
+            f"warp {warp!r} takes {N_PARAMS[warp]} parameter(s), got theta of length {theta.size}"
+        )
+    return theta
+
+
+def _check_focal(warp: str, focal) -> tuple[float, float]:
+    if focal is None:
+        raise ValueError(f"warp {warp!r} needs the focal lengths focal=(fx, fy) in px")
+    fx, fy = (float(v) for v in focal)
+    if fx == 0.0 or fy == 0.0:
+        raise ValueError(f"focal lengths must be non-zero, got {(fx, fy)}")
+    return fx, fy
+
+
+def _check_duration(warp: str, duration) -> float:
+    if warp != "mitrokhin4":
+        return float("nan") if duration is None else float(duration)
+    if duration is None or not float(duration) > 0.0:
+        raise ValueError(f"warp 'mitrokhin4' needs a window duration T > 0 s, got {duration!r}")
+    return float(duration)
+
+
+# ----------------------------------------------------------------------------------------------
+# warps
+# ----------------------------------------------------------------------------------------------
+def _rotation_matrices(w: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """``Rot = exp(dt [w]_x)`` per event by the Rodrigues formula (series below 1e-4 rad).
+
+    Returns an array of shape (N, 3, 3).
+    """
+    wx, wy, wz = w
+    hat = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    hat2 = hat @ hat
+    phi = np.abs(dt) * math.sqrt(wx * wx + wy * wy + wz * wz)
+    small = phi < ROT_SERIES_PHI
+    phi_safe = np.where(small, 1.0, phi)
+    # Rot = I + (sin phi / phi) K + ((1 - cos phi) / phi^2) K^2 with K = dt [w]_x
+    a = np.where(small, 1.0, np.sin(phi_safe) / phi_safe)
+    b = np.where(small, 0.5, (1.0 - np.cos(phi_safe)) / phi_safe**2)
+    eye = np.eye(3)[None, :, :]
+    return eye + (a * dt)[:, None, None] * hat[None, :, :] + (b * dt * dt)[:, None, None] * hat2[None, :, :]
+
+
+def _exp_series(z: np.ndarray) -> np.ndarray:
+    """``E(z) = (e^z - 1) / z`` for complex z, with the series ``1 + z/2 + z^2/6 + z^3/24``."""
+    small = np.abs(z) < EXP_SERIES_Z
+    z_safe = np.where(small, 1.0 + 0.0j, z)
+    exact = (np.exp(z_safe) - 1.0) / z_safe
+    series = 1.0 + z / 2.0 + z * z / 6.0 + z * z * z / 24.0
+    return np.where(small, series, exact)
+
+
+def warp_events(
+    warp: str,
+    x,
+    y,
+    dt,
+    theta,
+    *,
+    center,
+    focal=None,
+    duration=None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Warp events to the reference time.
+
+    Parameters
+    ----------
+    warp : str
+        One of :data:`WARP_NAMES`.
+    x, y : array_like, shape (N,)
+        Event positions (px), pixel centres at integers.
+    dt : array_like, shape (N,)
+        ``t_k - t_ref`` (s).
+    theta : array_like, shape (N_PARAMS[warp],)
+        Warp parameters in physical units (px/s, 1/s, rad/s; see FORMULAS.md).
+    center : tuple of float
+        ``(c_x, c_y)`` (px), the origin of ``x~ = x - c``.
+    focal : tuple of float, optional
+        ``(f_x, f_y)`` (px); required by ``rotation3`` (ValueError otherwise).
+    duration : float
+        Window duration ``T`` (s); required (> 0) by ``mitrokhin4``, unused by the other warps.
+
+    Returns
+    -------
+    xw, yw : ndarray, shape (N,)
+        Warped positions ``x'`` (px). For ``rotation3``, events whose rotated ray has
+        ``X'_z <= 1e-6`` get ``xw = yw = nan`` (they are dropped from every image).
+    det : ndarray, shape (N,)
+        Signed Jacobian determinant ``det dx'/dx`` (dimensionless); the deformation uses its
+        absolute value.
+    div : ndarray, shape (N,)
+        Divergence of the flow ``div v`` at the event's unwarped position (1/s).
+    """
+    theta = _check_theta(warp, theta)
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    dt = np.broadcast_to(np.asarray(dt, dtype=np.float64), x.shape)
+    cx, cy = (float(v) for v in center)
+    xt = x - cx
+    yt = y - cy
+    ones = np.ones_like(x)
+
+    if warp == "zoom1":
+        (hz,) = theta
+        scale = 1.0 - dt * hz
+        xw = cx + scale * xt
+        yw = cy + scale * yt
+        det = scale**2
+        div = 2.0 * hz * ones
+
+    elif warp == "translation2":
+        vx, vy = theta
+        xw = x - dt * vx
+        yw = y - dt * vy
+        det = ones.copy()
+        div = np.zeros_like(x)
+
+    elif warp == "rotation3":
+        fx, fy = _check_focal(warp, focal)
+        rays = np.stack([xt / fx, yt / fy, ones], axis=-1)  # (N, 3) calibrated rays X
+        rot = _rotation_matrices(theta, dt)
+        rotated = np.einsum("nij,nj->ni", rot, rays)  # X' = Rot X
+        zr = rotated[:, 2]  # X'_z = r_3 . X
+        keep = zr > Z_MIN
+        z_safe = np.where(keep, zr, 1.0)
+        xw = np.where(keep, cx + fx * rotated[:, 0] / z_safe, np.nan)
+        yw = np.where(keep, cy + fy * rotated[:, 1] / z_safe, np.nan)
+        with np.errstate(divide="ignore"):
+            det = 1.0 / zr**3
+        wx, wy, _ = theta
+        div = -3.0 * (wy * rays[:, 0] - wx * rays[:, 1])
+
+    elif warp in ("se2", "sim2"):
+        if warp == "se2":
+            vx, vy, w = theta
+            s = 0.0
+        else:
+            vx, vy, w, s = theta
+        z = -dt * (s + 1j * w)
+        u = -dt * (vx + 1j * vy)
+        pos = np.exp(z) * (xt + 1j * yt) + _exp_series(z) * u
+        xw = cx + pos.real
+        yw = cy + pos.imag
+        det = np.exp(-2.0 * dt * s)
+        div = 2.0 * s * ones
+
+    elif warp == "mitrokhin4":
+        hx, hy, hz, th = theta
+        T = _check_duration(warp, duration)
+        sigma = dt / T
+        amp = hz * T + 1.0
+        a11 = amp * math.cos(th * T)
+        a21 = amp * math.sin(th * T)
+        # A = amp R(theta T) = [[a11, -a21], [a21, a11]]; x' = x - dt h - sigma (A - I) x~
+        xw = x - dt * hx - sigma * ((a11 - 1.0) * xt - a21 * yt)
+        yw = y - dt * hy - sigma * (a21 * xt + (a11 - 1.0) * yt)
+        det = (1.0 + sigma - sigma * a11) ** 2 + (sigma * a21) ** 2
+        div = 2.0 * (a11 - 1.0) / T * ones
+
+    else:  # pragma: no cover - guarded by _check_theta
+        raise ValueError(f"unknown warp {warp!r}")
+
+    return (
+        np.asarray(xw, dtype=np.float64),
+        np.asarray(yw, dtype=np.float64),
+        np.asarray(det, dtype=np.float64),
+        np.asarray(div, dtype=np.float64),
+    )
+
+
+def _flow_at(warp, theta, xt, yt, *, focal, duration) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form flow ``v`` (px/s) at centred coordinates ``x~ = (xt, yt)`` (px)."""
+    if warp == "zoom1":
+        (hz,) = theta
+        return hz * xt, hz * yt
+    if warp == "translation2":
+        vx, vy = theta
+        return vx + 0.0 * xt, vy + 0.0 * yt
+    if warp == "se2":
+        vx, vy, w = theta
+        return -w * yt + vx, w * xt + vy
+    if warp == "sim2":
+        vx, vy, w, s = theta
+        return s * xt - w * yt + vx, w * xt + s * yt + vy
+    if warp == "mitrokhin4":
+        hx, hy, hz, th = theta
+        T = _check_duration(warp, duration)
+        amp = hz * T + 1.0
+        a11 = amp * math.cos(th * T)
+        a21 = amp * math.sin(th * T)
+        return hx + ((a11 - 1.0) * xt - a21 * yt) / T, hy + (a21 * xt + (a11 - 1.0) * yt) / T
+    if warp == "rotation3":
+        fx, fy = _check_focal(warp, focal)
+        wx, wy, wz = theta
+        X = xt / fx
+        Y = yt / fy
+        vx = -fx * (wy * (1.0 + X * X) - wx * X * Y - wz * Y)
+        vy = -fy * (-wx * (1.0 + Y * Y) + wy * X * Y + wz * X)
+        return vx, vy
+    raise ValueError(f"unknown warp {warp!r}")  # pragma: no cover
+
+
+def flow_field(
+    warp: str,
+    theta,
+    *,
+    width: int,
+    height: int,
+    center,
+    focal=None,
+    duration=None,
+) -> np.ndarray:
+    """Instantaneous flow ``v(x)`` of a parametric warp on the pixel grid.
+
+    Parameters
+    ----------
+    warp : str
+        One of :data:`WARP_NAMES`.
+    theta : array_like
+        Warp parameters (physical units).
+    width, height : int
+        Grid size W, H (px); pixel ``(i, j)`` is at ``x = i, y = j``.
+    center : tuple of float
+        ``(c_x, c_y)`` (px).
+    focal : tuple of float, optional
+        ``(f_x, f_y)`` (px), required by ``rotation3``.
+    duration : float
+        Window duration ``T`` (s), required by ``mitrokhin4``.
+
+    Returns
+    -------
+    ndarray, shape (2, H, W)
+        ``(v_x, v_y)`` in px/s, the closed forms of FORMULAS.md (``v = -dW/d(dt)`` at ``dt = 0``).
+    """
+    theta = _check_theta(warp, theta)
+    cx, cy = (float(v) for v in center)
+    ys, xs = np.meshgrid(
+        np.arange(int(height), dtype=np.float64),
+        np.arange(int(width), dtype=np.float64),
+        indexing="ij",
+    )
+    vx, vy = _flow_at(warp, theta, xs - cx, ys - cy, focal=focal, duration=duration)
+    return np.stack([np.asarray(vx, np.float64), np.asarray(vy, np.float64)], axis=0)
+
+
+# ----------------------------------------------------------------------------------------------
+# image of warped events
+# ----------------------------------------------------------------------------------------------
+def bilinear_votes(xw, yw, weights, width: int, height: int) -> np.ndarray:
+    """Bilinear voting of weighted points into an image (FORMULAS.md IWE step 2).
+
+    Parameters
+    ----------
+    xw, yw : array_like, shape (N,)
+        Point positions (px).
+    weights : array_like, shape (N,)
+        Vote weight ``b_k`` of each point.
+    width, height : int
+        Image size W, H (px).
+
+    Returns
+    -------
+    ndarray, shape (H, W)
+        ``V(x)``. Points that are not finite or lie outside ``(-1, W) x (-1, H)`` add nothing;
+        the part of a vote that falls on a pixel outside the image is dropped.
+    """
+    width = int(width)
+    height = int(height)
+    xw = np.asarray(xw, dtype=np.float64).reshape(-1)
+    yw = np.asarray(yw, dtype=np.float64).reshape(-1)
+    b = np.broadcast_to(np.asarray(weights, dtype=np.float64), xw.shape).reshape(-1)
+    image = np.zeros((height, width), dtype=np.float64)
+
+    ok = np.isfinite(xw) & np.isfinite(yw)
+    ok[ok] = (xw[ok] > -1.0) & (xw[ok] < width) & (yw[ok] > -1.0) & (yw[ok] < height)
+    xw, yw, b = xw[ok], yw[ok], b[ok]
+
+    x0 = np.floor(xw)
+    y0 = np.floor(yw)
+    ax = xw - x0
+    ay = yw - y0
+    x0 = x0.astype(np.int64)
+    y0 = y0.astype(np.int64)
+    for dx, dy, share in (
+        (0, 0, (1.0 - ax) * (1.0 - ay)),
+        (1, 0, ax * (1.0 - ay)),
+        (0, 1, (1.0 - ax) * ay),
+        (1, 1, ax * ay),
+    ):
+        col = x0 + dx
+        row = y0 + dy
+        inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        np.add.at(image, (row[inside], col[inside]), b[inside] * share[inside])
+    return image
+
+
+def gaussian_kernel(sigma: float) -> np.ndarray:
+    """Normalised truncated Gaussian ``g_i``, ``i = -r..r``, ``r = ceil(3 sigma)`` (sigma in px)."""
+    sigma = float(sigma)
+    r = int(math.ceil(3.0 * sigma))
+    i = np.arange(-r, r + 1, dtype=np.float64)
+    g = np.exp(-(i**2) / (2.0 * sigma**2))
+    return g / g.sum()
+
+
+def _correlate_axis(image: np.ndarray, kernel: np.ndarray, axis: int) -> np.ndarray:
+    """Correlation with an odd-length centred kernel along ``axis``, zero padding."""
+    r = (kernel.size - 1) // 2
+    n = image.shape[axis]
+    pad = [(0, 0)] * image.ndim
+    pad[axis] = (r, r)
+    padded = np.pad(image, pad, mode="constant", constant_values=0.0)
+    out = np.zeros_like(image, dtype=np.float64)
+    for j, gj in enumerate(kernel):  # out[i] = sum_j g[j] * image[i + j - r]
+        out += gj * np.take(padded, np.arange(j, j + n), axis=axis)
+    return out
+
+
+def gaussian_blur(image, sigma: float) -> np.ndarray:
+    """Separable Gaussian blur with zero padding (FORMULAS.md IWE step 3).
+
+    Parameters
+    ----------
+    image : array_like, shape (..., H, W)
+        Image(s); the blur acts on the last two axes.
+    sigma : float
+        Standard deviation (px). ``sigma = 0`` returns a copy.
+
+    Returns
+    -------
+    ndarray, same shape as ``image``
+        Rows (along x) correlated first, then columns (along y), with the normalised kernel of
+        :func:`gaussian_kernel`; values outside the image are 0.
+    """
+    image = np.array(image, dtype=np.float64, copy=True)
+    if sigma < 0:
+        raise ValueError(f"blur sigma must be >= 0 px, got {sigma}")
+    if sigma == 0:
+        return image
+    g = gaussian_kernel(sigma)
+    out = _correlate_axis(image, g, axis=image.ndim - 1)  # along x
+    return _correlate_axis(out, g, axis=image.ndim - 2)  # along y
+
+
+def _correlate2d_3x3(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """2-D correlation of an (H, W) image with a 3x3 kernel, zero padding."""
+    h, w = image.shape
+    padded = np.pad(image, 1, mode="constant", constant_values=0.0)
+    out = np.zeros((h, w), dtype=np.float64)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            out += kernel[dy + 1, dx + 1] * padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+    return out
+
+
+def objective_value(name: str, images: np.ndarray) -> float:
+    """Contrast objective ``G`` of a stack of images (maximised).
+
+    Parameters
+    ----------
+    name : str
+        ``"variance"``, ``"gradient_magnitude"`` or ``"mean_square"``.
+    images : ndarray, shape (C, H, W) or (H, W)
+        The (blurred) IWE channels ``I_c``.
+
+    Returns
+    -------
+    float
+        Sum over the channels of the per-channel objective (units of ``I^2``):
+        variance ``mean(I^2) - mean(I)^2``; gradient magnitude ``mean(g_x^2 + g_y^2)`` with
+        ``g = Sobel(I) / 8`` (zero padding); mean square ``mean(I^2)``.
+    """
+    if name not in OBJECTIVE_NAMES:
+        raise ValueError(f"unknown objective {name!r}; expected one of {OBJECTIVE_NAMES}")
+    images = np.asarray(images, dtype=np.float64)
+    if images.ndim == 2:
+        images = images[None]
+    total = 0.0
+    for img in images:
+        n = img.size
+        if name == "variance":
+            total += float(np.sum(img**2) / n - (np.sum(img) / n) ** 2)
+        elif name == "mean_square":
+            total += float(np.sum(img**2) / n)
+        else:
+            gx = _correlate2d_3x3(img, _SOBEL_X / 8.0)
+            gy = _correlate2d_3x3(img, _SOBEL_Y / 8.0)
+            total += float(np.sum(gx**2 + gy**2) / n)
+    return total
+
+
+# ----------------------------------------------------------------------------------------------
+# whitening baseline
+# ----------------------------------------------------------------------------------------------
+def _mean_cov(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pts = np.stack([x, y], axis=0)
+    mu = pts.mean(axis=1)
+    d = pts - mu[:, None]
+    return mu, (d @ d.T) / pts.shape[1]
+
+
+def _sym_power(s: np.ndarray, power: float, shift: float = 0.0) -> np.ndarray:
+    """``(S + shift I)^power`` of a symmetric PSD 2x2 matrix via eigendecomposition."""
+    lam, vec = np.linalg.eigh(s)
+    lam = np.maximum(lam + shift, 0.0)
+    if power < 0:
+        scaled = np.zeros_like(lam)
+        pos = lam > 0
+        scaled[pos] = lam[pos] ** power
+    else:
+        scaled = lam**power
+    return (vec * scaled) @ vec.T
+
+
+def whiten(xw, yw, x, y, *, eps: float = WHITEN_EPS) -> tuple[np.ndarray, np.ndarray]:
+    """Whitening baseline: give the warped positions the mean and covariance of the unwarped ones.
+
+    ``x''_k = mu0 + S0^(1/2) (S + eps I)^(-1/2) (x'_k - mu)`` with symmetric square roots.
+
+    Parameters
+    ----------
+    xw, yw : array_like, shape (N,)
+        Warped positions ``x'_k`` (px). Non-finite ones (dropped events) are excluded from
+        ``mu, S`` and stay non-finite.
+    x, y : array_like, shape (N,)
+        Unwarped positions (px), for ``mu0, S0``.
+    eps : float, optional
+        Regulariser (px^2), default 1e-6 as in FORMULAS.md.
+
+    Returns
+    -------
+    xww, yww : ndarray, shape (N,)
+        Whitened positions ``x''_k`` (px).
+    """
+    xw = np.asarray(xw, dtype=np.float64)
+    yw = np.asarray(yw, dtype=np.float64)
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    finite = np.isfinite(xw) & np.isfinite(yw)
+    if not np.any(finite):
+        return xw.copy(), yw.copy()
+    mu0, s0 = _mean_cov(x, y)
+    mu, s = _mean_cov(xw[finite], yw[finite])
+    m = _sym_power(s0, 0.5) @ _sym_power(s, -0.5, shift=eps)
+    dx = xw - mu[0]
+    dy = yw - mu[1]
+    return mu0[0] + m[0, 0] * dx + m[0, 1] * dy, mu0[1] + m[1, 0] * dx + m[1, 1] * dy
+
+
+# ----------------------------------------------------------------------------------------------
+# full pipeline
+# ----------------------------------------------------------------------------------------------
+def _resolve_t_ref(t_ref, t: np.ndarray) -> float:
+    if isinstance(t_ref, str):
+        if t_ref == "first":
+            return float(t.min())
+        if t_ref == "middle":
+            return float((t.min() + t.max()) / 2.0)
+        if t_ref == "last":
+            return float(t.max())
+        raise ValueError(f"unknown t_ref {t_ref!r}; expected one of {T_REF_NAMES} or seconds")
+    return float(t_ref)
+
+
+def _iwe(xw, yw, weights, pol, polarity, width, height, blur_sigma) -> np.ndarray:
+    if polarity == "ignore":
+        channels = [weights]
+    elif polarity == "signed":
+        channels = [weights * pol]
+    else:  # split
+        channels = [np.where(pol > 0, weights, 0.0), np.where(pol < 0, weights, 0.0)]
+    votes = np.stack([bilinear_votes(xw, yw, b, width, height) for b in channels], axis=0)
+    return gaussian_blur(votes, blur_sigma)
+
+
+def _support_mean(m: np.ndarray, p: np.ndarray) -> float:
+    total = float(np.sum(m))
+    if total <= 0.0:
+        return 0.0
+    return float(np.sum(m * p) / total)
+
+
+def evaluate(
+    x,
+    y,
+    t,
+    p,
+    theta,
+    *,
+    warp: str,
+    sensor_size: tuple[int, int],
+    center=None,
+    focal=None,
+    t_ref="first",
+    objective: str = "variance",
+    normalize: bool = True,
+    blur_sigma: float = 1.0,
+    polarity: str = "ignore",
+    weights=None,
+    lambda_div: float = 0.0,
+    lambda_def: float = 0.0,
+    whitening: bool = False,
+) -> dict:
+    """Run the whole pipeline of FORMULAS.md for one parameter vector.
+
+    Parameters
+    ----------
+    x, y : array_like, shape (N,)
+        Event positions (px).
+    t : array_like, shape (N,)
+        Event times (s).
+    p : array_like, shape (N,)
+        Polarities in {0, 1} or {-1, +1} (0 means -1).
+    theta : array_like
+        Warp parameters (physical units: px/s, 1/s, rad/s).
+    warp : str
+        One of :data:`WARP_NAMES`.
+    sensor_size : tuple of int
+        ``(W, H)`` (px).
+    center : tuple of float, optional
+        Principal point ``(c_x, c_y)`` (px); default the image centre ``((W-1)/2, (H-1)/2)``.
+    focal : tuple of float, optional
+        ``(f_x, f_y)`` (px); required by ``rotation3``.
+    t_ref : {"first", "middle", "last"} or float
+        Reference time (float: seconds, same clock as ``t``).
+    objective : str
+        ``"variance"``, ``"gradient_magnitude"`` or ``"mean_square"``.
+    normalize : bool
+        Use ``G(theta) / G(0)`` in J (else the raw ``G(theta)``).
+    blur_sigma : float
+        Gaussian blur standard deviation (px); 0 disables the blur.
+    polarity : {"ignore", "signed", "split"}
+        How polarities enter the IWE.
+    weights : array_like, shape (N,), optional
+        Per-event weights ``w_k`` (default 1).
+    lambda_div, lambda_def : float
+        Weights of the divergence and deformation penalties in J.
+    whitening : bool
+        Build the IWE from whitened positions (the regularizer maps still use ``x'``).
+
+    Returns
+    -------
+    dict
+        ``J`` (float, augmented objective), ``G`` (objective used in J), ``G_raw``, ``G0`` (raw
+        objective of the identity warp), ``R_div``, ``R_def`` (penalties, dimensionless),
+        ``iwe`` (C, H, W), ``count`` C(x) (H, W), ``div_map`` DIV(x) (1/s, 0 where C = 0),
+        ``def_map`` DEF(x) (0 where C = 0), ``alpha_map`` alpha(x) (0 where C = 0), and per
+        event ``xw``, ``yw`` (px), ``det`` (signed ``det dx'/dx``), ``div`` (1/s).
+    """
+    _check_warp(warp)
+    theta = _check_theta(warp, theta)
+    if objective not in OBJECTIVE_NAMES:
+        raise ValueError(f"unknown objective {objective!r}; expected one of {OBJECTIVE_NAMES}")
+    if polarity not in POLARITY_MODES:
+        raise ValueError(f"unknown polarity mode {polarity!r}; expected one of {POLARITY_MODES}")
+    width, height = (int(v) for v in sensor_size)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"sensor_size must be positive (W, H), got {sensor_size!r}")
+    if blur_sigma < 0:
+        raise ValueError(f"blur_sigma must be >= 0 px, got {blur_sigma}")
+
+    x = np.asarray(x, dtype=np.float64).reshape(-1)
+    y = np.asarray(y, dtype=np.float64).reshape(-1)
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    p = np.asarray(p, dtype=np.float64).reshape(-1)
+    n = x.size
+    if n == 0:
+        raise ValueError("no events")
+    if not (y.size == n and t.size == n and p.size == n):
+        raise ValueError("x, y, t, p must have the same length")
+    if not np.all(np.isin(p, (-1.0, 0.0, 1.0))):
+        raise ValueError("polarities must be in {0, 1} or {-1, +1}")
+    pol = np.where(p > 0, 1.0, -1.0)
+    if weights is None:
+        w = np.ones(n)
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=np.float64), (n,)).copy()
+
+    T = float(t.max() - t.min())
+    if not T > 0.0:
+        raise ValueError(f"the window duration T = max(t) - min(t) must be > 0 s, got {T}")
+    t0 = _resolve_t_ref(t_ref, t)
+    dt = t - t0
+    s_t = 1.0 if t0 <= float(np.mean(t)) else -1.0
+    if center is None:
+        center = ((width - 1) / 2.0, (height - 1) / 2.0)
+    if warp == "rotation3":
+        _check_focal(warp, focal)
+
+    def positions_for_iwe(xw_, yw_):
+        return whiten(xw_, yw_, x, y) if whitening else (xw_, yw_)
+
+    # objective at theta and at the identity warp
+    xw, yw, det, div = warp_events(warp, x, y, dt, theta, center=center, focal=focal, duration=T)
+    iwe = _iwe(*positions_for_iwe(xw, yw), w, pol, polarity, width, height, blur_sigma)
+    g_raw = objective_value(objective, iwe)
+
+    xw0, yw0, _, _ = warp_events(warp, x, y, dt, np.zeros_like(theta), center=center, focal=focal, duration=T)
+    iwe0 = _iwe(*positions_for_iwe(xw0, yw0), w, pol, polarity, width, height, blur_sigma)
+    g0 = objective_value(objective, iwe0)
+    if normalize:
+        if g0 == 0.0:
+            raise ValueError("G(0) = 0: the objective cannot be normalised on these events")
+        g = g_raw / g0
+    else:
+        g = g_raw
+
+    # regularizer maps from the unblurred votes of x' with weights |w_k|
+    aw = np.abs(w)
+    finite = np.isfinite(xw) & np.isfinite(yw)
+    count = bilinear_votes(xw, yw, aw, width, height)
+    with np.errstate(invalid="ignore"):  # dropped rotation3 events may have det = inf
+        q_div = np.where(finite, aw * div, 0.0)
+        q_def = np.where(finite, aw * np.abs(det), 0.0)
+    n_div = bilinear_votes(xw, yw, q_div, width, height)
+    n_def = bilinear_votes(xw, yw, q_def, width, height)
+    support = count > 0.0
+    safe = np.where(support, count, 1.0)
+    div_map = np.where(support, n_div / safe, 0.0)
+    def_map = np.where(support, n_def / safe, 0.0)
+    d = np.maximum(def_map, DEF_FLOOR)
+    alpha_map = np.where(support, np.maximum(d, 1.0 / d) - 1.0, 0.0)
+    m = count / (count + KAPPA)
+    # one-sided: net contraction is penalised, expansion is not rewarded (FORMULAS.md)
+    r_div = max(0.0, _support_mean(m, s_t * T * div_map))
+    r_def = _support_mean(m, alpha_map)
+
+    j = g - lambda_div * r_div - lambda_def * r_def
+    return {
+        "J": float(j),
+        "G": float(g),
+        "G_raw": float(g_raw),
+        "G0": float(g0),
+        "R_div": float(r_div),
+        "R_def": float(r_def),
+        "iwe": iwe,
+        "count": count,
+        "div_map": div_map,
+        "def_map": def_map,
+        "alpha_map": alpha_map,
+        "xw": xw,
+        "yw": yw,
+        "det": det,
+        "div": div,
+    }
+
+
+def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> np.ndarray:
+    """dJ/dtheta by central differences of :func:`evaluate` (2P evaluations), with the step
+    ``rel_step * max(1, |theta_i|)`` per parameter; ``kwargs`` go to :func:`evaluate`.
+
+    J is piecewise smooth (bilinear votes have kinks where a warped event crosses a pixel boundary), so
+    the step must be small enough not to cross many kinks: see ``cmax_taichi.lab.bench.reference_fd_grad``.
+    """
+    theta = np.asarray(theta, dtype=np.float64)
+    grad = np.empty_like(theta)
+    for i in range(theta.size):
+        h = rel_step * max(1.0, abs(theta[i]))
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        jp = evaluate(x, y, t, p, tp, **kwargs)["J"]
+        jm = evaluate(x, y, t, p, tm, **kwargs)["J"]
+        grad[i] = (jp - jm) / (2 * h)
+    return grad
