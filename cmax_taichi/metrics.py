@@ -36,6 +36,7 @@ from cmax_taichi.pipeline.problem import ContrastMaximization, dense_flow
 
 __all__ = [
     "angular_velocity_error",
+    "COLLAPSE_SHARE",
     "covered_area_ratio",
     "covered_share",
     "event_mask",
@@ -207,6 +208,11 @@ def angular_velocity_error(w_est, w_gt) -> dict[str, float | np.ndarray]:
         "error_deg_s": norms,
         "relative": relative,
     }
+
+
+#: below this share of the identity warp's covered pixels still covered at an estimate, the estimate
+#: has gathered the events into a small area: "collapse" when its IWE is sharper than with no motion
+COLLAPSE_SHARE = 0.5
 
 
 def covered_share(prob: ContrastMaximization, theta, min_count: float = 0.25) -> float:

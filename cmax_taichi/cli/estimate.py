@@ -7,6 +7,8 @@ event count, parameters in physical units, objective value, FWL, iterations, sec
 OUT/figures/ (IWE before and after, flow colours; parameters over time).
 
 examples:
+  cmax-taichi estimate --example rotation --out out_rotation   # simulated on the fly, against its truth
+  cmax-taichi estimate --example collapse --reg divergence=10 --reg deformation=10
   cmax-taichi estimate ../shared/data/ecd_rotation/boxes_rotation --warp rotation3 --out out_boxes
   cmax-taichi estimate recording_data.hdf5 --warp mitrokhin4 --objective variance \\
       --reg divergence=10 --reg deformation=10 --window 30000 --arch cpu --out out_mvsec
@@ -16,6 +18,7 @@ examples:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from pathlib import Path
@@ -26,19 +29,31 @@ HELP = "estimate the motion of every window of a recording (results as CSV/JSON,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    from cmax_taichi.sim.examples import EXAMPLES
+
     parser.add_argument(
         "path",
         metavar="PATH",
+        nargs="?",
+        default=None,
         help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4",
+    )
+    parser.add_argument(
+        "--example",
+        default=None,
+        metavar="NAME",
+        help="instead of PATH, a recording simulated on the fly (fixed seed, exact truth), estimated and "
+        "printed against the truth: "
+        + "; ".join(f"{name}: {ex.description}" for name, ex in EXAMPLES.items()),
     )
     parser.add_argument(
         "--format", default=None, help="ecd | text | mvsec | dsec | aedat4 (default: detected)"
     )
     parser.add_argument(
         "--warp",
-        default="translation2",
+        default=None,
         help="motion model: zoom1, translation2, rotation3 (needs a calibration), se2, sim2, mitrokhin4 "
-        "(default translation2; 'cmax-taichi info' lists them with units)",
+        "(default translation2, or the example's model; 'cmax-taichi info' lists them with units)",
     )
     parser.add_argument("--objective", default="variance", help="variance | gradient_magnitude | mean_square")
     parser.add_argument(
@@ -204,18 +219,41 @@ def _parameters_figure(path: Path, result) -> None:
 def run(args: argparse.Namespace) -> int:
     import cmax_taichi as cm
     from cmax_taichi.cli import CliError
+    from cmax_taichi.metrics import covered_area_ratio
     from cmax_taichi.solve.sequence import process
 
     regs = parse_regularizers(args.reg)
+    example = None
+    if args.example is not None:
+        if args.path is not None:
+            raise CliError("give a recording PATH or --example NAME, not both")
+        from cmax_taichi.sim.examples import EXAMPLES
+
+        if args.example not in EXAMPLES:
+            raise CliError(f"--example: unknown example {args.example!r}; valid: {', '.join(EXAMPLES)}")
+        args.warp = args.warp or EXAMPLES[args.example].warp
+        if args.duration is None:
+            args.duration = EXAMPLES[args.example].window
+    elif args.path is None:
+        raise CliError("give a recording PATH, or --example NAME for a simulated one")
+    args.warp = args.warp or "translation2"
     check_choices(args)
-    path = Path(args.path)
-    if not path.exists():
-        raise CliError(f"{path}: no such file or folder")
-    try:
-        from cmax_taichi import io
-    except ImportError as exc:  # pragma: no cover - the readers ship with the package
-        raise CliError(f"the dataset readers are not available ({exc})") from None
+    from cmax_taichi import io
+
     init_backend(args.arch, args.precision)
+    if args.example is not None:
+        from cmax_taichi.sim.examples import make_example
+
+        example = make_example(args.example)
+        path = Path(f"example:{args.example}")
+        source = contextlib.nullcontext(example.events)
+        camera = example.camera
+    else:
+        path = Path(args.path)
+        if not path.exists():
+            raise CliError(f"{path}: no such file or folder")
+        source = io.open_recording(path, format=args.format)
+        camera = None
     out = Path(args.out)
     fig_dir = out / "figures"
     t_ref: str | float = args.t_ref if args.t_ref in ("first", "middle", "last") else float(args.t_ref)
@@ -228,13 +266,20 @@ def run(args: argparse.Namespace) -> int:
     if args.n_init is not None:
         optimize_options["n_init"] = args.n_init
 
-    with io.open_recording(path, format=args.format) as rec:
-        if cm.get_warp(args.warp).needs_camera and rec.camera is None:
+    # per window, for the examples: the area the warped events cover at the estimate over the area they
+    # cover at the true parameters (a collapse gathers them into a small fraction of it)
+    covered: list[float] = []
+    with source as rec:
+        n_events = len(rec) if example is not None else rec.n_events
+        camera = camera if camera is not None else rec.camera
+        if cm.get_warp(args.warp).needs_camera and camera is None:
             raise CliError(f"warp {args.warp!r} needs a calibration, and {path} has none (calib.txt)")
         out.mkdir(parents=True, exist_ok=True)
         figures_left = [max(0, args.figures)]
 
         def on_window(row, prob, res):
+            if example is not None:
+                covered.append(covered_area_ratio(prob, res.theta) / covered_area_ratio(prob, example.truth))
             if figures_left[0] > 0:
                 fig_dir.mkdir(exist_ok=True)
                 _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
@@ -243,6 +288,7 @@ def run(args: argparse.Namespace) -> int:
         result = process(
             rec,
             args.warp,
+            camera=camera,
             objective=args.objective,
             regularizers=regs,
             n_events=args.window,
@@ -263,7 +309,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if not result.windows:
         raise CliError(
-            f"{path}: no window to estimate ({rec.n_events} events; --window {args.window} is too large?)"
+            f"{path}: no window to estimate ({n_events} events; --window {args.window} is too large?)"
         )
     csv_path = result.to_csv(out / "results.csv")
     json_path = result.to_json(out / "results.json")
@@ -281,9 +327,53 @@ def run(args: argparse.Namespace) -> int:
     fwls = [w.fwl for w in result.windows if math.isfinite(w.fwl)]
     if fwls:
         print(f"  FWL: median {_median(fwls):.4f}")
+    if example is not None:
+        written.append(_report_example(example, result, covered, regs, out / "truth.json"))
     print("wrote: " + ", ".join(str(p) for p in written))
     sys.stdout.flush()
     return 0
+
+
+def _report_example(example, result, covered: list[float], regs: dict, path: Path) -> Path:
+    """Print the estimates of a simulated example against its truth; write them to ``path`` (JSON)."""
+    import json
+
+    import numpy as np
+
+    from cmax_taichi.metrics import COLLAPSE_SHARE
+
+    truth = example.truth
+    theta = result.theta
+    print(f"example {example.example.name!r}: {example.example.description}")
+    print(f"  simulated: {len(example.events)} events, {example.events.duration * 1e3:.1f} ms (seed 0)")
+    print(f"  {'parameter':<12}{'truth':>12}{'estimate (median)':>20}{'error':>12}")
+    rows = []
+    for i, (name, unit) in enumerate(zip(result.param_names, result.units, strict=True)):
+        est = float(np.median(theta[:, i]))
+        err = est - float(truth[i])
+        rows.append(
+            {"parameter": name, "unit": unit, "truth": float(truth[i]), "estimate": est, "error": err}
+        )
+        print(f"  {name + ' [' + unit + ']':<12}{truth[i]:>12.4g}{est:>20.4g}{err:>+12.3g}")
+    collapsed = [c < COLLAPSE_SHARE for c in covered]
+    print(
+        "  area covered by the warped events at the estimate / at the truth (median over windows): "
+        f"{float(np.median(covered)):.2f}\n  collapsed windows (below {COLLAPSE_SHARE}): "
+        f"{sum(collapsed)} of {len(collapsed)}"
+        + ("  (try --reg divergence=10 --reg deformation=10)" if any(collapsed) and not regs else "")
+    )
+    report = {
+        "example": example.example.name,
+        "description": example.example.description,
+        "warp": result.warp,
+        "regularizers": regs,
+        "parameters": rows,
+        "area_estimate_over_truth": covered,
+        "collapsed_windows": int(sum(collapsed)),
+        "windows": len(collapsed),
+    }
+    path.write_text(json.dumps(report, indent=2) + "\n")
+    return path
 
 
 def _median(values) -> float:

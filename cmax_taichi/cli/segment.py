@@ -8,6 +8,7 @@ events coloured by cluster (image plane and x-t), and each cluster's sharpened I
 unwarped events.
 
 examples:
+  cmax-taichi segment --example two-objects --out seg_example   # simulated, against the true labels
   cmax-taichi segment ../shared/data/ecd_rotation/dynamic_rotation -k 2 --warp rotation3 --out seg_dyn
   cmax-taichi segment recording_data.hdf5 -k 3 --warp mitrokhin4 \\
       --reg divergence=1 --reg deformation=1 --events 30000 --out seg_out
@@ -28,17 +29,29 @@ HELP = "segment a window of events into K independently moving clusters (labels,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    from cmax_taichi.sim.examples import SEGMENT_EXAMPLES
+
     parser.add_argument(
         "path",
         metavar="PATH",
+        nargs="?",
+        default=None,
         help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4",
+    )
+    parser.add_argument(
+        "--example",
+        default=None,
+        metavar="NAME",
+        help="instead of PATH, a scene simulated on the fly (fixed seed, true labels and motions), "
+        "segmented and printed against the truth: "
+        + "; ".join(f"{name}: {ex.description}" for name, ex in SEGMENT_EXAMPLES.items()),
     )
     parser.add_argument("-k", "--clusters", type=int, default=2, metavar="K", help="clusters (default 2)")
     parser.add_argument(
         "--warp",
-        default="mitrokhin4",
+        default=None,
         help="motion model of every cluster, or K comma-separated models, e.g. rotation3,mitrokhin4 "
-        "(default mitrokhin4; 'cmax-taichi info' lists them)",
+        "(default mitrokhin4, or the example's model; 'cmax-taichi info' lists them)",
     )
     parser.add_argument("--objective", default="variance", help="variance | gradient_magnitude | mean_square")
     parser.add_argument(
@@ -206,6 +219,18 @@ def run(args: argparse.Namespace) -> int:
     from cmax_taichi.testing.reference import bilinear_votes, gaussian_blur
 
     regs = parse_regularizers(args.reg)
+    if args.example is not None:
+        from cmax_taichi.sim.examples import SEGMENT_EXAMPLES
+
+        if args.path is not None:
+            raise CliError("give a recording PATH or --example NAME, not both")
+        if args.example not in SEGMENT_EXAMPLES:
+            valid = ", ".join(SEGMENT_EXAMPLES)
+            raise CliError(f"--example: unknown example {args.example!r}; valid: {valid}")
+        args.warp = args.warp or SEGMENT_EXAMPLES[args.example].warp
+    elif args.path is None:
+        raise CliError("give a recording PATH, or --example NAME for a simulated scene")
+    args.warp = args.warp or "mitrokhin4"
     if args.clusters < 1:
         raise CliError(f"-k/--clusters must be at least 1, got {args.clusters}")
     warps = [w.strip() for w in args.warp.split(",") if w.strip()]
@@ -220,18 +245,27 @@ def run(args: argparse.Namespace) -> int:
             t_ref = float(args.t_ref)
         except ValueError:
             raise CliError(f"--t-ref must be first, middle, last or seconds, got {args.t_ref!r}") from None
-    path = Path(args.path)
-    if not path.exists():
-        raise CliError(f"{path}: no such file or folder")
     from cmax_taichi import io
 
-    init_backend(args.arch, args.precision)
-    options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
-    with io.open_recording(path, format=args.format, **options) as rec:
-        if any(cm.get_warp(w).needs_camera for w in warps) and rec.camera is None:
-            raise CliError(f"warp {args.warp!r} needs a calibration, and {path} has none (calib.txt)")
-        events = _read_window(rec, args)
-        camera = rec.camera
+    example = None
+    if args.example is not None:
+        from cmax_taichi.sim.examples import make_example
+
+        init_backend(args.arch, args.precision)
+        path = Path(f"example:{args.example}")
+        example = make_example(args.example)
+        events, camera = example.events, example.camera
+    else:
+        path = Path(args.path)
+        if not path.exists():
+            raise CliError(f"{path}: no such file or folder")
+        init_backend(args.arch, args.precision)
+        options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
+        with io.open_recording(path, format=args.format, **options) as rec:
+            if any(cm.get_warp(w).needs_camera for w in warps) and rec.camera is None:
+                raise CliError(f"warp {args.warp!r} needs a calibration, and {path} has none (calib.txt)")
+            events = _read_window(rec, args)
+            camera = rec.camera
     if len(events) < args.clusters:
         raise CliError(f"the window has {len(events)} events, fewer than the {args.clusters} clusters")
     res = cm.segment(
@@ -320,6 +354,35 @@ def run(args: argparse.Namespace) -> int:
         params = ", ".join(f"{n}={v:.4g} {c['units'][n]}" for n, v in c["parameters"].items())
         state = " (empty)" if c["empty"] else ""
         print(f"  cluster {c['cluster']} [{c['warp']}]: {c['events']} events{state}; {params}")
+    if example is not None:
+        written.append(_report_example(example, res, out / "truth.json"))
     print("wrote: " + ", ".join(str(p) for p in written))
     sys.stdout.flush()
     return 0
+
+
+def _report_example(example, res, path: Path) -> Path:
+    """Print a segmented example against its true labels and motions; write them to ``path`` (JSON)."""
+    from cmax_taichi.lab.segment_eval import label_accuracy, match_clusters
+
+    truth = example.labels
+    mapping = match_clusters(res.labels, truth, res.n_clusters)
+    accuracy = label_accuracy(res.labels, truth, res.n_clusters)
+    rec = example.recording
+    print(f"example {example.example.name!r}: {example.example.description}")
+    print(f"  simulated: {len(example.events)} events, {example.events.duration * 1e3:.1f} ms (seed 0)")
+    objects = []
+    for layer in sorted(mapping):
+        cluster = mapping[layer]
+        true_theta = [float(v) for v in rec.theta_at(0.0, layer=layer)]
+        estimate = [float(v) for v in res.thetas[cluster]]
+        name = "background" if layer == 0 else f"object {layer}"
+        print(
+            f"  {name}: {int((truth == layer).sum())} events -> cluster {cluster}; true "
+            f"{[round(v, 3) for v in true_theta]}, estimated {[round(v, 3) for v in estimate]}"
+        )
+        objects.append({"layer": layer, "cluster": cluster, "truth": true_theta, "estimate": estimate})
+    print(f"  events in the cluster matched to their true layer: {100 * accuracy:.1f}%")
+    report = {"example": example.example.name, "accuracy": accuracy, "layers": objects}
+    path.write_text(json.dumps(report, indent=2) + "\n")
+    return path

@@ -36,14 +36,17 @@ from pathlib import Path
 import numpy as np
 
 import cmax_taichi as cm
-from cmax_taichi.metrics import angular_velocity_error, covered_area_ratio, covered_share, fwl_problem
+from cmax_taichi.metrics import (
+    COLLAPSE_SHARE,
+    angular_velocity_error,
+    covered_area_ratio,
+    covered_share,
+    fwl_problem,
+)
 from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 from cmax_taichi.solve.optimize import METHODS, search_bounds
 
 ROTATION_CUTS = ("shapes_rotation", "boxes_rotation", "dynamic_rotation", "poster_rotation")
-#: less than this share of the identity warp's covered pixels stay covered: "collapse" when the IWE is
-#: sharper than with no motion (FWL > 1), "spread out" when it is blurrier
-COLLAPSE_SHARE = 0.5
 
 
 def default_data_dir() -> Path:
