@@ -14,7 +14,8 @@
 * :func:`spread_ratios`: per object, how much the matched cluster's warp shrinks the object's events
   (RMS spread of the warped events over that of their true positions; 1 = no contraction, 0 = the
   events collapsed to a point).
-* ``python -m cmax_taichi.lab.segment_eval``: the with / without regularizer comparison of docs/SEGMENTATION.md.
+* ``python -m cmax_taichi.lab.segment_eval``: the with / without regularizer comparison of
+  docs/SEGMENTATION.md.
 """
 
 from __future__ import annotations
