@@ -47,7 +47,7 @@ def no_display_exit(name: str) -> int:
 
 
 def save_figure(fig, path: str, dpi: int, compact: bool = False) -> None:
-    """Save ``fig``; ``compact``: a 256-colour palette PNG (about 2x smaller, for the README pictures)."""
+    """Save ``fig``; ``compact``: a 256-colour palette PNG (about 2x smaller, for docs/images)."""
     if not compact:
         fig.savefig(path, dpi=dpi)
     else:

@@ -136,7 +136,7 @@ def test_segmentation_table_of_the_full_run():
 
 
 def test_stage_profiler_prints_every_task(tmp_path):
-    """benchmarks/profile_stages.py (the source of the per-stage figures in README.md, Performance)."""
+    """benchmarks/profile_stages.py (the source of the per-stage figures in docs/performance.md)."""
     import subprocess
     import sys
     from pathlib import Path

@@ -1,4 +1,4 @@
-"""The real-data claims of README.md ("Results on real recordings"), one test per claim, on the shared
+"""The real-data claims of docs/results-real.md, one test per claim, on the shared
 recordings (skipped with a message when ../shared/data is absent). The full table comes from
 ``python -m cmax_taichi.lab.experiments_real``; these tests use the same pipeline with smaller global
 searches where noted, to stay within the test-time budget."""

@@ -188,7 +188,7 @@ def test_cli_bad_input(tmp_path, capsys):
 def test_cli_on_ecd_dynamic_rotation(tmp_path):
     """The real recording (a person in front of a rotating camera, raw distorted events.txt with
     calib.txt): the reader's camera undistorts, labels keep the file's indexing, figures are written.
-    (translation2 and a 10,000-event window keep the test short; the README shows rotation3.)"""
+    (translation2 and a 10,000-event window keep the test short; docs/SEGMENTATION.md shows rotation3.)"""
     path = shared_data_dir("ecd_rotation", "dynamic_rotation")
     out = tmp_path / "dyn"
     args = ["segment", str(path), "-k", "2", "--warp", "translation2", "--events", "10000"]
@@ -200,15 +200,16 @@ def test_cli_on_ecd_dynamic_rotation(tmp_path):
     assert (out / "figures" / "cluster_iwes.png").exists()
 
 
-def test_readme_example():
-    """The README's motion segmentation example runs as written and separates the two objects."""
+def test_docs_example():
+    """The motion segmentation example of docs/SEGMENTATION.md runs as written and separates the two
+    objects."""
     import re
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = text.split("## Motion segmentation", 1)[1]
+    text = (Path(__file__).resolve().parents[1] / "docs" / "SEGMENTATION.md").read_text()
+    section = text.split("# Motion segmentation", 1)[1]
     block = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     namespace: dict = {}
-    exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102 - our own README
+    exec(compile(block, "docs/SEGMENTATION.md", "exec"), namespace)  # noqa: S102 - our own docs
     assert namespace["accuracy"] > 0.95
     assert namespace["seg"].thetas.shape == (2, 4)

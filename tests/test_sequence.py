@@ -57,7 +57,8 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
         assert w.fwl > 1.0 and w.t_end > w.t_start and w.iterations > 0 and w.seconds > 0
     assert [s[1] for s in seen] == ["grid", "local", "local"]  # warm start after the first window
     assert seen[1][2] == seen[2][2]  # the same pooled fields for every window (no new compile)
-    assert "3/3 windows" in stream.getvalue()
+    assert stream.getvalue().splitlines()[-1].startswith("windows: 100%")
+    assert "3/3" in stream.getvalue().splitlines()[-1] and "\r" not in stream.getvalue()
 
     csv_path = result.to_csv(tmp_path / "r.csv")
     with csv_path.open() as fh:
@@ -85,7 +86,7 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
     assert [w.t_start for w in back.windows] == [w.t_start for w in result.windows]
 
 
-def test_windows_by_duration_without_warm_start(events):
+def test_windows_by_duration_without_warm_start(events, capsys):
     result = sequence.process(
         events,
         "translation2",
@@ -100,6 +101,42 @@ def test_windows_by_duration_without_warm_start(events):
     assert all(np.isnan(w.fwl) for w in result.windows)
     assert all(abs(w.theta[0] - V[0]) < 8.0 for w in result.windows)
     assert result.windows[1].t_start >= 0.04 - 1e-9
+    assert "windows" not in capsys.readouterr().err  # progress=False: no progress output at all
+
+
+class _Terminal(io.StringIO):
+    """A text stream that says it is a terminal."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_bar_on_a_terminal_is_redrawn_in_place():
+    stream = _Terminal()
+    bar = sequence.ProgressBar(20, stream=stream)
+    for k in range(20):
+        bar.update(f"J={k}")
+    bar.close()
+    text = stream.getvalue()
+    assert text.count("\r") >= 2 and text.endswith("\n")  # tqdm redraws one line, kept at the end
+    assert "20/20" in text.split("\r")[-1] and "J=19" in text.split("\r")[-1]
+
+
+def test_progress_bar_off_a_terminal_writes_one_line_per_tenth():
+    stream = io.StringIO()
+    bar = sequence.ProgressBar(20, stream=stream)
+    for k in range(20):
+        bar.update(f"J={k}")
+    bar.close()
+    lines = stream.getvalue().splitlines()
+    assert "\r" not in stream.getvalue()
+    assert len(lines) == 11  # the first window, then each 10% (deciles 1..10)
+    assert lines[-1].startswith("windows: 100%") and "20/20" in lines[-1] and "J=19" in lines[-1]
+    unknown = io.StringIO()
+    bar = sequence.ProgressBar(None, stream=unknown)
+    for _ in range(3):
+        bar.update()
+    assert len(unknown.getvalue().splitlines()) == 3  # total unknown: one line per window
 
 
 def test_bad_inputs(events, tmp_path):

@@ -30,6 +30,8 @@ def _as_1d(name: str, values, dtype) -> np.ndarray:
 class Events:
     """A time-sorted set of events of one sensor.
 
+    The arrays are copied: nothing the caller passed is modified.
+
     Parameters
     ----------
     x, y : array_like
@@ -42,8 +44,6 @@ class Events:
         ``(W, H)``, px. Events outside ``[0, W-1] x [0, H-1]`` are dropped with a warning giving the count.
     undistorted : bool
         Whether ``x, y`` are already undistorted (a problem then skips the camera's undistortion).
-
-    The arrays are copied: nothing the caller passed is modified.
     """
 
     __slots__ = ("x", "y", "t", "p", "sensor_size", "undistorted", "n_dropped")

@@ -637,7 +637,7 @@ def markdown_report(
     wall_s: float,
     seg: list[dict] | None = None,
 ) -> str:
-    """The Markdown report (also the README's Performance table)."""
+    """The Markdown report (also the table of docs/performance.md)."""
     v = machine["versions"]
     lines = [
         f"Benchmark `{plan.label}` run on {machine['date']}: {machine['cpu']}, {machine['cores']} cores "

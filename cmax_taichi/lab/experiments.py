@@ -227,10 +227,11 @@ class Settings:
 
 # --- progress on stderr ------------------------------------------------------------------------------
 class _Bar:
-    """:class:`cmax_taichi.solve.sequence.ProgressBar` (stderr), or nothing when progress is off."""
+    """:class:`cmax_taichi.solve.sequence.ProgressBar` (stderr; a tqdm bar on a terminal, one line per
+    10% elsewhere), or nothing when progress is off. One step is one estimate or timing run."""
 
     def __init__(self, total: int, label: str, enabled: bool) -> None:
-        self.bar = ProgressBar(total, label) if enabled else None
+        self.bar = ProgressBar(total, label, unit="run") if enabled else None
 
     def step(self, note: str = "") -> None:
         if self.bar is not None:

@@ -1,7 +1,7 @@
 """Real-data results of the estimation pipeline on the shared recordings (``../shared/data``).
 
-Run ``python -m cmax_taichi.lab.experiments_real [--data DIR]``; it prints the tables that README.md
-quotes. Four experiments:
+Run ``python -m cmax_taichi.lab.experiments_real [--data DIR]``; it prints the tables that
+docs/results-real.md quotes. Four experiments:
 
 1. MVSEC indoor_flying1, the first 30,000 events, ``zoom1`` and ``mitrokhin4``, both objectives, with
    no regularizer, the whitening baseline, and divergence, deformation and both at every weight of
@@ -383,7 +383,7 @@ def _emit(text: str = "") -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m cmax_taichi.lab.experiments_real",
-        description="Reproduce the real-data tables of README.md on ../shared/data.",
+        description="Reproduce the real-data tables of docs/results-real.md on ../shared/data.",
     )
     parser.add_argument("--data", type=Path, default=None, help="shared data folder (default ../shared/data)")
     parser.add_argument("--method", default="adam", choices=METHODS)

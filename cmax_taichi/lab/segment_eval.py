@@ -3,7 +3,7 @@
 * :func:`simulated_scene`: 2-4 textured objects moving independently over a static background,
   rendered by the event simulator (``cmax_taichi.sim``: photographic textures, threshold-crossing
   events, sensor noise), with the simulator's per-event labels and every event's true position at
-  the reference time (from the exact motions). The comparison of the README uses these.
+  the reference time (from the exact motions). The comparison in docs/SEGMENTATION.md uses these.
 * :func:`synthetic_scene`: a NumPy scene of 2-4 objects made of random edge segments moving
   independently (translation, optionally zoom and rotation about the object's centre), with the same
   ground truth. Fast, for unit tests.
@@ -14,7 +14,8 @@
 * :func:`spread_ratios`: per object, how much the matched cluster's warp shrinks the object's events
   (RMS spread of the warped events over that of their true positions; 1 = no contraction, 0 = the
   events collapsed to a point).
-* ``python -m cmax_taichi.lab.segment_eval``: the with / without regularizer comparison of the README.
+* ``python -m cmax_taichi.lab.segment_eval``: the with / without regularizer comparison of
+  docs/SEGMENTATION.md.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
+from tqdm import tqdm
 
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.metrics import fwl_problem
@@ -194,45 +195,69 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
 
 
 class ProgressBar:
-    """A plain progress bar on stderr (no dependency): redrawn in place on a terminal, one line per
-    10% otherwise (logs)."""
+    """Progress over windows on stderr (or ``stream``), drawn by :mod:`tqdm`.
 
-    def __init__(self, total: int | None, label: str = "windows", stream: TextIO | None = None) -> None:
+    On a terminal, a tqdm bar redrawn in place. On anything else (a log file, CI, a pipe) no bar: one
+    plain line per 10% of the total (per window when the total is unknown), in tqdm's format, so logs
+    stay readable. The caller draws nothing at all when progress is off.
+
+    Parameters
+    ----------
+    total : int or None
+        Number of steps, None when unknown.
+    label : str
+        Shown before the bar (``"windows"``, an experiment's name).
+    stream : text stream, optional
+        Where to draw; default ``sys.stderr``.
+    unit : str
+        What one step is (``"window"``), for the rate.
+    """
+
+    def __init__(
+        self, total: int | None, label: str = "windows", stream: TextIO | None = None, unit: str = "window"
+    ) -> None:
         self.total = total
         self.label = label
+        self.unit = unit
         self.stream = stream if stream is not None else sys.stderr
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.count = 0
-        self.t0 = time.perf_counter()
+        self._t0 = time.perf_counter()
         self._last_decile = -1
+        self._bar = (
+            tqdm(total=total, desc=label, unit=unit, file=self.stream, dynamic_ncols=True, mininterval=0.2)
+            if self.tty
+            else None
+        )
 
     def update(self, note: str = "") -> None:
+        """One more step done; ``note`` (e.g. ``"J=1.234"``) is shown after the rate."""
         self.count += 1
-        elapsed = time.perf_counter() - self.t0
-        rate = elapsed / self.count
-        if self.total:
-            frac = min(1.0, self.count / self.total)
-            bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
-            eta = rate * max(0, self.total - self.count)
-            text = (
-                f"[{bar}] {self.count}/{self.total} {self.label} {100 * frac:3.0f}% "
-                f"{rate:.2f} s/window, ETA {eta:.0f} s {note}"
+        if self._bar is not None:
+            self._bar.set_postfix_str(note, refresh=False)
+            self._bar.update(1)
+            return
+        decile = int(10 * min(1.0, self.count / self.total)) if self.total else self.count
+        if decile != self._last_decile:
+            line = tqdm.format_meter(
+                self.count,
+                self.total,
+                time.perf_counter() - self._t0,
+                prefix=self.label,
+                unit=self.unit,
+                postfix=note or None,
+                ascii=True,
+                ncols=110,
             )
-            decile = int(10 * frac)
-        else:
-            text = f"{self.count} {self.label}, {rate:.2f} s/window {note}"
-            decile = self.count
-        if self.tty:
-            self.stream.write("\r" + text[:150].ljust(150))
-        elif decile != self._last_decile:
-            self.stream.write(text.rstrip() + "\n")
+            self.stream.write(line.rstrip() + "\n")
+            self.stream.flush()
         self._last_decile = decile
-        self.stream.flush()
 
     def close(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        """End the bar (a terminal's line is kept)."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
 
 def _count_windows(n_total: int, n_events: int, stride: int | None) -> int:
@@ -312,7 +337,8 @@ def process(
     max_windows : int, optional
         Stop after this many windows.
     progress : bool or stream
-        Draw a progress bar on stderr (or on the given stream).
+        Show progress on stderr (or on the given stream): a tqdm bar on a terminal, one line per 10%
+        elsewhere (:class:`ProgressBar`); False shows nothing.
     problem_options : mapping, optional
         More keyword arguments of ``ContrastMaximization`` (``blur_sigma``, ``t_ref``, ``polarity``,
         ``whitening``, ...).
