@@ -162,6 +162,26 @@ _EVT21_CHUNK_WORDS = 1 << 17  # 1 MiB of EVT 2.1 words decoded at once (bounded 
 _EVENT_DTYPE = np.dtype([("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("on", "?")])
 
 
+#: word types an EVT 2.1 type half may hold (CD OFF/ON, TIME_HIGH, trigger, vendor, continued)
+_EVT21_TYPES = (0x0, 0x1, 0x8, 0xA, 0xE, 0xF)
+
+
+def evt21_legacy_order(path: Path, header_length: int, header_says_legacy: bool) -> bool:
+    """Whether an EVT 2.1 file has IMX636's word order (the type half first), judged from its first
+    MiB: the type half holds only known word types and at least one TIME_HIGH, a validity mask does not.
+    When both orders (or neither) fit, the header decides (``endianness=legacy``)."""
+    with open(path, "rb") as f:
+        f.seek(header_length)
+        chunk = f.read(8 * _EVT21_CHUNK_WORDS)
+    words = np.frombuffer(chunk[: len(chunk) - len(chunk) % 8], dtype="<u8")
+    fits = []
+    for half in (words >> np.uint64(60), (words >> np.uint64(28)) & np.uint64(0xF)):  # spec, legacy
+        fits.append(bool(len(words)) and bool(np.isin(half, _EVT21_TYPES).all()) and bool(np.any(half == 8)))
+    if fits[0] != fits[1]:
+        return fits[1]
+    return header_says_legacy
+
+
 def evt21_packets(path: Path, header_length: int, sensor_size: tuple[int, int], legacy: bool):
     """Decode an EVT 2.1 payload chunk by chunk (faery 0.7 has no EVT 2.1 decoder); yields structured
     arrays ``t`` (us), ``x``, ``y``, ``on``, as faery's decoders do.
@@ -170,7 +190,8 @@ def evt21_packets(path: Path, header_length: int, sensor_size: tuple[int, int], 
     word type in its 4 top bits holds ``ts[5:0]`` (bits 22-27), ``x`` (11-21) and ``y`` (0-10) of a CD
     word, or ``ts[33:6]`` (bits 0-27) of a TIME_HIGH word (type 8); the other half is the validity
     mask of the 32 pixels ``x .. x + 31``. In the specification's layout the type half is the upper
-    one; IMX636 sensors send it first (OpenEB's ``endianness=legacy``: the lower half). Types 0 / 1 are
+    one; IMX636 sensors send it first (OpenEB's ``endianness=legacy``: the lower half), see
+    :func:`evt21_legacy_order`. Types 0 / 1 are
     OFF / ON CD events; triggers and vendor words are skipped, as are CD words before the first
     TIME_HIGH. A decreasing TIME_HIGH is a 34-bit counter wrap; times never decrease (as faery's
     EVT 2.0 decoder: a time below the previous one is raised to it).
@@ -180,7 +201,7 @@ def evt21_packets(path: Path, header_length: int, sensor_size: tuple[int, int], 
     previous_high = -1  # its 28-bit value
     wraps = 0  # 34-bit counter loops so far
     t_last = 0
-    bit = np.arange(32, dtype=np.uint64)
+    bit = np.arange(32, dtype=np.uint32)
     with open(path, "rb") as f:
         f.seek(header_length)
         while True:
@@ -203,16 +224,15 @@ def evt21_packets(path: Path, header_length: int, sensor_size: tuple[int, int], 
                 previous_high, wraps, t_high = int(th_value[-1]), int(loops[-1]), int(th_time[-1])
             cd = (kind <= 1) & (word_high >= 0)
             if np.any(cd):
-                h, m = head[cd], mask[cd].astype(np.uint64)
+                h, m = head[cd], mask[cd]
                 t_word = word_high[cd] + ((h >> np.uint32(22)) & np.uint32(0x3F)).astype(np.int64)
                 t_word = np.maximum.accumulate(np.maximum(t_word, t_last))
                 t_last = int(t_word[-1])
-                word, k = np.nonzero((m[:, None] >> bit[None, :]) & np.uint64(1))
+                word, k = np.nonzero((m[:, None] >> bit[None, :]) & np.uint32(1))
                 x = ((h >> np.uint32(11)) & np.uint32(0x7FF)).astype(np.int64)[word] + k
                 y = (h & np.uint32(0x7FF)).astype(np.int64)[word]
                 if len(x) and (x.max() >= W or y.max() >= H):
-                    hint = "" if legacy else " (an IMX636 recording without endianness=legacy in its header?)"
-                    raise ValueError(f"x up to {x.max()}, y up to {y.max()} outside the {W}x{H} sensor{hint}")
+                    raise ValueError(f"x up to {x.max()}, y up to {y.max()} outside the {W}x{H} sensor")
                 events = np.empty(len(x), dtype=_EVENT_DTYPE)
                 events["t"], events["x"], events["y"] = t_word[word], x, y
                 events["on"] = (kind[cd] == 1)[word]
@@ -364,7 +384,8 @@ class RawRecording(FaeryRecording):
         size = raw_geometry(lines) or (None if sensor_size is None else tuple(int(v) for v in sensor_size))
         if size is None:
             raise ValueError(f"{path}: the EVT 2.1 header has no sensor size (pass sensor_size=(W, H))")
-        legacy = any(line.startswith("format ") and "endianness=legacy" in line for line in lines)
+        marked = any(line.startswith("format ") and "endianness=legacy" in line for line in lines)
+        legacy = evt21_legacy_order(path, header_length, marked)
         return _Packets(lambda: evt21_packets(path, header_length, size, legacy), size), encoding
 
 
