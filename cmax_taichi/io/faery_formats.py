@@ -1,5 +1,6 @@
 """Prophesee RAW (EVT 2.0, 2.1, 3.0) and DAT files, and Event Stream (``.es``) files, through the
-optional package ``faery`` (Rust decoders; ``pip install "cmax-taichi[formats]"`` or ``pip install faery``).
+optional package ``faery`` (Rust decoders; ``pip install "cmax-taichi[formats]"`` or ``pip install faery``),
+except EVT 2.1, which faery 0.7.1 cannot decode and :func:`evt21_packets` decodes here with NumPy.
 
 ========= ============================================ ==========================================
 format    files                                        sensor size from
@@ -40,8 +41,6 @@ from cmax_taichi.io.base import Recording
 
 PACKAGE = "faery"
 EXTRA = "formats"
-#: faery's file type of each format name
-FAERY_TYPES = {"raw": "evt", "dat": "dat", "es": "es"}
 #: the encodings ``version=`` may name, per faery file type
 VERSIONS = {"evt": ("evt2", "evt2.1", "evt3"), "dat": ("dat1", "dat2"), "es": ()}
 #: bytes per word of each RAW encoding
@@ -327,7 +326,6 @@ class FaeryRecording(Recording):
         if version is not None and version not in allowed:
             valid = ", ".join(allowed) if allowed else "none (the header says it)"
             raise ValueError(f"version={version!r} is not a {self._what} encoding; valid: {valid}")
-        self.path = path
         # fails early, before any cache look-up, without the package or on an unreadable header
         decoder, self.encoding = self._decoder(path, sensor_size, version)
         check_whole_words(path, self._faery_type, version)
