@@ -2,9 +2,10 @@
 
 The recording is read window by window (30,000 events per window by default, or --duration seconds);
 each window's warp parameters are found by a global search and gradient ascent, warm-started from the
-previous window. Results go to OUT/results.csv and OUT/results.json (one row per window: time span,
-event count, parameters in physical units, objective value, FWL, iterations, seconds), figures to
-OUT/figures/ (IWE before and after, flow colours; parameters over time).
+previous window. Results go to OUT/results.csv, OUT/results.json and OUT/results.h5 (one row per window:
+time span, event count, parameters in physical units, objective value, FWL, iterations, seconds),
+figures to OUT/figures/ (IWE before and after, flow colours; parameters over time); with --flow-out,
+each window's dense flow (displacement over the window, px) as a Middlebury .flo or .npz file.
 
 examples:
   cmax-taichi estimate --example rotation --out out_rotation   # simulated on the fly, against its truth
@@ -13,6 +14,7 @@ examples:
   cmax-taichi estimate recording_data.hdf5 --warp mitrokhin4 --objective variance \\
       --reg divergence=10 --reg deformation=10 --window 30000 --arch cpu --out out_mvsec
   cmax-taichi evaluate out_boxes          # then compare against the recording's ground truth
+  cmax-taichi estimate recording.raw --window 50000 --flow-out out_raw/flow --flow-format flo
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PATH",
         nargs="?",
         default=None,
-        help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4",
+        help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4, "
+        "Prophesee *.raw / *.dat, *.es",
     )
     parser.add_argument(
         "--example",
@@ -47,7 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + "; ".join(f"{name}: {ex.description}" for name, ex in EXAMPLES.items()),
     )
     parser.add_argument(
-        "--format", default=None, help="ecd | text | mvsec | dsec | aedat4 (default: detected)"
+        "--format",
+        default=None,
+        help="ecd | text | mvsec | dsec | aedat4 | raw | dat | es (default: detected)",
     )
     parser.add_argument(
         "--warp",
@@ -104,6 +109,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--figures", type=int, default=1, metavar="K", help="figures of the first K windows (default 1)"
     )
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument(
+        "--flow-out",
+        default=None,
+        metavar="DIR",
+        help="write each window's dense flow (displacement over the window, px) to DIR/flow_NNNN.<format>",
+    )
+    run.add_argument(
+        "--flow-format",
+        default="flo",
+        choices=["flo", "npz"],
+        help="flo: Middlebury (u, v float32); npz: 'flow' (2, H, W) with t_start, t_end (default flo)",
+    )
 
 
 def init_backend(arch: str | None, precision: str | None):
@@ -193,6 +210,29 @@ def _window_figure(path: Path, row, prob, res) -> None:
     plt.close(fig)
 
 
+def _flow_dir(flow_out: str | None) -> Path | None:
+    """The --flow-out folder, created (CliError when it cannot be)."""
+    from cmax_taichi.cli import CliError
+
+    if flow_out is None:
+        return None
+    flow_dir = Path(flow_out)
+    try:
+        flow_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"--flow-out: cannot create {flow_dir} ({exc.strerror or exc})") from None
+    return flow_dir
+
+
+def _write_window_flow(path: Path, row, prob, res) -> None:
+    """The dense flow of a window's estimate: the displacement (px) over the window's time span."""
+    from cmax_taichi.io.writers import write_flow
+
+    flow = prob.dense_flow(res.theta, dt=row.t_end - row.t_start)
+    meta = {"t_start": row.t_start, "t_end": row.t_end, "window": row.index, "warp": prob.model.name}
+    write_flow(path, flow, unit="px", **meta)
+
+
 def _parameters_figure(path: Path, result) -> None:
     import matplotlib
 
@@ -275,6 +315,7 @@ def run(args: argparse.Namespace) -> int:
         if cm.get_warp(args.warp).needs_camera and camera is None:
             raise CliError(f"warp {args.warp!r} needs a calibration, and {path} has none (calib.txt)")
         out.mkdir(parents=True, exist_ok=True)
+        flow_dir = _flow_dir(args.flow_out)
         figures_left = [max(0, args.figures)]
 
         def on_window(row, prob, res):
@@ -284,6 +325,8 @@ def run(args: argparse.Namespace) -> int:
                 fig_dir.mkdir(exist_ok=True)
                 _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
                 figures_left[0] -= 1
+            if flow_dir is not None:
+                _write_window_flow(flow_dir / f"flow_{row.index:04d}.{args.flow_format}", row, prob, res)
 
         result = process(
             rec,
@@ -313,7 +356,9 @@ def run(args: argparse.Namespace) -> int:
         )
     csv_path = result.to_csv(out / "results.csv")
     json_path = result.to_json(out / "results.json")
-    written = [csv_path, json_path]
+    written = [csv_path, json_path, result.to_hdf5(out / "results.h5")]
+    if args.flow_out is not None:
+        written.append(Path(args.flow_out) / f"flow_*.{args.flow_format} ({len(result.windows)} files)")
     if len(result.windows) > 1:
         fig_dir.mkdir(exist_ok=True)
         _parameters_figure(fig_dir / "parameters.png", result)

@@ -10,6 +10,9 @@ text     ``t x y p`` / ``t x y depth p`` text (+ calib.txt)          :mod:`.text
 mvsec    ``*_data.hdf5`` (``davis/left/events``) + gt_flow_dist.npz  :mod:`.mvsec`
 dsec     ``events.h5`` (``events/{x,y,t,p}``, ``ms_to_idx``) + PNG   :mod:`.dsec`
 aedat4   ``.aedat4`` (needs the optional package ``aedat``)          :mod:`.aedat4`
+raw      Prophesee ``.raw`` / ``.evt`` (EVT 2.0, 2.1, 3.0; ``faery``)  :mod:`.faery_formats`
+dat      Prophesee ``.dat`` starting with ``%`` (CD; ``faery``)       :mod:`.faery_formats`
+es       Event Stream ``.es`` (DVS, ATIS; ``faery``)                  :mod:`.faery_formats`
 ======== =========================================================== ==========================
 """
 
@@ -32,6 +35,9 @@ _READERS = {
     "mvsec": ("mvsec", "MVSECRecording"),
     "dsec": ("dsec", "DSECRecording"),
     "aedat4": ("aedat4", "AEDAT4Recording"),
+    "raw": ("faery_formats", "RawRecording"),
+    "dat": ("faery_formats", "DatRecording"),
+    "es": ("faery_formats", "EventStreamRecording"),
 }
 #: the supported format names
 FORMATS = tuple(_READERS)
@@ -56,9 +62,15 @@ def _hdf5_format(path: Path) -> str:
     raise _unknown(path, f"HDF5 file without 'davis/left/events' (MVSEC) or 'events/x' (DSEC); keys {keys}")
 
 
+def _starts_with(path: Path, prefix: bytes) -> bool:
+    with open(path, "rb") as f:
+        return f.read(len(prefix)) == prefix
+
+
 def detect_format(path: str | os.PathLike) -> str:
-    """The format name of ``path`` (a file or a folder), from its name and, for HDF5 and text, its
-    content. Raises FileNotFoundError for a missing path and ValueError for an unknown format."""
+    """The format name of ``path`` (a file or a folder), from its name and, for HDF5, text and
+    ``.dat``, its content (a Prophesee DAT file starts with a ``%`` header, a text file with a number
+    or ``#``). Raises FileNotFoundError for a missing path and ValueError for an unknown format."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
@@ -79,6 +91,12 @@ def detect_format(path: str | os.PathLike) -> str:
         return "aedat4"
     if suffix in (".h5", ".hdf5"):
         return _hdf5_format(path)
+    if suffix in (".raw", ".evt"):
+        return "raw"
+    if suffix == ".es" or _starts_with(path, b"Event Stream"):
+        return "es"
+    if suffix == ".dat" and _starts_with(path, b"%"):
+        return "dat"
     if suffix in (".txt", ".dat", ".csv", ""):
         return "ecd" if count_columns(path) == 4 else "text"
     raise _unknown(path, f"unknown file type {suffix!r}")
@@ -90,14 +108,16 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
     Parameters
     ----------
     path : path
-        A file (``events.txt``, ``*_data.hdf5``, ``events.h5``, ``*.aedat4``) or a folder holding
+        A file (``events.txt``, ``*_data.hdf5``, ``events.h5``, ``*.aedat4``, ``*.raw``, ``*.dat``,
+        ``*.es``) or a folder holding
         one (an ECD folder, a DSEC sequence).
     format : str, optional
         One of :data:`FORMATS`; detected from the path when None.
     **options
         Passed to the format's reader. Every reader takes ``sensor_size=(W, H)`` (px) and
         ``camera=`` (a :class:`~cmax_taichi.Camera`); text formats take ``columns=``,
-        ``undistorted=``, ``cache_dir=`` and ``cache=``; see each module.
+        ``undistorted=``, ``cache_dir=`` and ``cache=``; the ``faery`` formats (raw, dat, es) take
+        ``version=``, ``cache_dir=`` and ``cache=``; see each module.
 
     Returns
     -------

@@ -28,7 +28,7 @@ class Recording:
     path : pathlib.Path
         The file or folder that was opened.
     format : str
-        ``"ecd"``, ``"text"``, ``"mvsec"``, ``"dsec"`` or ``"aedat4"``.
+        ``"ecd"``, ``"text"``, ``"mvsec"``, ``"dsec"``, ``"aedat4"``, ``"raw"``, ``"dat"`` or ``"es"``.
     sensor_size : (int, int)
         ``(W, H)``, px.
     camera : Camera or None

@@ -158,6 +158,51 @@ class SequenceResult:
         path.write_text(json.dumps(self.as_dict(), indent=1))
         return path
 
+    def to_hdf5(self, path: str | os.PathLike) -> Path:
+        """Write one HDF5 dataset per column (length K, the windows): ``index``, ``t_start``,
+        ``t_end`` (s), ``n_events``, each parameter by name (attribute ``unit``), ``value``, ``fwl``,
+        ``iterations``, ``seconds``, ``converged``. File attributes: ``warp``, ``params``, ``units``,
+        ``columns`` (the dataset order) and each setting (numbers and strings as they are, anything
+        else as JSON text; all of them also in ``settings_json``). Returns the path."""
+        import h5py
+
+        diagnostics = ("index", "t_start", "t_end", "n_events", "value", "fwl", "iterations", "seconds")
+        clash = set(self.param_names) & {*diagnostics, "converged"}
+        if clash:
+            raise ValueError(f"parameter names {sorted(clash)} clash with the result columns")
+        ws = self.windows
+        theta = self.theta
+        columns: dict[str, tuple[np.ndarray, str]] = {
+            "index": (np.array([w.index for w in ws], dtype=np.int64), ""),
+            "t_start": (np.array([w.t_start for w in ws], dtype=np.float64), "s"),
+            "t_end": (np.array([w.t_end for w in ws], dtype=np.float64), "s"),
+            "n_events": (np.array([w.n_events for w in ws], dtype=np.int64), ""),
+        }
+        for i, (name, unit) in enumerate(zip(self.param_names, self.units, strict=True)):
+            columns[name] = (theta[:, i].astype(np.float64), unit)
+        columns.update(
+            value=(np.array([w.value for w in ws], dtype=np.float64), ""),
+            fwl=(np.array([w.fwl for w in ws], dtype=np.float64), ""),
+            iterations=(np.array([w.iterations for w in ws], dtype=np.int64), ""),
+            seconds=(np.array([w.seconds for w in ws], dtype=np.float64), "s"),
+            converged=(np.array([w.converged for w in ws], dtype=bool), ""),
+        )
+        path = Path(path)
+        with h5py.File(path, "w") as f:
+            for name, (data, unit) in columns.items():
+                ds = f.create_dataset(name, data=data)
+                if unit:
+                    ds.attrs["unit"] = unit
+            f.attrs["warp"] = self.warp
+            f.attrs["params"] = list(self.param_names)
+            f.attrs["units"] = list(self.units)
+            f.attrs["columns"] = list(columns)
+            f.attrs["settings_json"] = json.dumps(self.settings, default=str)
+            for key, value in self.settings.items():
+                plain = isinstance(value, (str, bool, int, float)) and not isinstance(value, np.generic)
+                f.attrs[f"setting_{key}"] = value if plain else json.dumps(value, default=str)
+        return path
+
 
 def read_results(path: str | os.PathLike) -> SequenceResult:
     """Read a JSON file written by :meth:`SequenceResult.to_json` (ValueError naming what is wrong)."""
