@@ -36,7 +36,9 @@ from cmax_taichi.pipeline.problem import ContrastMaximization, dense_flow
 
 __all__ = [
     "angular_velocity_error",
+    "COLLAPSE_AREA_SCALE",
     "COLLAPSE_SHARE",
+    "area_scale",
     "covered_area_ratio",
     "covered_share",
     "event_mask",
@@ -213,6 +215,22 @@ def angular_velocity_error(w_est, w_gt) -> dict[str, float | np.ndarray]:
 #: below this share of the identity warp's covered pixels still covered at an estimate, the estimate
 #: has gathered the events into a small area: "collapse" when its IWE is sharper than with no motion
 COLLAPSE_SHARE = 0.5
+
+
+#: below this mean area scale of the warp (see :func:`area_scale`) the estimate shrinks the events'
+#: areas to less than half: a collapse
+COLLAPSE_AREA_SCALE = 0.5
+
+
+def area_scale(prob: ContrastMaximization, theta) -> float:
+    """Mean area scale of the warp over the problem's events: the mean of ``|det dx'/dx|`` (unitless).
+
+    1 for warps that keep areas (translation, rotation about the optical axis); an event collapse
+    drives it towards 0, because the warp shrinks the neighbourhood of every event to a point.
+    """
+    from cmax_taichi.pipeline.jacobians import event_jacobians
+
+    return float(np.mean(np.abs(event_jacobians(prob, theta)["det"])))
 
 
 def covered_share(prob: ContrastMaximization, theta, min_count: float = 0.25) -> float:

@@ -45,6 +45,8 @@ def test_readme_quick_start_is_the_out_of_the_box_set_up():
         'python -m pip install -e ".[test]"',
         "cmax-taichi estimate --example rotation --out out/rotation",
         "cmax-taichi estimate --example collapse --out out/collapse",
+        "cmax-taichi estimate --example collapse --reg divergence=10 --reg deformation=10"
+        " --out out/collapse-reg",
         "cmax-taichi segment --example two-objects --out out/segment",
         "python -m pytest -q",
     ]

@@ -259,7 +259,7 @@ def _parameters_figure(path: Path, result) -> None:
 def run(args: argparse.Namespace) -> int:
     import cmax_taichi as cm
     from cmax_taichi.cli import CliError
-    from cmax_taichi.metrics import covered_area_ratio
+    from cmax_taichi.metrics import area_scale
     from cmax_taichi.solve.sequence import process
 
     regs = parse_regularizers(args.reg)
@@ -306,9 +306,9 @@ def run(args: argparse.Namespace) -> int:
     if args.n_init is not None:
         optimize_options["n_init"] = args.n_init
 
-    # per window, for the examples: the area the warped events cover at the estimate over the area they
-    # cover at the true parameters (a collapse gathers them into a small fraction of it)
-    covered: list[float] = []
+    # per window, for the examples: the mean area scale of the warp at the estimate (a collapse
+    # shrinks the events' neighbourhoods towards points: it drives the scale towards 0)
+    covered: list[tuple[float, float]] = []  # (estimate, truth)
     with source as rec:
         n_events = len(rec) if example is not None else rec.n_events
         camera = camera if camera is not None else rec.camera
@@ -320,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
 
         def on_window(row, prob, res):
             if example is not None:
-                covered.append(covered_area_ratio(prob, res.theta) / covered_area_ratio(prob, example.truth))
+                covered.append((area_scale(prob, res.theta), area_scale(prob, example.truth)))
             if figures_left[0] > 0:
                 fig_dir.mkdir(exist_ok=True)
                 _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
@@ -379,13 +379,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _report_example(example, result, covered: list[float], regs: dict, path: Path) -> Path:
+def _report_example(example, result, covered: list[tuple[float, float]], regs: dict, path: Path) -> Path:
     """Print the estimates of a simulated example against its truth; write them to ``path`` (JSON)."""
     import json
 
     import numpy as np
 
-    from cmax_taichi.metrics import COLLAPSE_SHARE
+    from cmax_taichi.metrics import COLLAPSE_AREA_SCALE
 
     truth = example.truth
     theta = result.theta
@@ -400,11 +400,12 @@ def _report_example(example, result, covered: list[float], regs: dict, path: Pat
             {"parameter": name, "unit": unit, "truth": float(truth[i]), "estimate": est, "error": err}
         )
         print(f"  {name + ' [' + unit + ']':<12}{truth[i]:>12.4g}{est:>20.4g}{err:>+12.3g}")
-    collapsed = [c < COLLAPSE_SHARE for c in covered]
+    scales = np.array(covered, dtype=np.float64).reshape(-1, 2)
+    collapsed = [bool(c < COLLAPSE_AREA_SCALE) for c in scales[:, 0]]
     print(
-        "  area covered by the warped events at the estimate / at the truth (median over windows): "
-        f"{float(np.median(covered)):.2f}\n  collapsed windows (below {COLLAPSE_SHARE}): "
-        f"{sum(collapsed)} of {len(collapsed)}"
+        "  mean area scale |det dx'/dx| of the warp over the events (median over windows): "
+        f"{np.median(scales[:, 0]):.3f} at the estimate, {np.median(scales[:, 1]):.3f} at the truth\n"
+        f"  collapsed windows (scale below {COLLAPSE_AREA_SCALE}): {sum(collapsed)} of {len(collapsed)}"
         + ("  (try --reg divergence=10 --reg deformation=10)" if any(collapsed) and not regs else "")
     )
     report = {
@@ -413,7 +414,8 @@ def _report_example(example, result, covered: list[float], regs: dict, path: Pat
         "warp": result.warp,
         "regularizers": regs,
         "parameters": rows,
-        "area_estimate_over_truth": covered,
+        "area_scale_estimate": scales[:, 0].tolist(),
+        "area_scale_truth": scales[:, 1].tolist(),
         "collapsed_windows": int(sum(collapsed)),
         "windows": len(collapsed),
     }
