@@ -11,11 +11,15 @@ examples:
   cmax-taichi estimate recording_data.hdf5 --warp mitrokhin4 --objective variance \\
       --reg divergence=10 --reg deformation=10 --window 30000 --arch cpu --out out_mvsec
   cmax-taichi evaluate out_boxes          # then compare against the recording's ground truth
+  cmax-taichi estimate rec_a rec_b rec_c --workers 2 --out out_batch   # several recordings at once:
+      # OUT/<name>/results.csv each, OUT/summary.csv; a re-run skips the windows already written
+  cmax-taichi estimate rec_* --engine ray --address auto --workers 16 --out /shared/out  (docs/BATCH.md)
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import sys
 from pathlib import Path
@@ -29,7 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "path",
         metavar="PATH",
-        help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4",
+        nargs="+",
+        help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4 "
+        "(several: a batch, see --workers)",
     )
     parser.add_argument(
         "--format", default=None, help="ecd | text | mvsec | dsec | aedat4 (default: detected)"
@@ -89,6 +95,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--figures", type=int, default=1, metavar="K", help="figures of the first K windows (default 1)"
     )
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    many = parser.add_argument_group(
+        "several recordings (batch: OUT/<name>/ per recording, OUT/summary.csv, resumable; docs/BATCH.md)"
+    )
+    many.add_argument(
+        "--workers", type=int, default=None, metavar="N", help="recordings estimated at once (default 1)"
+    )
+    many.add_argument(
+        "--engine",
+        default=None,
+        choices=["local", "ray"],
+        help="local: worker processes on this machine (default); ray: Ray actors (pip install .[ray])",
+    )
+    many.add_argument(
+        "--address", default=None, metavar="ADDR", help="Ray cluster address (e.g. auto); with --engine ray"
+    )
 
 
 def init_backend(arch: str | None, precision: str | None):
@@ -201,23 +222,8 @@ def _parameters_figure(path: Path, result) -> None:
     plt.close(fig)
 
 
-def run(args: argparse.Namespace) -> int:
-    import cmax_taichi as cm
-    from cmax_taichi.cli import CliError
-    from cmax_taichi.solve.sequence import process
-
-    regs = parse_regularizers(args.reg)
-    check_choices(args)
-    path = Path(args.path)
-    if not path.exists():
-        raise CliError(f"{path}: no such file or folder")
-    try:
-        from cmax_taichi import io
-    except ImportError as exc:  # pragma: no cover - the readers ship with the package
-        raise CliError(f"the dataset readers are not available ({exc})") from None
-    init_backend(args.arch, args.precision)
-    out = Path(args.out)
-    fig_dir = out / "figures"
+def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
+    """Keyword arguments of ``sequence.process`` (and ``solve.batch.run``) from the command line."""
     t_ref: str | float = args.t_ref if args.t_ref in ("first", "middle", "last") else float(args.t_ref)
     stride = None
     if args.stride is not None:
@@ -227,6 +233,118 @@ def run(args: argparse.Namespace) -> int:
         optimize_options["init"] = args.init
     if args.n_init is not None:
         optimize_options["n_init"] = args.n_init
+    return {
+        "warp": args.warp,
+        "objective": args.objective,
+        "regularizers": regs,
+        "n_events": args.window,
+        "duration": args.duration,
+        "stride": stride,
+        "method": args.method,
+        "warm_start": not args.no_warm_start,
+        "max_windows": args.max_windows,
+        "problem_options": {
+            "blur_sigma": args.blur,
+            "t_ref": t_ref,
+            "polarity": args.polarity,
+            "whitening": args.whitening,
+        },
+        "optimize_options": optimize_options,
+    }
+
+
+class BatchFigures:
+    """The figures of a single run, made inside each batch worker (module level, so that it pickles)."""
+
+    def __init__(self, first_windows: int) -> None:
+        self.first_windows = first_windows
+
+    def window(self, folder: Path, row, prob, res) -> None:
+        if row.index < self.first_windows:
+            (folder / "figures").mkdir(exist_ok=True)
+            _window_figure(folder / "figures" / f"window_{row.index:04d}.png", row, prob, res)
+
+    def finished(self, folder: Path, result) -> list[Path]:
+        if len(result.windows) < 2:
+            return []
+        (folder / "figures").mkdir(exist_ok=True)
+        _parameters_figure(folder / "figures" / "parameters.png", result)
+        return [folder / "figures" / "parameters.png"]
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """Several recordings (or --workers / --engine): delegate to cmax_taichi.solve.batch."""
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.solve import batch
+
+    regs = parse_regularizers(args.reg)
+    check_choices(args)
+    if args.address is not None and args.engine != "ray":
+        raise CliError("--address is a Ray cluster address: it needs --engine ray")
+    if args.engine == "ray" and importlib.util.find_spec("ray") is None:
+        raise CliError('--engine ray needs Ray: pip install "cmax-taichi[ray]" (or pip install ray)')
+    workers = 1 if args.workers is None else args.workers
+    if workers < 1:
+        raise CliError(f"--workers must be at least 1, got {workers}")
+    for p in args.path:
+        if not Path(p).exists():
+            raise CliError(f"{p}: no such file or folder")
+    result = batch.run(
+        args.path,
+        args.out,
+        workers=workers,
+        engine=args.engine or "local",
+        address=args.address,
+        format=args.format,
+        arch=args.arch,
+        precision=args.precision,
+        progress=not args.quiet,
+        hooks=BatchFigures(max(0, args.figures)),
+        **process_options(args, regs),
+    )
+    done = len(result.recordings) - len(result.failed)
+    print(
+        f"{done} of {len(result.recordings)} recording(s) done in {result.wall_seconds:.1f} s "
+        f"({result.engine} engine, {result.workers} worker(s)), warp {args.warp}"
+    )
+    for rec in result.recordings:
+        resumed = f", resumed at window {rec.resumed_from}" if rec.resumed_from else ""
+        if rec.new_windows == 0:
+            resumed = " (already complete)"
+        state = f"{rec.windows} window(s), {rec.new_windows} new{resumed}"
+        state = state if rec.status == "done" else f"FAILED: {rec.error}"
+        print(f"  {rec.name}: {state}")
+    print(f"wrote: {result.summary_csv}, {result.windows_csv}, {result.out}/<recording>/results.csv")
+    sys.stdout.flush()
+    if result.failed:
+        print(
+            f"estimate: error: {len(result.failed)} recording(s) failed: "
+            + "; ".join(f"{r.name}: {r.error}" for r in result.failed),
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    import cmax_taichi as cm
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.solve.sequence import process
+
+    if len(args.path) > 1 or args.workers is not None or args.engine is not None or args.address is not None:
+        return run_batch(args)
+    regs = parse_regularizers(args.reg)
+    check_choices(args)
+    path = Path(args.path[0])
+    if not path.exists():
+        raise CliError(f"{path}: no such file or folder")
+    try:
+        from cmax_taichi import io
+    except ImportError as exc:  # pragma: no cover - the readers ship with the package
+        raise CliError(f"the dataset readers are not available ({exc})") from None
+    init_backend(args.arch, args.precision)
+    out = Path(args.out)
+    fig_dir = out / "figures"
 
     with io.open_recording(path, format=args.format) as rec:
         if cm.get_warp(args.warp).needs_camera and rec.camera is None:
@@ -240,27 +358,7 @@ def run(args: argparse.Namespace) -> int:
                 _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
                 figures_left[0] -= 1
 
-        result = process(
-            rec,
-            args.warp,
-            objective=args.objective,
-            regularizers=regs,
-            n_events=args.window,
-            duration=args.duration,
-            stride=stride,
-            method=args.method,
-            warm_start=not args.no_warm_start,
-            max_windows=args.max_windows,
-            progress=not args.quiet,
-            problem_options={
-                "blur_sigma": args.blur,
-                "t_ref": t_ref,
-                "polarity": args.polarity,
-                "whitening": args.whitening,
-            },
-            optimize_options=optimize_options,
-            on_window=on_window,
-        )
+        result = process(rec, **process_options(args, regs), progress=not args.quiet, on_window=on_window)
     if not result.windows:
         raise CliError(
             f"{path}: no window to estimate ({rec.n_events} events; --window {args.window} is too large?)"

@@ -108,7 +108,9 @@ class RecordingSummary:
     windows : int
         Windows in the results (including those of earlier runs).
     resumed_from : int
-        Index of the first window estimated by this run (0 for a fresh run).
+        Index of the first window this run was to estimate (0 for a fresh run).
+    new_windows : int
+        Windows estimated by this run (0 when the checkpoint was already complete).
     seconds : float
         Wall time of this run's windows, s.
     error : str
@@ -122,6 +124,7 @@ class RecordingSummary:
     status: str
     windows: int = 0
     resumed_from: int = 0
+    new_windows: int = 0
     seconds: float = 0.0
     error: str = ""
     files: list[str] = field(default_factory=list)
@@ -401,6 +404,7 @@ def estimate_recording(
         _write_checkpoint(folder, result, key, len(result.windows), done=True)
         summary.status = "done"
         summary.windows = len(result.windows)
+        summary.new_windows = len(result.windows) - len(done_rows)
         summary.files = [str(f) for f in files]
     except (ValueError, TypeError, KeyError, OSError, RuntimeError) as exc:
         summary.error = f"{type(exc).__name__}: {exc}"
