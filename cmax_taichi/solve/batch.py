@@ -523,9 +523,10 @@ def _run_ray(
 
     started = False
     if not ray.is_initialized():
-        if address is None:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-        else:
+        if address is None and not os.environ.get("RAY_ADDRESS"):
+            # a new local instance sized to the workers, even when a cluster runs on this machine
+            ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
+        else:  # the given cluster (or $RAY_ADDRESS, as ray.init reads it)
             ray.init(address=address, log_to_driver=False)
         started = True
     try:
@@ -592,8 +593,8 @@ def run(
     workers : int
         Recordings estimated at once (worker processes or Ray actors, one CPU each).
     engine : {"local", "ray"}
-        ``"local"``: a pool of worker processes on this machine. ``"ray"``: Ray actors on a local Ray
-        instance with ``workers`` CPUs, or on the cluster at ``address``.
+        ``"local"``: a pool of worker processes on this machine. ``"ray"``: Ray actors on a new local
+        Ray instance with ``workers`` CPUs, or on the cluster at ``address`` (or ``$RAY_ADDRESS``).
     address : str, optional
         Ray cluster address (``"auto"``, ``"ray://head:10001"``, ...); only with ``engine="ray"``. The
         output folder must then be on storage that every node sees.
