@@ -103,9 +103,13 @@ def test_cli_local_engine_matches_serial_runs_and_rerun_skips(recordings, serial
 def test_killed_worker_is_replaced_and_its_recording_resumes(recordings, serial, tmp_path, monkeypatch):
     marker = tmp_path / "crashed"
     monkeypatch.setenv(batch.CRASH_HOOK_ENV, f"rec1:1:{marker}")  # rec1's worker dies after window 1
-    result = batch.run(recordings, tmp_path / "out", workers=2, progress=False, **OPTIONS)
+    broken = tmp_path / "broken.txt"
+    broken.write_text("0.1 3 4 1\nnot an event\n")  # a bad recording fails alone
+    paths = [*recordings, broken]
+    result = batch.run(paths, tmp_path / "out", workers=2, progress=False, **OPTIONS)
     assert marker.exists(), "the test hook did not fire"
-    assert not result.failed, result.recordings
+    assert [r.name for r in result.failed] == ["broken"], result.recordings
+    assert "broken.txt" in result.failed[0].error
     by_name = {r.name: r for r in result.recordings}
     assert by_name["rec1"].resumed_from == 2 and by_name["rec1"].new_windows == 1
     for p in recordings:

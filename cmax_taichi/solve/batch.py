@@ -247,6 +247,13 @@ def read_progress(folder: Path) -> tuple[int, int | None]:
         return 0, None
 
 
+def _mtime(path: Path) -> int:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return 0
+
+
 # ---------------------------------------------------------------------------------------------------
 # the worker
 
@@ -406,7 +413,7 @@ def estimate_recording(
         summary.windows = len(result.windows)
         summary.new_windows = len(result.windows) - len(done_rows)
         summary.files = [str(f) for f in files]
-    except (ValueError, TypeError, KeyError, OSError, RuntimeError) as exc:
+    except Exception as exc:  # one recording's failure (any error) must not stop the batch
         summary.error = f"{type(exc).__name__}: {exc}"
     return summary
 
@@ -448,7 +455,9 @@ class _Progress:
 
     def __init__(self, folders: Sequence[Path], stream: TextIO | None) -> None:
         self.folders = list(folders)
-        self.start = {f: read_progress(f)[0] for f in self.folders}
+        self.counts = {f: read_progress(f) for f in self.folders}
+        self.mtimes = {f: _mtime(f / CHECKPOINT_NAME) for f in self.folders}
+        self.start = {f: c for f, (c, _) in self.counts.items()}
         self.bar = ProgressBar(None, label="windows", stream=stream) if stream is not None else None
         self.seen = 0
         self.done = 0
@@ -456,7 +465,11 @@ class _Progress:
     def poll(self, recordings_done: int) -> None:
         if self.bar is None:
             return
-        counts = [read_progress(f) for f in self.folders]
+        for f in self.folders:  # re-read only the checkpoints that changed
+            mtime = _mtime(f / CHECKPOINT_NAME)
+            if mtime != self.mtimes[f]:
+                self.mtimes[f], self.counts[f] = mtime, read_progress(f)
+        counts = list(self.counts.values())
         written = sum(c for c, _ in counts) - sum(self.start.values())
         totals = [t for _, t in counts]
         if all(t is not None for t in totals):
@@ -468,6 +481,11 @@ class _Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+def _failed(task: tuple, error: str) -> RecordingSummary:
+    """The summary of a recording whose worker gave no answer."""
+    return RecordingSummary(name=Path(task[1]).name, path=task[0], status="failed", error=error)
 
 
 def _run_local(
@@ -496,18 +514,16 @@ def _run_local(
                         results[i] = fut.result()
                     except BrokenProcessPool:
                         broken = True  # a worker died: this recording resumes in a new pool
+                    except Exception as exc:  # e.g. hooks that do not pickle
+                        results[i] = _failed(tasks[i], f"{type(exc).__name__}: {exc}")
                 progress.poll(len(results))
         if broken:
             restarts += 1
             if restarts > max_restarts:
                 for i in range(len(tasks)):
                     if i not in results:
-                        results[i] = RecordingSummary(
-                            name=Path(tasks[i][1]).name,
-                            path=tasks[i][0],
-                            status="failed",
-                            error=f"worker process died {restarts} times (max_restarts={max_restarts})",
-                        )
+                        error = f"worker process died {restarts} times (max_restarts={max_restarts})"
+                        results[i] = _failed(tasks[i], error)
     return results
 
 
@@ -550,13 +566,12 @@ def _run_ray(
                     results[i] = ray.get(ref)
                     idle.append(actor)
                 except ray.exceptions.RayActorError as exc:  # restarts used up: a fresh actor goes on
-                    results[i] = RecordingSummary(
-                        name=Path(tasks[i][1]).name,
-                        path=tasks[i][0],
-                        status="failed",
-                        error=f"worker died (after {max_restarts} restarts): {str(exc).splitlines()[0]}",
-                    )
+                    error = f"worker died (after {max_restarts} restarts): {str(exc).splitlines()[0]}"
+                    results[i] = _failed(tasks[i], error)
                     idle.append(actor_class.remote(arch, precision))
+                except ray.exceptions.RayError as exc:  # e.g. arguments that do not pickle
+                    results[i] = _failed(tasks[i], f"{type(exc).__name__}: {str(exc).splitlines()[0]}")
+                    idle.append(actor)
             progress.poll(len(results))
         for actor in idle:  # every actor is idle now (dead ones were replaced)
             ray.kill(actor)
