@@ -25,6 +25,7 @@ from cmax_taichi.sim.simulate import (
     read_simulation,
     simulate_preset,
 )
+from cmax_taichi.solve.batch import run as batch_run
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
 from cmax_taichi.solve.segment import SegmentationResult, segment
 
@@ -50,6 +51,7 @@ __all__ = [
     "WARPS",
     "WarpModel",
     "backend_info",
+    "batch_run",
     "dense_flow",
     "event_jacobians",
     "get_warp",

@@ -15,12 +15,16 @@ examples:
       --reg divergence=10 --reg deformation=10 --window 30000 --arch cpu --out out_mvsec
   cmax-taichi evaluate out_boxes          # then compare against the recording's ground truth
   cmax-taichi estimate recording.raw --window 50000 --flow-out out_raw/flow --flow-format flo
+  cmax-taichi estimate rec_a rec_b rec_c --workers 2 --out out_batch   # several recordings at once:
+      # OUT/<name>/results.csv each, OUT/summary.csv; a re-run skips the windows already written
+  cmax-taichi estimate rec_* --engine ray --address auto --workers 16 --out /shared/out  (docs/BATCH.md)
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import math
 import sys
 from pathlib import Path
@@ -36,10 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "path",
         metavar="PATH",
-        nargs="?",
-        default=None,
+        nargs="*",
         help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4, "
-        "Prophesee *.raw / *.dat, *.es",
+        "Prophesee *.raw / *.dat, *.es (several: a batch, see --workers)",
     )
     parser.add_argument(
         "--example",
@@ -109,6 +112,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--figures", type=int, default=1, metavar="K", help="figures of the first K windows (default 1)"
     )
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    many = parser.add_argument_group(
+        "several recordings (batch: OUT/<name>/ per recording, OUT/summary.csv, resumable; docs/BATCH.md)"
+    )
+    many.add_argument(
+        "--workers", type=int, default=None, metavar="N", help="recordings estimated at once (default 1)"
+    )
+    many.add_argument(
+        "--engine",
+        default=None,
+        choices=["local", "ray"],
+        help="local: worker processes on this machine (default); ray: Ray actors (pip install .[ray])",
+    )
+    many.add_argument(
+        "--address", default=None, metavar="ADDR", help="Ray cluster address (e.g. auto); with --engine ray"
+    )
+
     run.add_argument(
         "--flow-out",
         default=None,
@@ -256,6 +275,114 @@ def _parameters_figure(path: Path, result) -> None:
     plt.close(fig)
 
 
+def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
+    """Keyword arguments of ``sequence.process`` (and ``solve.batch.run``) from the command line."""
+    t_ref: str | float = args.t_ref if args.t_ref in ("first", "middle", "last") else float(args.t_ref)
+    stride = None
+    if args.stride is not None:
+        stride = args.stride if args.duration is not None else int(args.stride)
+    optimize_options = {}
+    if args.init != "auto":
+        optimize_options["init"] = args.init
+    if args.n_init is not None:
+        optimize_options["n_init"] = args.n_init
+    return {
+        "warp": args.warp,
+        "objective": args.objective,
+        "regularizers": regs,
+        "n_events": args.window,
+        "duration": args.duration,
+        "stride": stride,
+        "method": args.method,
+        "warm_start": not args.no_warm_start,
+        "max_windows": args.max_windows,
+        "problem_options": {
+            "blur_sigma": args.blur,
+            "t_ref": t_ref,
+            "polarity": args.polarity,
+            "whitening": args.whitening,
+        },
+        "optimize_options": optimize_options,
+    }
+
+
+class BatchFigures:
+    """The figures of a single run, made inside each batch worker (module level, so that it pickles)."""
+
+    def __init__(self, first_windows: int) -> None:
+        self.first_windows = first_windows
+
+    def window(self, folder: Path, row, prob, res) -> None:
+        if row.index < self.first_windows:
+            (folder / "figures").mkdir(exist_ok=True)
+            _window_figure(folder / "figures" / f"window_{row.index:04d}.png", row, prob, res)
+
+    def finished(self, folder: Path, result) -> list[Path]:
+        if len(result.windows) < 2:
+            return []
+        (folder / "figures").mkdir(exist_ok=True)
+        _parameters_figure(folder / "figures" / "parameters.png", result)
+        return [folder / "figures" / "parameters.png"]
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """Several recordings (or --workers / --engine): delegate to cmax_taichi.solve.batch."""
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.solve import batch
+
+    regs = parse_regularizers(args.reg)
+    check_choices(args)
+    if args.example is not None:
+        raise CliError("--example estimates one simulated recording: not with --workers / --engine / PATHs")
+    if args.flow_out is not None:
+        raise CliError("--flow-out writes the flow of one recording: run the recordings one by one for it")
+    if args.address is not None and args.engine != "ray":
+        raise CliError("--address is a Ray cluster address: it needs --engine ray")
+    if args.engine == "ray" and importlib.util.find_spec("ray") is None:
+        raise CliError('--engine ray needs Ray: pip install "cmax-taichi[ray]" (or pip install ray)')
+    workers = 1 if args.workers is None else args.workers
+    if workers < 1:
+        raise CliError(f"--workers must be at least 1, got {workers}")
+    for p in args.path:
+        if not Path(p).exists():
+            raise CliError(f"{p}: no such file or folder")
+    result = batch.run(
+        args.path,
+        args.out,
+        workers=workers,
+        engine=args.engine or "local",
+        address=args.address,
+        format=args.format,
+        arch=args.arch,
+        precision=args.precision,
+        progress=not args.quiet,
+        hooks=BatchFigures(max(0, args.figures)),
+        **process_options(args, regs),
+    )
+    done = len(result.recordings) - len(result.failed)
+    print(
+        f"{done} of {len(result.recordings)} recording(s) done in {result.wall_seconds:.1f} s "
+        f"({result.engine} engine, {result.workers} worker(s)), warp {args.warp}"
+    )
+    for rec in result.recordings:
+        resumed = f", resumed at window {rec.resumed_from}" if rec.resumed_from else ""
+        if rec.new_windows == 0:
+            resumed = " (already complete)"
+        state = f"{rec.windows} window(s), {rec.new_windows} new{resumed}"
+        state = state if rec.status == "done" else f"FAILED: {rec.error}"
+        print(f"  {rec.name}: {state}")
+    print(f"wrote: {result.summary_csv}, {result.windows_csv}, {result.out}/<recording>/results.csv")
+    sys.stdout.flush()
+    if result.failed:
+        print(
+            f"estimate: error: {len(result.failed)} recording(s) failed: "
+            + "; ".join(f"{r.name}: {r.error}" for r in result.failed),
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     import cmax_taichi as cm
     from cmax_taichi.cli import CliError
@@ -265,7 +392,7 @@ def run(args: argparse.Namespace) -> int:
     regs = parse_regularizers(args.reg)
     example = None
     if args.example is not None:
-        if args.path is not None:
+        if args.path:
             raise CliError("give a recording PATH or --example NAME, not both")
         from cmax_taichi.sim.examples import EXAMPLES
 
@@ -274,9 +401,11 @@ def run(args: argparse.Namespace) -> int:
         args.warp = args.warp or EXAMPLES[args.example].warp
         if args.duration is None:
             args.duration = EXAMPLES[args.example].window
-    elif args.path is None:
+    elif not args.path:
         raise CliError("give a recording PATH, or --example NAME for a simulated one")
     args.warp = args.warp or "translation2"
+    if len(args.path) > 1 or args.workers is not None or args.engine is not None or args.address is not None:
+        return run_batch(args)
     check_choices(args)
     from cmax_taichi import io
 
@@ -289,23 +418,13 @@ def run(args: argparse.Namespace) -> int:
         source = contextlib.nullcontext(example.events)
         camera = example.camera
     else:
-        path = Path(args.path)
+        path = Path(args.path[0])
         if not path.exists():
             raise CliError(f"{path}: no such file or folder")
         source = io.open_recording(path, format=args.format)
         camera = None
     out = Path(args.out)
     fig_dir = out / "figures"
-    t_ref: str | float = args.t_ref if args.t_ref in ("first", "middle", "last") else float(args.t_ref)
-    stride = None
-    if args.stride is not None:
-        stride = args.stride if args.duration is not None else int(args.stride)
-    optimize_options = {}
-    if args.init != "auto":
-        optimize_options["init"] = args.init
-    if args.n_init is not None:
-        optimize_options["n_init"] = args.n_init
-
     # per window, for the examples: the mean area scale of the warp at the estimate (a collapse
     # shrinks the events' neighbourhoods towards points: it drives the scale towards 0)
     covered: list[tuple[float, float]] = []  # (estimate, truth)
@@ -329,26 +448,7 @@ def run(args: argparse.Namespace) -> int:
                 _write_window_flow(flow_dir / f"flow_{row.index:04d}.{args.flow_format}", row, prob, res)
 
         result = process(
-            rec,
-            args.warp,
-            camera=camera,
-            objective=args.objective,
-            regularizers=regs,
-            n_events=args.window,
-            duration=args.duration,
-            stride=stride,
-            method=args.method,
-            warm_start=not args.no_warm_start,
-            max_windows=args.max_windows,
-            progress=not args.quiet,
-            problem_options={
-                "blur_sigma": args.blur,
-                "t_ref": t_ref,
-                "polarity": args.polarity,
-                "whitening": args.whitening,
-            },
-            optimize_options=optimize_options,
-            on_window=on_window,
+            rec, **process_options(args, regs), camera=camera, progress=not args.quiet, on_window=on_window
         )
     if not result.windows:
         raise CliError(

@@ -15,7 +15,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -354,6 +354,8 @@ def process(
     optimize_options: Mapping[str, Any] | None = None,
     on_window: Callable[[WindowResult, ContrastMaximization, OptimizeResult], None] | None = None,
     format: str | None = None,
+    first_window: int = 0,
+    initial_theta: Sequence[float] | np.ndarray | None = None,
 ) -> SequenceResult:
     """Estimate the motion of every window of a recording.
 
@@ -394,6 +396,11 @@ def process(
         ``on_window(row, prob, result)`` after each window (e.g. to save figures).
     format : str, optional
         Format name when ``source`` is a path.
+    first_window : int
+        Skip (read but do not estimate) the windows before this index: resuming an interrupted run.
+    initial_theta : array_like, optional
+        Warm start of the first estimated window (physical units): the estimate of the window before
+        ``first_window``, so that a resumed run gives the same results as an uninterrupted one.
 
     Returns
     -------
@@ -420,7 +427,11 @@ def process(
                 problem_options=problem_options,
                 optimize_options=optimize_options,
                 on_window=on_window,
+                first_window=first_window,
+                initial_theta=initial_theta,
             )
+    if first_window < 0:
+        raise ValueError(f"first_window must be >= 0, got {first_window}")
     model = get_warp(warp)
     windows, total, rec_camera, desc = _windows_of(source, n_events, duration, stride)
     camera = camera if camera is not None else rec_camera
@@ -448,9 +459,11 @@ def process(
     bar = None
     if progress:
         bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
-    previous = None
+    previous = None if initial_theta is None else np.asarray(initial_theta, dtype=np.float64)
     try:
         for index, events in enumerate(_limited(windows, max_windows)):
+            if index < first_window:
+                continue  # done by an earlier, interrupted run
             t0 = time.perf_counter()
             if len(events) < 2 or not events.duration > 0:
                 continue  # nothing to estimate (a window with all events at one time stamp)
