@@ -6,7 +6,10 @@ for the local refinement. Three local methods:
 * ``"adam"``: Adam gradient ascent with a plateau schedule (the step halves when the value has not
   improved for ``patience`` iterations, restarting from the best point), keeping the best iterate;
 * ``"armijo"``: gradient ascent with a backtracking (Armijo) line search;
-* ``"lbfgs"``: SciPy's L-BFGS-B on ``-J`` (needs SciPy).
+* ``"lbfgs"``: SciPy's L-BFGS-B on ``-J`` (needs SciPy);
+* ``"bfgs"``: a dependency-free quasi-Newton ascent (BFGS updates of the inverse Hessian from the exact
+  gradients, backtracking line search): the warm-start refinement of a sequence, which converges from
+  a good start in about 5-20 evaluations.
 
 Internal units
 --------------
@@ -58,8 +61,8 @@ __all__ = [
     "search_bounds",
 ]
 
-METHODS = ("adam", "armijo", "lbfgs")
-INITS = ("auto", "grid", "random", "tpe", "local", "none")
+METHODS = ("adam", "armijo", "lbfgs", "bfgs")
+INITS = ("auto", "grid", "random", "tpe", "local", "warm", "none")
 
 #: default evaluation budget of the global search, per init
 _DEFAULT_N_INIT = {"grid": 1000, "random": 1000, "tpe": 200, "local": 300}
@@ -439,6 +442,65 @@ def _lbfgs(obj, u0, lo, hi, *, max_iter, gtol, rtol, rec) -> _Run:
     return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
 
 
+def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
+    """Quasi-Newton ascent: BFGS updates of the inverse Hessian of -J from exact gradients, a
+    backtracking (Armijo) line search, projection onto the box. The first step moves ``lr`` px."""
+    c1, max_backtracks = 1e-4, 30
+    u = np.clip(np.array(u0, dtype=np.float64), lo, hi)
+    val, g = obj.value_and_grad(u)
+    gnorm = float(np.linalg.norm(g))
+    n = u.size
+    H = np.eye(n) * (lr / max(gnorm, 1e-300))  # inverse curvature guess: the first step moves lr px
+    converged, message = False, f"reached max_iter={max_iter}"
+    stop = rec.add(u, val, gnorm)
+    for _ in range(max_iter):
+        if stop:
+            converged, message = False, "stopped by callback"
+            break
+        if not math.isfinite(val):
+            message = "the objective is not finite at the start"
+            break
+        if gnorm < gtol:
+            converged, message = True, f"gradient norm {gnorm:.3g} < gtol={gtol:g}"
+            break
+        direction = H @ g
+        if float(direction @ g) <= 0:  # lost positive definiteness: restart from a gradient step
+            H = np.eye(n) * (lr / max(gnorm, 1e-300))
+            direction = H @ g
+        alpha, accepted = 1.0, False
+        for _ in range(max_backtracks):
+            u_new = np.clip(u + alpha * direction, lo, hi)
+            step = u_new - u
+            if float(np.max(np.abs(step))) < xtol:
+                break
+            val_new, g_new = obj.value_and_grad(u_new)
+            if val_new >= val + c1 * float(g @ step):
+                accepted = True
+                break
+            alpha *= 0.5
+        if not accepted:
+            converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
+            break
+        gain = val_new - val
+        y = g - g_new  # gradient change of -J
+        sy = float(step @ y)
+        if sy > 1e-12 * float(np.linalg.norm(step) * np.linalg.norm(y)):
+            rho = 1.0 / sy
+            V = np.eye(n) - rho * np.outer(step, y)
+            H = V @ H @ V.T + rho * np.outer(step, step)
+        u, val, g = u_new, val_new, g_new
+        gnorm = float(np.linalg.norm(g))
+        stop = rec.add(u, val, gnorm)
+        if gain < rtol * max(1.0, abs(val)):
+            converged, message = True, f"relative change {gain / max(1.0, abs(val)):.3g} < rtol={rtol:g}"
+            break
+        if float(np.max(np.abs(step))) < xtol:
+            converged, message = True, f"step {float(np.max(np.abs(step))):.3g} px < xtol={xtol:g} px"
+            break
+    best = int(np.argmax(rec.values))
+    return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
+
+
 # --- global initialisation ---------------------------------------------------------------------------
 def _odd_points_per_dim(budget: int, n_dims: int) -> int:
     n = max(3, int(math.floor(budget ** (1.0 / n_dims) + 1e-9)))
@@ -534,6 +596,7 @@ def maximize(
     xtol: float = 0.01,
     patience: int = 5,
     min_spacing: float = 1.0,
+    candidates: Sequence[Sequence[float]] | None = None,
     seed: int = 0,
     callback: Callable[[int, np.ndarray, float], bool | None] | None = None,
 ) -> OptimizeResult:
@@ -546,15 +609,18 @@ def maximize(
         The problem (its warp, objective and regularizers define J).
     theta0 : array_like, optional
         Start or warm start (physical units), e.g. the previous window's estimate.
-    method : {"adam", "armijo", "lbfgs"}
+    method : {"adam", "armijo", "lbfgs", "bfgs"}
         Local ascent (see the module docstring). ``"lbfgs"`` needs SciPy.
-    init : {"auto", "grid", "random", "tpe", "local", "none"}
+    init : {"auto", "grid", "random", "tpe", "local", "warm", "none"}
         Global initialisation. ``"grid"``: a coarse grid over the box (``n_init`` points) refined by a
         beam of zooming grids down to ``min_spacing`` px; ``"random"``: ``n_init`` uniform samples;
         ``"tpe"``: ``n_init`` trials of optuna's TPE sampler (needs optuna); ``"local"``: a grid search
         in a box around ``theta0`` of half-width ``0.5 |u0| + 5`` px per parameter (inside the global
-        box); ``"none"``: start at ``theta0`` (or 0). ``"auto"`` is ``"grid"`` without ``theta0`` and
-        ``"local"`` with it. ``theta0`` (when given) and the identity are always candidates.
+        box); ``"warm"``: no search, one local run from the best of ``theta0``, ``candidates`` and the
+        identity (the refinement of a sequence's warm start); ``"none"``: start at ``theta0`` (or 0).
+        ``"auto"`` is ``"grid"`` without ``theta0`` and ``"local"`` with it. ``theta0`` (when given),
+        ``candidates`` and the identity are always evaluated; a result below the identity's J is never
+        reported as converged.
     bounds : (lo, hi), optional
         Global search box in physical units; default :func:`search_bounds`. Local runs stay inside it.
     n_init : int, optional
@@ -576,6 +642,8 @@ def maximize(
         Adam: iterations without improvement before the step halves.
     min_spacing : float
         Grid search: finest spacing, px.
+    candidates : sequence of array_like, optional
+        More starting points (physical units) evaluated with the search, e.g. earlier estimates.
     seed : int
         Seed of random and TPE searches.
     callback : callable, optional
@@ -623,34 +691,45 @@ def maximize(
     if init == "auto":
         init = "grid" if u0 is None else "local"
     if max_iter is None:
-        max_iter = 150 if method == "adam" else 100
+        max_iter = {"adam": 150, "bfgs": 50}.get(method, 100)
     max_iter = int(max_iter)
     rng = np.random.default_rng(seed)
 
+    if u0 is not None:
+        lo, hi = np.minimum(lo, 0.0), np.maximum(hi, 0.0)  # the identity is always a candidate
     extra = [np.zeros(P)] if np.all((lo <= 0) & (hi >= 0)) else []
     if u0 is not None:
         extra.append(u0)
+    for c in candidates or ():
+        arr = np.asarray(c, dtype=np.float64).reshape(-1)
+        if arr.size != P or not np.all(np.isfinite(arr)):
+            raise ValueError(f"candidates must hold {P} finite numbers each for warp {model.name!r}")
+        extra.append(np.clip(arr * scales, lo, hi))
+    if init == "warm" and u0 is None:
+        raise ValueError("init='warm' refines a warm start: pass theta0")
     budget = int(n_init) if n_init is not None else _DEFAULT_N_INIT.get(init, 0)
     if init == "grid":
-        candidates = _grid_search(
-            obj, lo, hi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=extra
-        )
+        found = _grid_search(obj, lo, hi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=extra)
     elif init == "local":
         centre = u0 if u0 is not None else np.zeros(P)
         half = 0.5 * np.abs(centre) + 5.0
         llo, lhi = np.maximum(lo, centre - half), np.minimum(hi, centre + half)
-        candidates = _grid_search(
-            obj, llo, lhi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=extra
-        )
+        found = _grid_search(obj, llo, lhi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=[])
+        # the identity and theta0 may lie outside the local box: evaluate them where they are
+        found += [(obj.value(u), np.array(u)) for u in extra]
+    elif init == "warm":
+        found = [(obj.value(u), np.array(u)) for u in extra]
+        n_starts = 1
     elif init == "random":
-        candidates = _random_search(obj, lo, hi, budget=budget, rng=rng, extra=extra)
+        found = _random_search(obj, lo, hi, budget=budget, rng=rng, extra=extra)
     elif init == "tpe":
-        candidates = _tpe_search(obj, lo, hi, budget=budget, seed=seed, extra=extra)
+        found = _tpe_search(obj, lo, hi, budget=budget, seed=seed, extra=extra)
     else:  # "none"
         start = u0 if u0 is not None else np.zeros(P)
-        candidates = [(obj.value(np.clip(start, lo, hi)), np.clip(start, lo, hi))]
+        found = [(obj.value(np.clip(start, lo, hi)), np.clip(start, lo, hi))]
+    identity_value = next((v for v, u in found if not np.any(u)), None)
     min_dist = np.maximum(min_spacing, 1e-9 * (hi - lo))
-    starts = _distinct_top(candidates, int(n_starts), min_dist)
+    starts = _distinct_top(found, int(n_starts), min_dist)
     if not starts:
         raise ValueError("the objective is not finite anywhere in the search box")
 
@@ -665,12 +744,20 @@ def maximize(
             run = _armijo(
                 obj, start, lo, hi, lr=lr, max_iter=max_iter, gtol=gtol, xtol=xtol, rtol=rtol, rec=rec
             )
+        elif method == "bfgs":
+            run = _bfgs(
+                obj, start, lo, hi, lr=lr, max_iter=max_iter, gtol=gtol, xtol=xtol, rtol=rtol, rec=rec
+            )
         else:
             run = _lbfgs(obj, start, lo, hi, max_iter=max_iter, gtol=gtol, rtol=rtol, rec=rec)
         if run.value < val0:  # never return worse than the start
             run.u, run.value = start.copy(), val0
         runs.append((run, val0, start))
     best, best_val0, best_start = max(runs, key=lambda r: r[0].value)
+    if identity_value is not None and best.value < identity_value:
+        # only possible when a start was clipped into a box that excludes the identity's neighbourhood
+        best.converged = False
+        best.message = f"J = {best.value:.6g} is below the identity's {identity_value:.6g}: not converged"
     us = np.array(best.us) if best.us else best_start[None, :]
     history = History(
         theta=us / scales,
