@@ -53,7 +53,7 @@ from cmax_taichi.core.events import Events
 from cmax_taichi.metrics import angular_velocity_error, event_mask, flow_error, flow_from_warp, fwl_problem
 from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 from cmax_taichi.pipeline.problem import ContrastMaximization
-from cmax_taichi.sim import simulate as sm
+from cmax_taichi import sim as sm
 from cmax_taichi.solve.optimize import maximize
 from cmax_taichi.solve.sequence import ProgressBar
 

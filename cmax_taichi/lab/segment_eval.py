@@ -280,7 +280,7 @@ def simulated_scene(
     few events of the static background (none without noise); ``x_ref, y_ref`` are the exact positions
     of each event's scene point at the window's first event time.
     """
-    from cmax_taichi.sim.simulate import Motion, multi_object_scene, simulate
+    from cmax_taichi.sim import Motion, multi_object_scene, simulate
 
     W, H = (int(v) for v in sensor_size)
     rng = np.random.default_rng(seed)
