@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import tempfile
 import warnings
@@ -120,3 +121,38 @@ def cached_table(
         if old.name not in (table_path.name, meta_path.name) and not old.name.startswith("."):
             old.unlink(missing_ok=True)
     return _map(table_path, int(meta["n"])), meta
+
+
+class CachedTableReads:
+    """The reads of a :class:`~cmax_taichi.io.base.Recording` whose events are a cached table
+    ``self._table`` (the ``(N, 4)`` float64 ``t x y p`` array of :func:`cached_table`, memory-mapped).
+
+    Listed before ``Recording`` among a reader's bases so that these methods replace its generic hooks.
+    """
+
+    _table: np.ndarray | None
+
+    @staticmethod
+    def table_span(meta: dict) -> dict:
+        """``n_events``, ``t_start`` and ``t_end`` (s; NaN without events) from the metadata that
+        :func:`cached_table` returns, as keyword arguments of ``Recording.__init__``."""
+        n = meta["n"]
+        return {
+            "n_events": n,
+            "t_start": meta["t_start"] if n else math.nan,
+            "t_end": meta["t_end"] if n else math.nan,
+        }
+
+    def _columns(self, start: int, stop: int):
+        rows = np.asarray(self._table[start:stop])
+        return rows[:, 1], rows[:, 2], rows[:, 0], rows[:, 3]
+
+    def _times(self, start: int, stop: int) -> np.ndarray:
+        return np.asarray(self._table[start:stop, 0])
+
+    def _search_time(self, t: float) -> int:
+        # a binary search on the mapped column touches only log2(N) pages
+        return int(np.searchsorted(self._table[:, 0], t, side="left"))
+
+    def _release(self) -> None:
+        self._table = None

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.core.events import Camera, Events, iter_count_windows, iter_time_windows
 
 #: rows read at once when a time is searched through ``_times`` (bounded memory)
 _SEARCH_BLOCK = 4096
@@ -181,32 +181,12 @@ class Recording:
         Events
         """
         if duration is not None:
-            duration = float(duration)
-            step = duration if stride is None else float(stride)
-            if not (np.isfinite(duration) and duration > 0):
-                raise ValueError(f"duration must be a positive number of seconds, got {duration}")
-            if not (np.isfinite(step) and step > 0):
-                raise ValueError(f"stride must be a positive number of seconds, got {step}")
-            if self.n_events == 0:
-                return
-            k = 0
-            while self.t_start + k * step <= self.t_end:
-                a = self.t_start + k * step
-                window = self.read_time(a, a + duration)
-                if len(window):
-                    yield window
-                k += 1
+            span = (self.t_start, self.t_end) if self.n_events else None
+            yield from iter_time_windows(self.read_time, span, duration, stride)
             return
         if n_events is None:
             raise ValueError("windows needs n_events or duration")
-        n = int(n_events)
-        step = n if stride is None else int(stride)
-        if n < 2:
-            raise ValueError(f"n_events must be at least 2, got {n}")
-        if step < 1:
-            raise ValueError(f"stride must be at least 1 event, got {step}")
-        for start in range(0, self.n_events - n + 1, step):
-            yield self.read(start, start + n)
+        yield from iter_count_windows(self.read, self.n_events, n_events, stride)
 
     # --- ground truth (None when the recording has none) ------------------------------------
     def angular_velocity(self, t) -> np.ndarray | None:

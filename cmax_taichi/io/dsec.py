@@ -133,7 +133,7 @@ class DSECRecording(Recording):
         self.events_file = _find_events_file(Path(path))
         ef = self.events_file
         self._file = _hdf5.open_h5(ef)
-        try:
+        with _hdf5.closed_on_error(self._file):
             self._x, self._y, self._t, self._p = (
                 _hdf5.dataset(self._file, f"events/{c}", ef, "not a DSEC events.h5 file?") for c in "xytp"
             )
@@ -176,9 +176,6 @@ class DSECRecording(Recording):
                 t_start=t_start,
                 t_end=t_end,
             )
-        except BaseException:
-            self._file.close()
-            raise
         self._flow_dir = self._locate_flow(flow_dir)
         self.flow_direction = flow_direction
         self._flow_index = None

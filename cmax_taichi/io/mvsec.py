@@ -69,7 +69,7 @@ class MVSECRecording(Recording):
     ) -> None:
         self.data_file = _find_data_file(Path(path))
         self._file = _hdf5.open_h5(self.data_file)
-        try:
+        with _hdf5.closed_on_error(self._file):
             key = f"davis/{side}/events"
             self._ds = _hdf5.dataset(self._file, key, self.data_file, "not an MVSEC *_data.hdf5 file?")
             if self._ds.ndim != 2 or self._ds.shape[1] != 4:
@@ -95,9 +95,6 @@ class MVSECRecording(Recording):
                 t_start=t_start,
                 t_end=t_end,
             )
-        except BaseException:
-            self._file.close()
-            raise
         if gt_flow is None:
             guess = self.data_file.with_name(self.data_file.name.replace("_data.hdf5", "_gt_flow_dist.npz"))
             gt_flow = guess if guess != self.data_file and guess.is_file() else None

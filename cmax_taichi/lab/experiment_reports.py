@@ -152,12 +152,26 @@ def rotation_table_csv(result: dict, path: Path) -> None:
 
 
 # --- sensitivity and complexity --------------------------------------------------------------------------
-def sensitivity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
+def _pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (the plots go to files)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _save_plot(fig, path: Path) -> Path:
+    """Lay out, write (110 dpi) and close ``fig``; returns ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    _pyplot().close(fig)
+    return path
+
+
+def sensitivity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
+    plt = _pyplot()
     regs = [label for label, _, _ in ROWS[2:]]
     lambdas = sorted({r["lambda"] for r in rows if r["lambda"] > 0})
     fig, axes = plt.subplots(2, len(FLOW_WARPS), figsize=(5.2 * len(FLOW_WARPS), 7), squeeze=False)
@@ -183,10 +197,7 @@ def sensitivity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
             ax.set_title(f"{WARP_LABEL[warp]} ({warp}), variance, indoor_flying")
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=7)
-    fig.tight_layout()
-    png = out / "sensitivity.png"
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    png = _save_plot(fig, out / "sensitivity.png")
     lines = [
         "### Sensitivity: AEE (px) / FWL against lambda (indoor_flying, variance)",
         "",
@@ -210,11 +221,7 @@ def sensitivity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
 
 
 def complexity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     sizes = sorted({r["n_events"] for r in rows})
     fig, ax = plt.subplots(figsize=(6, 4.2))
     for label, _ in COMPLEXITY_CONFIGS:
@@ -227,10 +234,7 @@ def complexity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
     ax.set_title(f"mitrokhin4, variance, 346x260 ({rows[0]['arch']}, {rows[0]['precision']})")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    png = out / "complexity.png"
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    png = _save_plot(fig, out / "complexity.png")
     lines = [
         "### Complexity: ms per objective-and-gradient evaluation (mitrokhin4, variance, 346x260)",
         "",

@@ -209,6 +209,40 @@ def _window_before(events: Events, t_end: float, n: int) -> Events:
     return events[max(0, i1 - n) : i1]
 
 
+def _simulated_intervals(preset: str, settings: Settings, n_intervals: int, label: str, progress: bool):
+    """Simulate ``preset`` for ``n_intervals`` evaluation intervals ``[t_k, t_k + dt]``, k = 1.. (dt = the
+    preset's ``dt_frames`` ground-truth frames), so that ``settings.n_events`` events precede each
+    interval's end.
+
+    Returns
+    -------
+    (SimulatedRecording, float, iterator)
+        The recording, dt (s), and per interval ``(t_a, t_b, interval events, optimisation window (the
+        last n_events events before t_b), mask of pixels with an event of the interval, ground-truth flow
+        from t_a to t_b (2, H, W) px)``.
+    """
+    p = sm.PRESETS[preset]
+    dt_gt = p.dt_frames / p.frame_rate
+    duration = (n_intervals + 1) * dt_gt + 1e-3
+    W, H = (round(v * settings.scale) for v in p.sensor_size)
+    _say(f"{label}: simulating {duration:.2f} s of {W}x{H} {preset} events", progress)
+    t0 = time.monotonic()
+    rec = sm.simulate_preset(
+        preset, duration=duration, seed=settings.seed, progress=progress, scale=settings.scale
+    )
+    _say(f"{label}: {len(rec)} events in {time.monotonic() - t0:.1f} s", progress)
+    all_events = rec.events()
+
+    def intervals():
+        for k in range(1, n_intervals + 1):
+            ta, tb = k * dt_gt, (k + 1) * dt_gt
+            interval = rec.events(ta, tb)
+            window = _window_before(all_events, tb, settings.n_events)
+            yield ta, tb, interval, window, event_mask(interval), rec.flow(ta, tb)
+
+    return rec, dt_gt, intervals()
+
+
 # --- tables 1 and 2 ----------------------------------------------------------------------------------
 def flow_table(
     preset: str, settings: Settings, progress: bool = True, lam: float | None = None
@@ -223,17 +257,7 @@ def flow_table(
     """
     lam = settings.lam if lam is None else lam
     p = sm.PRESETS[preset]
-    dt_gt = p.dt_frames / p.frame_rate
-    # intervals [t_k, t_k + dt], k = 1.., so that 30k events precede each interval's end
-    duration = (settings.windows + 1) * dt_gt + 1e-3
-    W, H = (round(v * settings.scale) for v in p.sensor_size)
-    _say(f"{preset}: simulating {duration:.2f} s of {W}x{H} events", progress)
-    t0 = time.monotonic()
-    rec = sm.simulate_preset(
-        preset, duration=duration, seed=settings.seed, progress=progress, scale=settings.scale
-    )
-    all_events = rec.events()
-    _say(f"{preset}: {len(rec)} events in {time.monotonic() - t0:.1f} s", progress)
+    rec, dt_gt, intervals = _simulated_intervals(preset, settings, settings.windows, preset, progress)
     per_obj = len(FLOW_WARPS) * len(ROWS)
     bar = _Bar(settings.windows * len(OBJECTIVES) * per_obj, preset, progress)
     acc: dict[tuple[str, str], dict[str, list]] = {}
@@ -242,13 +266,7 @@ def flow_table(
     def add(key, objective, values):
         acc.setdefault(key, {o: [] for o in OBJECTIVES})[objective].append(values)
 
-    for w in range(settings.windows):
-        ta = (w + 1) * dt_gt
-        tb = ta + dt_gt
-        interval = rec.events(ta, tb)
-        window = _window_before(all_events, tb, settings.n_events)
-        mask = event_mask(interval)
-        gt_flow = rec.flow(ta, tb)
+    for w, (ta, tb, interval, window, mask, gt_flow) in enumerate(intervals):
         fprob = fwl_problem(interval, p.motion.warp)
         gt_theta = rec.theta_at(interval.t[0])
         gt_fwl = fprob.value(gt_theta)
@@ -350,23 +368,11 @@ def sensitivity(settings: Settings, progress: bool = True) -> list[dict]:
     lambda), means over the intervals; lambda 0 is the unregularized estimate."""
     s = replace(settings, windows=settings.sensitivity_windows)
     p = sm.PRESETS["indoor_flying"]
-    dt_gt = p.dt_frames / p.frame_rate
-    duration = (s.windows + 1) * dt_gt + 1e-3
-    _say(f"sensitivity: simulating {duration:.2f} s of indoor_flying", progress)
-    rec = sm.simulate_preset(
-        "indoor_flying", duration=duration, seed=s.seed, progress=progress, scale=s.scale
-    )
-    all_events = rec.events()
+    rec, dt_gt, intervals = _simulated_intervals("indoor_flying", s, s.windows, "sensitivity", progress)
     combos = [("none", (), 0.0)] + [(label, names, lam) for label, names, _ in ROWS[2:] for lam in s.lambdas]
     bar = _Bar(s.windows * len(FLOW_WARPS) * len(combos), "sensitivity", progress)
     acc: dict[tuple, list] = {}
-    for w in range(s.windows):
-        ta = (w + 1) * dt_gt
-        tb = ta + dt_gt
-        interval = rec.events(ta, tb)
-        window = _window_before(all_events, tb, settings.n_events)
-        mask = event_mask(interval)
-        gt_flow = rec.flow(ta, tb)
+    for w, (_, _, interval, window, mask, gt_flow) in enumerate(intervals):
         ident = flow_error(np.zeros_like(gt_flow), gt_flow, mask)["AEE"]
         gt_fwl = fwl_problem(interval, p.motion.warp).value(rec.theta_at(interval.t[0]))
         acc.setdefault(("identity",), []).append((ident, 1.0))
