@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import math
 import os
 import tempfile
 import warnings
@@ -20,6 +19,8 @@ from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
+
+from cmax_taichi.io.base import event_span
 
 #: bump when the table layout or a decoder's output changes (old entries are then ignored)
 CACHE_VERSION = 1
@@ -136,12 +137,7 @@ class CachedTableReads:
     def table_span(meta: dict) -> dict:
         """``n_events``, ``t_start`` and ``t_end`` (s; NaN without events) from the metadata that
         :func:`cached_table` returns, as keyword arguments of ``Recording.__init__``."""
-        n = meta["n"]
-        return {
-            "n_events": n,
-            "t_start": meta["t_start"] if n else math.nan,
-            "t_end": meta["t_end"] if n else math.nan,
-        }
+        return event_span(meta["n"], lambda i: meta["t_start"] if i == 0 else meta["t_end"])
 
     def _columns(self, start: int, stop: int):
         rows = np.asarray(self._table[start:stop])

@@ -8,8 +8,9 @@ all formats behave the same.
 
 from __future__ import annotations
 
+import math
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,17 @@ from cmax_taichi.core.events import Camera, Events, iter_count_windows, iter_tim
 
 #: rows read at once when a time is searched through ``_times`` (bounded memory)
 _SEARCH_BLOCK = 4096
+
+
+def event_span(n_events: int, time_of: Callable[[int], float]) -> dict:
+    """``n_events``, ``t_start`` and ``t_end`` as keyword arguments of :class:`Recording`: ``time_of(i)`` is
+    the time (s) of event ``i``, read for the first and the last event only; NaN times without events."""
+    n = int(n_events)
+    return {
+        "n_events": n,
+        "t_start": float(time_of(0)) if n else math.nan,
+        "t_end": float(time_of(n - 1)) if n else math.nan,
+    }
 
 
 class Recording:

@@ -23,7 +23,7 @@ import numpy as np
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
 from cmax_taichi.io._flow import NpzFrames, accumulate_flow
-from cmax_taichi.io.base import Recording
+from cmax_taichi.io.base import Recording, event_span
 
 SENSOR_SIZE = (346, 260)
 
@@ -77,8 +77,7 @@ class MVSECRecording(Recording):
                     f"{self.data_file}: '{key}' has shape {self._ds.shape}; expected (N, 4) x y t p"
                 )
             n = self._ds.shape[0]
-            t_start = float(_hdf5.read(self._ds, (0, 2), self.data_file)) if n else np.nan
-            t_end = float(_hdf5.read(self._ds, (n - 1, 2), self.data_file)) if n else np.nan
+            span = event_span(n, lambda i: _hdf5.read(self._ds, (i, 2), self.data_file))
             calib_key = f"davis/{side}/calibration"
             if camera is None and calib_key in self._file:
                 values = np.ravel(_hdf5.read(self._file[calib_key], (), self.data_file))
@@ -91,9 +90,7 @@ class MVSECRecording(Recording):
                 sensor_size=sensor_size,
                 camera=camera,
                 undistorted=False,
-                n_events=n,
-                t_start=t_start,
-                t_end=t_end,
+                **span,
             )
         if gt_flow is None:
             guess = self.data_file.with_name(self.data_file.name.replace("_data.hdf5", "_gt_flow_dist.npz"))

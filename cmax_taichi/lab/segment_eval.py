@@ -82,12 +82,12 @@ def synthetic_scene(
     sensor_size: tuple[int, int] = (240, 180),
     duration: float = 0.03,
     *,
-    speed: tuple[float, float] = (250.0, 600.0),
     zoom: float = 0.0,
     rotation: float = 0.0,
     noise_fraction: float = 0.02,
     jitter: float = 0.3,
     seed: int = 0,
+    speed: tuple[float, float] = (250.0, 600.0),
 ) -> SyntheticScene:
     """Objects of random edges moving independently over a static, event-free background.
 
@@ -101,9 +101,6 @@ def synthetic_scene(
         ``(W, H)``, px.
     duration : float
         Window length, s.
-    speed : (float, float)
-        Range of the objects' speeds, px/s; directions are spread around the circle so that the
-        objects' velocities differ.
     zoom, rotation : float
         Largest magnitude of each object's expansion rate (1/s) and in-plane rotation (rad/s) about
         its own centre (0: pure translation).
@@ -113,6 +110,9 @@ def synthetic_scene(
         Gaussian position noise of the object events, px.
     seed : int
         Random seed.
+    speed : (float, float)
+        Range of the objects' speeds, px/s; directions are spread around the circle so that the
+        objects' velocities differ.
     """
     if not 1 <= int(n_objects) <= 4:
         raise ValueError(f"n_objects must be 1 to 4, got {n_objects}")
@@ -262,9 +262,9 @@ def simulated_scene(
     n_events: int = 30000,
     sensor_size: tuple[int, int] = (240, 180),
     *,
-    speed: tuple[float, float] = (250.0, 400.0),
     rotation: float = 1.5,
     zoom: float = 2.0,
+    speed: tuple[float, float] = (250.0, 400.0),
     contrast_threshold: float = 0.5,
     skip: float = 0.01,
     seed: int = 0,
