@@ -22,6 +22,9 @@ Outputs in ``--out``: ``results.csv`` (one row per implementation and configurat
 ``results.md`` (machine, date, versions, tables), ``results.png`` (time and speed-up against N).
 The generic Taichi kernel chain (the autodiff chain the fused kernels replaced) runs as a fourth
 implementation, ``taichi-chain``, on the smaller windows: it is the "before" of the optimisation.
+
+This module holds the plans, the timing and the run; :mod:`cmax_taichi.lab.bench_impls` the
+implementations and their agreement check; :mod:`cmax_taichi.lab.bench_report` the report.
 """
 
 from __future__ import annotations

@@ -32,6 +32,9 @@ box, then Adam from the best candidates). The regularizer weight is ``lam``, by 
 :data:`cmax_taichi.RECOMMENDED_LAMBDA`, which ``python -m cmax_taichi.lab.experiments_real``
 selects on the real MVSEC cut before these simulated tables are made (the paper's weights are not
 known).
+
+The paper's numbers and the layout of its tables are in :mod:`cmax_taichi.lab.paper`; the Markdown,
+CSV and plots are written by :mod:`cmax_taichi.lab.experiment_reports`.
 """
 
 from __future__ import annotations
