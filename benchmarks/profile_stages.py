@@ -46,19 +46,19 @@ def main(argv: list[str] | None = None) -> int:
     import taichi as ti
 
     from cmax_taichi.core import backend
-    from cmax_taichi.lab import bench
+    from cmax_taichi.lab import bench_impls
 
-    if args.sensor not in bench.SENSORS:
-        parser.error(f"--sensor must be one of {', '.join(bench.SENSORS)}")
-    if args.warp not in bench.THETAS:
-        parser.error(f"--warp must be one of {', '.join(bench.THETAS)}")
+    if args.sensor not in bench_impls.SENSORS:
+        parser.error(f"--sensor must be one of {', '.join(bench_impls.SENSORS)}")
+    if args.warp not in bench_impls.THETAS:
+        parser.error(f"--warp must be one of {', '.join(bench_impls.THETAS)}")
     if args.events < 1 or args.repeats < 1:
         parser.error("--events and --repeats must be at least 1")
     backend.init(precision="f64", kernel_profiler=True)
-    cfg = bench.BenchConfig(args.events, args.sensor, args.warp, args.regs)
-    win = bench.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
-    impl = bench.build_taichi(win, cfg)
-    theta = np.asarray(bench.THETAS[args.warp], dtype=np.float64)
+    cfg = bench_impls.BenchConfig(args.events, args.sensor, args.warp, args.regs)
+    win = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+    impl = bench_impls.build_taichi(win, cfg)
+    theta = np.asarray(bench_impls.THETAS[args.warp], dtype=np.float64)
     impl.vg(theta)  # compile
     walls = []
     for _ in range(args.repeats):

@@ -18,7 +18,7 @@ from cmax_taichi.models.regularizers import (
 from cmax_taichi.models.warps import WARPS, WarpModel, get_warp, register_warp, warp_names
 from cmax_taichi.pipeline.jacobians import event_jacobians
 from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
-from cmax_taichi.sim.simulate import (
+from cmax_taichi.sim import (
     SimulatedRecording,
     Simulator,
     SimulatorConfig,

@@ -2,8 +2,8 @@
 
 Matplotlib only, imported inside the functions (``import cmax_taichi`` never imports matplotlib, and
 ``from cmax_taichi import viz`` imports no pyplot either). Every ``show_*`` / ``plot_*`` function draws
-into a given :class:`matplotlib.axes.Axes` and returns the artist it made, so that interactive code can
-update it in place (``artist.set_data(...)``) instead of redrawing.
+into the :class:`matplotlib.axes.Axes` given as its first argument ``ax`` and returns the artist it
+made, so that interactive code can update it in place (``artist.set_data(...)``) instead of redrawing.
 
 Conventions (docs/FORMULAS.md): images are ``(H, W)`` arrays indexed ``[y, x]`` and drawn with the
 origin at the top left, as the sensor sees them; flows are ``(2, H, W)`` arrays (x then y component) in
@@ -98,8 +98,6 @@ def show_iwe(
 
     Parameters
     ----------
-    ax : Axes
-        Target axes.
     image : ndarray
         ``(H, W)`` IWE (event votes per pixel), or ``(2, H, W)`` per-polarity images, drawn as positive
         minus negative. Counts are drawn dark on white (``gray_r``); images with negative values (signed
@@ -196,8 +194,6 @@ def show_flow(
 
     Parameters
     ----------
-    ax : Axes
-        Target axes.
     flow : ndarray
         ``(2, H, W)`` flow (x, y components) in ``unit``.
     max_magnitude : float, optional
@@ -310,8 +306,6 @@ def show_map(
 
     Parameters
     ----------
-    ax : Axes
-        Target axes.
     values : ndarray
         ``(H, W)`` map.
     neutral : float
@@ -369,8 +363,6 @@ def show_regularizer_map(
 
     Parameters
     ----------
-    ax : Axes
-        Target axes.
     maps : mapping
         The dict returned by ``prob.maps(theta)`` (needs ``maps[name]``, ``maps["count"]``).
     name : str
@@ -553,8 +545,6 @@ def plot_landscape_1d(
 
     Parameters
     ----------
-    ax : Axes
-        Target axes.
     values : array_like
         Parameter values (x axis).
     curves : ndarray or mapping label -> ndarray
@@ -630,8 +620,6 @@ def plot_landscape_2d(
 
     Parameters
     ----------
-    ax : Axes
-        Target axes.
     values_x, values_y : array_like
         Grid values (evenly spaced), model units.
     grid : ndarray

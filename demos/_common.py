@@ -62,8 +62,36 @@ def save_figure(fig, path: str, dpi: int, compact: bool = False) -> None:
     print(f"saved {path}")
 
 
+def start(parser, argv, name: str):
+    """Parse ``argv`` and pick the matplotlib backend (:func:`setup_matplotlib`).
+
+    Returns ``(args, interactive)``; ``(None, False)`` when there is neither a display nor ``--save``
+    (the demo then returns 2; the message is printed here).
+    """
+    args = parser.parse_args(argv)
+    interactive = setup_matplotlib(args.save)
+    if not interactive and args.save is None:
+        no_display_exit(name)
+        return None, False
+    return args, interactive
+
+
+def show_or_save(fig, args) -> int:
+    """Save the figure when ``--save`` was given, else show it in a window; the demo's exit code."""
+    if args.save:
+        save_figure(fig, args.save, args.dpi, args.compact)
+        return 0
+    import matplotlib.pyplot as plt
+
+    plt.show()
+    return 0
+
+
 def add_save_arguments(parser) -> None:
-    """``--save``, ``--dpi``, ``--compact`` (shared by every demo)."""
+    """``--max-events``, ``--save``, ``--dpi``, ``--compact`` (shared by every demo)."""
+    parser.add_argument(
+        "--max-events", type=int, help="use every k-th event so that at most this many remain"
+    )
     parser.add_argument("--save", metavar="PNG", help="render headless into this file instead of a window")
     parser.add_argument("--dpi", type=int, default=80, help="resolution of --save (default 80)")
     parser.add_argument("--compact", action="store_true", help="--save a 256-colour PNG (smaller file)")
@@ -87,6 +115,18 @@ class Scene:
     truth: np.ndarray | None = None  # ground-truth parameters (model units), when known
     truth_label: str = "ground truth"
     extra: dict = field(default_factory=dict)
+
+
+def subsample_scene(scene: Scene, max_events: int | None, note: bool = True) -> None:
+    """:func:`subsample` the scene's events in place, and its per-event ``extra["labels"]`` with them;
+    ``note``: say so in the scene's name (whenever ``max_events`` is given)."""
+    n = len(scene.events)
+    scene.events = subsample(scene.events, max_events)
+    labels = scene.extra.get("labels")
+    if labels is not None and max_events and n > max_events:
+        scene.extra["labels"] = labels[:: int(np.ceil(n / max_events))]
+    if note and max_events:
+        scene.name = f"{scene.name.split(',')[0]}, {len(scene.events)} events (subsampled)"
 
 
 # --- MVSEC indoor_flying1 (collapse explorer) ---------------------------------------------------------------

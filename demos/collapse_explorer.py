@@ -312,9 +312,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--lam", type=float, default=5.0, help="weight λ of each regularizer (default 5)")
     parser.add_argument("--samples", type=int, default=0, help="points per objective curve (default 81 / 41)")
     parser.add_argument(
-        "--max-events", type=int, help="use every k-th event so that at most this many remain"
-    )
-    parser.add_argument(
         "--synthetic", action="store_true", help="use the synthetic scene even if MVSEC is present"
     )
     parser.add_argument(
@@ -328,16 +325,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    interactive = _common.setup_matplotlib(args.save)
-    if not interactive and args.save is None:
-        return _common.no_display_exit("collapse_explorer")
+    args, interactive = _common.start(build_parser(), argv, "collapse_explorer")
+    if args is None:
+        return 2
     scene = None if args.synthetic else _common.load_mvsec()
     if scene is None:
         scene = _common.synthetic_zoom()
-    scene.events = _common.subsample(scene.events, args.max_events)
-    if args.max_events:
-        scene.name = f"{scene.name.split(',')[0]}, {len(scene.events)} events (subsampled)"
+    _common.subsample_scene(scene, args.max_events)
     n_params = cm.get_warp(args.warp).n_params
     theta = np.zeros(n_params) if args.theta is None else np.asarray(args.theta, dtype=np.float64)
     if theta.size != n_params:
@@ -349,13 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.optimize:
         label = {"none": 0, "divergence": 1, "deformation": 2, "both": 3}[args.optimize]
         explorer.optimize(explorer.labels[label])
-    if args.save:
-        _common.save_figure(explorer.fig, args.save, args.dpi, args.compact)
-        return 0
-    import matplotlib.pyplot as plt
-
-    plt.show()
-    return 0
+    return _common.show_or_save(explorer.fig, args)
 
 
 if __name__ == "__main__":

@@ -156,24 +156,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="none: local ascent from 0 (default); auto/grid/random: global search first",
     )
     parser.add_argument("--grid", type=int, default=25, help="landscape grid points per axis (default 25)")
-    parser.add_argument(
-        "--max-events", type=int, help="use every k-th event so that at most this many remain"
-    )
     _common.add_save_arguments(parser)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    interactive = _common.setup_matplotlib(args.save)
-    if not interactive and args.save is None:
-        return _common.no_display_exit("rotation_estimation")
+    args, _ = _common.start(build_parser(), argv, "rotation_estimation")
+    if args is None:
+        return 2
     scene = None if args.synthetic else _common.load_ecd(args.sequence)
     if scene is None:
         scene = _common.synthetic_rotation()
-    scene.events = _common.subsample(scene.events, args.max_events)
-    if args.max_events:
-        scene.name = f"{scene.name.split(',')[0]}, {len(scene.events)} events (subsampled)"
+    _common.subsample_scene(scene, args.max_events)
 
     names = REGULARIZERS[args.regularizer]
     weights = None if names is None else {n: args.lam for n in names}
@@ -188,13 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{scene.truth_label}: " + ", ".join(f"{v:+.3f}" for v in scene.truth) + " rad/s")
 
     fig = build_figure(scene, prob, result, label, args.grid, args.init)
-    if args.save:
-        _common.save_figure(fig, args.save, args.dpi, args.compact)
-        return 0
-    import matplotlib.pyplot as plt
-
-    plt.show()
-    return 0
+    return _common.show_or_save(fig, args)
 
 
 if __name__ == "__main__":

@@ -131,24 +131,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--warp", default="translation2", help="motion model of every cluster")
     parser.add_argument("--lam", type=float, default=0.0, help="λ of both collapse regularizers (default 0)")
     parser.add_argument("--iterations", type=int, default=12, help="most alternations (default 12)")
-    parser.add_argument(
-        "--max-events", type=int, help="use every k-th event so that at most this many remain"
-    )
     _common.add_save_arguments(parser)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    interactive = _common.setup_matplotlib(args.save)
-    if not interactive and args.save is None:
-        return _common.no_display_exit("segmentation_viewer")
+    args, _ = _common.start(build_parser(), argv, "segmentation_viewer")
+    if args is None:
+        return 2
     scene = _common.synthetic_two_objects()
+    _common.subsample_scene(scene, args.max_events, note=False)
     truth = scene.extra["labels"]
-    if args.max_events and len(scene.events) > args.max_events:
-        step = int(np.ceil(len(scene.events) / args.max_events))
-        truth = truth[::step]
-    scene.events = _common.subsample(scene.events, args.max_events)
     regs = {"divergence": args.lam, "deformation": args.lam} if args.lam > 0 else None
     result = segment(
         scene.events, args.clusters, warp=args.warp, regularizers=regs, max_iterations=args.iterations
@@ -157,13 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if truth is not None:
         print(f"agreement with the true labels: {100 * agreement(result.labels, truth, args.clusters):.1f}%")
     fig = build_figure(scene, result, truth)
-    if args.save:
-        _common.save_figure(fig, args.save, args.dpi, args.compact)
-        return 0
-    import matplotlib.pyplot as plt
-
-    plt.show()
-    return 0
+    return _common.show_or_save(fig, args)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ import importlib.util
 import numpy as np
 import pytest
 
-from cmax_taichi.lab import bench
+from cmax_taichi.lab import bench, bench_report
 
 pytestmark = pytest.mark.usefixtures("f64")
 
@@ -130,7 +130,7 @@ def test_segmentation_table_of_the_full_run():
             "value_and_grad_cpu_ms": 40.5,
         }
     ]
-    lines = bench.segmentation_markdown(rows)
+    lines = bench_report.segmentation_markdown(rows)
     assert lines[-1] == "| 30000 | 3 | 1.95 | 2.69 | 10 | 23.1 | 40.5 | 0.450 |"
     assert bench.full_plan().segment and not bench.quick_plan().segment
 

@@ -12,6 +12,7 @@ import pytest
 from conftest import shared_data_dir
 
 from cmax_taichi.cli import main
+from cmax_taichi.lab import experiment_reports as reports
 from cmax_taichi.lab import experiments as ex
 
 SPEC = Path(__file__).resolve().parents[2] / "shared" / "paper" / "SPEC.md"
@@ -62,7 +63,7 @@ def test_paper_numbers_are_the_ones_of_the_spec(title, table):
 
 def _fake_flow_result(value: float) -> dict:
     row = {o: (value, 50.0, 10.0, 1.0, 1.1) for o in ex.OBJECTIVES}
-    result = {key: row for key, _ in ex._row_keys()}
+    result = {key: row for key, _ in reports.row_keys()}
     result[("GT", "")] = {o: (math.nan,) * 4 + (1.2,) for o in ex.OBJECTIVES}
     return result
 
@@ -92,7 +93,7 @@ def test_search_check_tells_a_missed_maximum_from_a_preferred_collapse():
             },
         }
     ]
-    lines = "\n".join(ex.search_check(meta))
+    lines = "\n".join(reports.search_check(meta))
     assert "prefers the collapse to the truth (1): variance/zoom1/Divergence (interval 1)" in lines
     assert "missed it (1): variance/mitrokhin4/Deformation (interval 1): J 1.1000 < 1.2000" in lines
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import cmax_taichi as cm
-from cmax_taichi.sim import simulate as sm
+from cmax_taichi import sim as sm
 
 SMALL = (96, 72)
 IDEAL = dict(threshold_sigma=0.0, refractory=0.0, noise_rate=0.0, contrast_threshold=0.3)

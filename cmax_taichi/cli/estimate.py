@@ -29,6 +29,11 @@ import math
 import sys
 from pathlib import Path
 
+from cmax_taichi.cli import _common as common
+from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
+from cmax_taichi.pipeline.problem import POLARITY_MODES
+from cmax_taichi.solve.optimize import INITS, METHODS
+
 NAME = "estimate"
 HELP = "estimate the motion of every window of a recording (results as CSV/JSON, figures)"
 
@@ -37,41 +42,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     from cmax_taichi.sim.examples import EXAMPLES
 
-    parser.add_argument(
-        "path",
-        metavar="PATH",
-        nargs="*",
-        help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4, "
-        "Prophesee *.raw / *.dat, *.es (several: a batch, see --workers)",
-    )
-    parser.add_argument(
-        "--example",
-        default=None,
-        metavar="NAME",
-        help="instead of PATH, a recording simulated on the fly (fixed seed, exact truth), estimated and "
-        "printed against the truth: "
-        + "; ".join(f"{name}: {ex.description}" for name, ex in EXAMPLES.items()),
-    )
-    parser.add_argument(
-        "--format",
-        default=None,
-        help="ecd | text | mvsec | dsec | aedat4 | raw | dat | es (default: detected)",
-    )
-    parser.add_argument(
-        "--warp",
-        default=None,
-        help="motion model: zoom1, translation2, rotation3 (needs a calibration), se2, sim2, mitrokhin4 "
-        "(default translation2, or the example's model; 'cmax-taichi info' lists them with units)",
-    )
-    parser.add_argument("--objective", default="variance", help="variance | gradient_magnitude | mean_square")
-    parser.add_argument(
-        "--reg",
-        action="append",
-        default=[],
-        metavar="NAME=WEIGHT",
-        help="add a regularizer with weight lambda, e.g. --reg divergence=10 --reg deformation=10 "
-        "(repeatable; 10 = cmax_taichi.RECOMMENDED_LAMBDA, the weight that prevented every collapse "
-        "on the MVSEC cut)",
+    lam = RECOMMENDED_LAMBDA
+    common.add_recording_arguments(
+        parser,
+        warp_default="translation2",
+        warp_help="motion model",
+        reg_help=f"add a regularizer with weight lambda, e.g. --reg divergence={lam:g} "
+        f"--reg deformation={lam:g} ({lam:g} = cmax_taichi.RECOMMENDED_LAMBDA, the weight that prevented "
+        "every collapse on the MVSEC cut)",
+        path_nargs="*",
+        path_note=" (several: a batch, see --workers)",
+        examples=EXAMPLES,
     )
     parser.add_argument(
         "--whitening", action="store_true", help="whitening baseline (whitened warped events)"
@@ -88,25 +69,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
     opt = parser.add_argument_group("optimizer")
-    opt.add_argument("--method", default="adam", help="adam | armijo | lbfgs (default adam)")
+    opt.add_argument("--method", default="adam", help=f"{common.names(METHODS)} (default adam)")
     opt.add_argument(
         "--init",
         default="auto",
-        help="auto | grid | random | tpe | local | none (default auto: grid, then warm)",
+        help=f"{common.names(INITS)} (default auto: grid, then warm)",
     )
     opt.add_argument("--n-init", type=int, default=None, help="evaluations of the global search")
     opt.add_argument("--no-warm-start", action="store_true", help="global search in every window")
     img = parser.add_argument_group("image of warped events")
     img.add_argument("--blur", type=float, default=1.0, help="Gaussian blur sigma, px (default 1, 0 = none)")
-    img.add_argument("--t-ref", default="first", help="reference time: first | middle | last (default first)")
-    img.add_argument("--polarity", default="ignore", help="ignore | signed | split (default ignore)")
+    common.add_t_ref_argument(img)
+    img.add_argument("--polarity", default="ignore", help=f"{common.names(POLARITY_MODES)} (default ignore)")
     run = parser.add_argument_group("run")
-    run.add_argument(
-        "--arch", default=None, help="cpu | gpu | cuda | vulkan | metal (default $CMAX_TAICHI_ARCH or cpu)"
-    )
-    run.add_argument(
-        "--precision", default=None, choices=["f32", "f64"], help="default f64 on cpu, f32 on gpu"
-    )
+    common.add_backend_arguments(run)
     run.add_argument("--out", default="cmax_out", metavar="DIR", help="output folder (default ./cmax_out)")
     run.add_argument(
         "--figures", type=int, default=1, metavar="K", help="figures of the first K windows (default 1)"
@@ -142,49 +118,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def init_backend(arch: str | None, precision: str | None):
-    """Initialise Taichi unless it already runs with the requested arch and precision (a reset would
-    throw away the compiled kernels of the calling process)."""
-    from cmax_taichi.core import backend
-
-    current = backend.info() if backend.is_initialized() else None
-    if (
-        current is not None
-        and arch in (None, current.requested_arch)
-        and precision in (None, current.precision)
-    ):
-        return current
-    return backend.init(arch=arch, precision=precision)
-
-
-def parse_regularizers(items: list[str]) -> dict[str, float]:
-    """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names)."""
-    from cmax_taichi.cli import CliError
-    from cmax_taichi.models.regularizers import regularizer_names
-
-    out: dict[str, float] = {}
-    for item in items:
-        name, sep, weight = item.partition("=")
-        name = name.strip()
-        if not sep or not name:
-            raise CliError(f"--reg expects NAME=WEIGHT (e.g. divergence=1), got {item!r}")
-        if name not in regularizer_names():
-            raise CliError(f"--reg: unknown regularizer {name!r}; valid: {', '.join(regularizer_names())}")
-        try:
-            value = float(weight)
-        except ValueError:
-            raise CliError(f"--reg {name}: weight must be a number, got {weight!r}") from None
-        if not (math.isfinite(value) and value >= 0):
-            raise CliError(f"--reg {name}: weight must be finite and >= 0, got {weight!r}")
-        out[name] = value
-    return out
-
-
 def check_choices(args: argparse.Namespace) -> None:
     """Validate names before any data is read (one-line errors)."""
     import cmax_taichi as cm
     from cmax_taichi.cli import CliError
-    from cmax_taichi.solve.optimize import INITS, METHODS
 
     cm.get_warp(args.warp)  # ValueError listing the valid names
     cm.OBJECTIVES.get(args.objective)
@@ -196,11 +133,7 @@ def check_choices(args: argparse.Namespace) -> None:
         raise CliError(f"--window must be at least 2 events, got {args.window}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise CliError(f"--duration must be a positive number of seconds, got {args.duration}")
-    if args.t_ref not in ("first", "middle", "last"):
-        try:
-            float(args.t_ref)
-        except ValueError:
-            raise CliError(f"--t-ref must be first, middle, last or seconds, got {args.t_ref!r}") from None
+    common.parse_t_ref(args.t_ref)
 
 
 def _window_figure(path: Path, row, prob, res) -> None:
@@ -277,7 +210,7 @@ def _parameters_figure(path: Path, result) -> None:
 
 def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
     """Keyword arguments of ``sequence.process`` (and ``solve.batch.run``) from the command line."""
-    t_ref: str | float = args.t_ref if args.t_ref in ("first", "middle", "last") else float(args.t_ref)
+    t_ref = common.parse_t_ref(args.t_ref)
     stride = None
     if args.stride is not None:
         stride = args.stride if args.duration is not None else int(args.stride)
@@ -330,7 +263,7 @@ def run_batch(args: argparse.Namespace) -> int:
     from cmax_taichi.cli import CliError
     from cmax_taichi.solve import batch
 
-    regs = parse_regularizers(args.reg)
+    regs = common.parse_regularizers(args.reg)
     check_choices(args)
     if args.example is not None:
         raise CliError("--example estimates one simulated recording: not with --workers / --engine / PATHs")
@@ -389,7 +322,7 @@ def run(args: argparse.Namespace) -> int:
     from cmax_taichi.metrics import area_scale
     from cmax_taichi.solve.sequence import process
 
-    regs = parse_regularizers(args.reg)
+    regs = common.parse_regularizers(args.reg)
     example = None
     if args.example is not None:
         if args.path:
@@ -409,7 +342,7 @@ def run(args: argparse.Namespace) -> int:
     check_choices(args)
     from cmax_taichi import io
 
-    init_backend(args.arch, args.precision)
+    common.init_backend(args.arch, args.precision)
     if args.example is not None:
         from cmax_taichi.sim.examples import make_example
 

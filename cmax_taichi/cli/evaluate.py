@@ -25,6 +25,9 @@ import json
 import math
 from pathlib import Path
 
+from cmax_taichi.cli._common import add_backend_arguments, init_backend, names
+from cmax_taichi.io import FORMATS
+
 NAME = "evaluate"
 HELP = "metrics of 'estimate' results against ground truth (angular-velocity error, AEE, NPE, FWL)"
 
@@ -37,16 +40,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--data", default=None, metavar="PATH", help="the recording (default: the one the results name)"
     )
-    parser.add_argument(
-        "--format", default=None, help="ecd | text | mvsec | dsec | aedat4 (default: detected)"
-    )
+    parser.add_argument("--format", default=None, help=f"{names(FORMATS)} (default: detected)")
     parser.add_argument(
         "--npe", default="3,10,20", metavar="N,N,...", help="NPE thresholds in px (default 3,10,20)"
     )
     parser.add_argument(
         "--out", default=None, metavar="DIR", help="output folder (default: the results folder)"
     )
-    parser.add_argument("--arch", default=None, help="cpu | gpu | cuda | vulkan | metal (default cpu)")
+    add_backend_arguments(parser, precision=False)
 
 
 def _thresholds(text: str) -> tuple[float, ...]:
@@ -67,7 +68,6 @@ def run(args: argparse.Namespace) -> int:
     import cmax_taichi as cm
     from cmax_taichi import io
     from cmax_taichi.cli import CliError
-    from cmax_taichi.cli.estimate import init_backend
     from cmax_taichi.metrics import angular_velocity_error, event_mask, flow_error, flow_from_warp, fwl
     from cmax_taichi.solve.sequence import read_results
 

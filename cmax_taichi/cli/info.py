@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import argparse
 
+from cmax_taichi.cli._common import add_backend_arguments
+
 NAME = "info"
 HELP = "show the backend (arch, precision) and the registered models"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--arch",
-        default=None,
-        help="cpu | gpu | cuda | vulkan | metal (default: $CMAX_TAICHI_ARCH or cpu)",
-    )
-    parser.add_argument("--precision", default=None, choices=["f32", "f64"])
+    add_backend_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:

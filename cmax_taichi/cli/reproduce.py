@@ -2,20 +2,20 @@
 and the real ECD rotation cuts: Tables 1-3, the lambda sensitivity and the computational complexity.
 
 Writes Markdown, CSV (and PNG plots) into --out and prints each table; progress goes to stderr.
-See cmax_taichi/experiments.py for the protocol.
+See cmax_taichi/lab/experiments.py for the protocol.
 """
 
 from __future__ import annotations
 
 import argparse
 
+from cmax_taichi.lab.experiments import EXPERIMENTS
+
 NAME = "reproduce"
-HELP = "run the paper's experiments (table1|table2|table3|sensitivity|complexity|all)"
+HELP = f"run the paper's experiments ({'|'.join(EXPERIMENTS)}|all)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from cmax_taichi.lab.experiments import EXPERIMENTS
-
     parser.add_argument("experiment", choices=[*EXPERIMENTS, "all"], help="which experiment")
     parser.add_argument("--out", required=True, help="output folder (created if needed)")
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke run of a few minutes")

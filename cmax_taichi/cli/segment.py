@@ -23,6 +23,8 @@ import math
 import sys
 from pathlib import Path
 
+from cmax_taichi.cli import _common as common
+
 NAME = "segment"
 HELP = "segment a window of events into K independently moving clusters (labels, figures)"
 
@@ -31,47 +33,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     from cmax_taichi.sim.examples import SEGMENT_EXAMPLES
 
-    parser.add_argument(
-        "path",
-        metavar="PATH",
-        nargs="?",
-        default=None,
-        help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4",
-    )
-    parser.add_argument(
-        "--example",
-        default=None,
-        metavar="NAME",
-        help="instead of PATH, a scene simulated on the fly (fixed seed, true labels and motions), "
-        "segmented and printed against the truth: "
-        + "; ".join(f"{name}: {ex.description}" for name, ex in SEGMENT_EXAMPLES.items()),
+    common.add_recording_arguments(
+        parser,
+        warp_default="mitrokhin4",
+        warp_help="motion model of every cluster, or K comma-separated models (e.g. rotation3,mitrokhin4)",
+        reg_help="add a regularizer in every cluster, e.g. --reg divergence=1 --reg deformation=1",
+        sensor_size=True,
+        path_nargs="?",
+        examples=SEGMENT_EXAMPLES,
     )
     parser.add_argument("-k", "--clusters", type=int, default=2, metavar="K", help="clusters (default 2)")
-    parser.add_argument(
-        "--warp",
-        default=None,
-        help="motion model of every cluster, or K comma-separated models, e.g. rotation3,mitrokhin4 "
-        "(default mitrokhin4, or the example's model; 'cmax-taichi info' lists them)",
-    )
-    parser.add_argument("--objective", default="variance", help="variance | gradient_magnitude | mean_square")
-    parser.add_argument(
-        "--reg",
-        action="append",
-        default=[],
-        metavar="NAME=WEIGHT",
-        help="add a regularizer in every cluster, e.g. --reg divergence=1 --reg deformation=1 (repeatable)",
-    )
-    parser.add_argument(
-        "--format", default=None, help="ecd | text | mvsec | dsec | aedat4 (default: detected)"
-    )
-    parser.add_argument(
-        "--sensor-size",
-        type=int,
-        nargs=2,
-        default=None,
-        metavar=("W", "H"),
-        help="sensor size in px, for text files without one (default: the format's or the reader's guess)",
-    )
     win = parser.add_argument_group("window")
     win.add_argument(
         "--events", type=int, default=30000, metavar="N", help="events in the window (default 30000)"
@@ -94,15 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     seg.add_argument("--hard", action="store_true", help="hard assignments (each event to one cluster)")
     seg.add_argument("--max-iterations", type=int, default=12, help="alternations (default 12)")
     seg.add_argument("--blur", type=float, default=1.0, help="Gaussian blur sigma, px (default 1)")
-    seg.add_argument("--t-ref", default="first", help="reference time: first | middle | last (default first)")
+    common.add_t_ref_argument(seg)
     seg.add_argument("--seed", type=int, default=0, help="seed of the initialisation's subsample")
     run = parser.add_argument_group("run")
-    run.add_argument(
-        "--arch", default=None, help="cpu | gpu | cuda | vulkan | metal (default $CMAX_TAICHI_ARCH or cpu)"
-    )
-    run.add_argument(
-        "--precision", default=None, choices=["f32", "f64"], help="default f64 on cpu, f32 on gpu"
-    )
+    common.add_backend_arguments(run)
     run.add_argument(
         "--out", default="cmax_segment", metavar="DIR", help="output folder (default ./cmax_segment)"
     )
@@ -215,10 +181,9 @@ def run(args: argparse.Namespace) -> int:
 
     import cmax_taichi as cm
     from cmax_taichi.cli import CliError
-    from cmax_taichi.cli.estimate import init_backend, parse_regularizers
     from cmax_taichi.testing.reference import bilinear_votes, gaussian_blur
 
-    regs = parse_regularizers(args.reg)
+    regs = common.parse_regularizers(args.reg)
     if args.example is not None:
         from cmax_taichi.sim.examples import SEGMENT_EXAMPLES
 
@@ -239,19 +204,14 @@ def run(args: argparse.Namespace) -> int:
     for w in warps:
         cm.get_warp(w)  # ValueError listing the valid names
     cm.OBJECTIVES.get(args.objective)
-    t_ref: str | float = args.t_ref
-    if args.t_ref not in ("first", "middle", "last"):
-        try:
-            t_ref = float(args.t_ref)
-        except ValueError:
-            raise CliError(f"--t-ref must be first, middle, last or seconds, got {args.t_ref!r}") from None
+    t_ref = common.parse_t_ref(args.t_ref)
     from cmax_taichi import io
 
     example = None
     if args.example is not None:
         from cmax_taichi.sim.examples import make_example
 
-        init_backend(args.arch, args.precision)
+        common.init_backend(args.arch, args.precision)
         path = Path(f"example:{args.example}")
         example = make_example(args.example)
         events, camera = example.events, example.camera
@@ -259,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
         path = Path(args.path)
         if not path.exists():
             raise CliError(f"{path}: no such file or folder")
-        init_backend(args.arch, args.precision)
+        common.init_backend(args.arch, args.precision)
         options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
         with io.open_recording(path, format=args.format, **options) as rec:
             if any(cm.get_warp(w).needs_camera for w in warps) and rec.camera is None:

@@ -6,12 +6,60 @@ Nothing here touches Taichi: events are plain NumPy until a problem copies them 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Events", "Camera"]
+__all__ = ["Events", "Camera", "iter_count_windows", "iter_time_windows"]
+
+
+def iter_count_windows(
+    read: Callable[[int, int], Events], n_total: int, n_events: int, stride: int | None = None
+) -> Iterator[Events]:
+    """Windows of ``n_events`` consecutive events starting every ``stride`` events (default: no overlap)
+    among ``n_total``, each ``read(start, stop)``; the last, shorter window is dropped.
+
+    Raises ValueError (on the first ``next``) for ``n_events < 2`` or ``stride < 1``.
+    """
+    n_events = int(n_events)
+    stride = n_events if stride is None else int(stride)
+    if n_events < 2:
+        raise ValueError(f"n_events must be at least 2, got {n_events}")
+    if stride < 1:
+        raise ValueError(f"stride must be at least 1 event, got {stride}")
+    for start in range(0, n_total - n_events + 1, stride):
+        yield read(start, start + n_events)
+
+
+def iter_time_windows(
+    read_time: Callable[[float, float], Events],
+    span: tuple[float, float] | None,
+    duration: float,
+    stride: float | None = None,
+) -> Iterator[Events]:
+    """Windows of ``duration`` seconds starting every ``stride`` s (default: no overlap) from ``span[0]``
+    while the start is at most ``span[1]`` (the first and last event times; None: no events), each
+    ``read_time(start, start + duration)``; empty windows are skipped.
+
+    Raises ValueError (on the first ``next``) for a duration or stride that is not a positive number.
+    """
+    duration = float(duration)
+    stride = duration if stride is None else float(stride)
+    if not (np.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be a positive number of seconds, got {duration}")
+    if not (np.isfinite(stride) and stride > 0):
+        raise ValueError(f"stride must be a positive number of seconds, got {stride}")
+    if span is None:
+        return
+    t_first, t_last = span
+    k = 0
+    while t_first + k * stride <= t_last:
+        start = t_first + k * stride
+        window = read_time(start, start + duration)
+        if len(window):
+            yield window
+        k += 1
 
 
 def _as_1d(name: str, values, dtype) -> np.ndarray:
@@ -154,34 +202,13 @@ class Events:
     def windows_by_count(self, n_events: int, stride: int | None = None) -> Iterator[Events]:
         """Consecutive windows of ``n_events`` events, starting every ``stride`` events (default: no
         overlap). The last, shorter window is dropped."""
-        n_events = int(n_events)
-        stride = n_events if stride is None else int(stride)
-        if n_events < 2:
-            raise ValueError(f"n_events must be at least 2, got {n_events}")
-        if stride < 1:
-            raise ValueError(f"stride must be at least 1, got {stride}")
-        for start in range(0, len(self) - n_events + 1, stride):
-            yield self._subset(slice(start, start + n_events))
+        return iter_count_windows(lambda i0, i1: self._subset(slice(i0, i1)), len(self), n_events, stride)
 
     def windows_by_duration(self, duration: float, stride: float | None = None) -> Iterator[Events]:
         """Consecutive windows of ``duration`` seconds (start every ``stride`` s, default: no
         overlap), from the first event's time; empty windows are skipped."""
-        duration = float(duration)
-        stride = duration if stride is None else float(stride)
-        if not (np.isfinite(duration) and duration > 0):
-            raise ValueError(f"duration must be a positive number of seconds, got {duration}")
-        if not (np.isfinite(stride) and stride > 0):
-            raise ValueError(f"stride must be a positive number of seconds, got {stride}")
-        if len(self) == 0:
-            return
-        t0, t_last = self.t[0], self.t[-1]
-        k = 0
-        while t0 + k * stride <= t_last:
-            start = t0 + k * stride
-            window = self.time_slice(start, start + duration)
-            if len(window):
-                yield window
-            k += 1
+        span = (float(self.t[0]), float(self.t[-1])) if len(self) else None
+        return iter_time_windows(self.time_slice, span, duration, stride)
 
     def undistort(self, camera: Camera, return_mask: bool = False):
         """Return new events with undistorted coordinates (those leaving the sensor are dropped).

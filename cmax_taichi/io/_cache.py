@@ -20,6 +20,8 @@ from typing import BinaryIO
 
 import numpy as np
 
+from cmax_taichi.io.base import event_span
+
 #: bump when the table layout or a decoder's output changes (old entries are then ignored)
 CACHE_VERSION = 1
 #: the environment variable that overrides the cache directory
@@ -120,3 +122,33 @@ def cached_table(
         if old.name not in (table_path.name, meta_path.name) and not old.name.startswith("."):
             old.unlink(missing_ok=True)
     return _map(table_path, int(meta["n"])), meta
+
+
+class CachedTableReads:
+    """The reads of a :class:`~cmax_taichi.io.base.Recording` whose events are a cached table
+    ``self._table`` (the ``(N, 4)`` float64 ``t x y p`` array of :func:`cached_table`, memory-mapped).
+
+    Listed before ``Recording`` among a reader's bases so that these methods replace its generic hooks.
+    """
+
+    _table: np.ndarray | None
+
+    @staticmethod
+    def table_span(meta: dict) -> dict:
+        """``n_events``, ``t_start`` and ``t_end`` (s; NaN without events) from the metadata that
+        :func:`cached_table` returns, as keyword arguments of ``Recording.__init__``."""
+        return event_span(meta["n"], lambda i: meta["t_start"] if i == 0 else meta["t_end"])
+
+    def _columns(self, start: int, stop: int):
+        rows = np.asarray(self._table[start:stop])
+        return rows[:, 1], rows[:, 2], rows[:, 0], rows[:, 3]
+
+    def _times(self, start: int, stop: int) -> np.ndarray:
+        return np.asarray(self._table[start:stop, 0])
+
+    def _search_time(self, t: float) -> int:
+        # a binary search on the mapped column touches only log2(N) pages
+        return int(np.searchsorted(self._table[:, 0], t, side="left"))
+
+    def _release(self) -> None:
+        self._table = None

@@ -3,6 +3,8 @@ dataset, and telling the user which plugin a compressed dataset needs."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
@@ -14,6 +16,16 @@ def open_h5(path: Path) -> h5py.File:
         return h5py.File(path, "r")
     except OSError as exc:
         raise OSError(f"{path}: not a readable HDF5 file ({exc})") from None
+
+
+@contextlib.contextmanager
+def closed_on_error(f: h5py.File) -> Iterator[h5py.File]:
+    """Close ``f`` when the block raises (a reader that fails in its constructor leaves no file open)."""
+    try:
+        yield f
+    except BaseException:
+        f.close()
+        raise
 
 
 def dataset(f: h5py.File, key: str, path: Path, what: str) -> h5py.Dataset:

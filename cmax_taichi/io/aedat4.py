@@ -19,7 +19,7 @@ from typing import BinaryIO
 import numpy as np
 
 from cmax_taichi.core.events import Camera
-from cmax_taichi.io._cache import cached_table
+from cmax_taichi.io._cache import CachedTableReads, cached_table
 from cmax_taichi.io.base import Recording
 
 PACKAGE = "aedat"
@@ -79,7 +79,7 @@ def _decode(path: Path, out: BinaryIO) -> dict:
     return {"n": n, "t_start": t_first, "t_end": t_last, "sensor_size": list(size)}
 
 
-class AEDAT4Recording(Recording):
+class AEDAT4Recording(CachedTableReads, Recording):
     """An ``.aedat4`` file (or a folder holding exactly one).
 
     Parameters
@@ -122,23 +122,8 @@ class AEDAT4Recording(Recording):
             sensor_size=sensor_size or tuple(meta["sensor_size"]),
             camera=camera,
             undistorted=False,
-            n_events=meta["n"],
-            t_start=meta["t_start"] if meta["n"] else math.nan,
-            t_end=meta["t_end"] if meta["n"] else math.nan,
+            **self.table_span(meta),
         )
-
-    def _columns(self, start: int, stop: int):
-        rows = np.asarray(self._table[start:stop])
-        return rows[:, 1], rows[:, 2], rows[:, 0], rows[:, 3]
-
-    def _times(self, start: int, stop: int) -> np.ndarray:
-        return np.asarray(self._table[start:stop, 0])
-
-    def _search_time(self, t: float) -> int:
-        return int(np.searchsorted(self._table[:, 0], t, side="left"))
-
-    def _release(self) -> None:
-        self._table = None
 
     def imu(self) -> np.ndarray | None:
         """The IMU samples ``(M, 7)``: ``t ax ay az gx gy gz`` (s, g, deg/s as the file stores them,

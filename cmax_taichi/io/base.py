@@ -8,16 +8,28 @@ all formats behave the same.
 
 from __future__ import annotations
 
+import math
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.core.events import Camera, Events, iter_count_windows, iter_time_windows
 
 #: rows read at once when a time is searched through ``_times`` (bounded memory)
 _SEARCH_BLOCK = 4096
+
+
+def event_span(n_events: int, time_of: Callable[[int], float]) -> dict:
+    """``n_events``, ``t_start`` and ``t_end`` as keyword arguments of :class:`Recording`: ``time_of(i)`` is
+    the time (s) of event ``i``, read for the first and the last event only; NaN times without events."""
+    n = int(n_events)
+    return {
+        "n_events": n,
+        "t_start": float(time_of(0)) if n else math.nan,
+        "t_end": float(time_of(n - 1)) if n else math.nan,
+    }
 
 
 class Recording:
@@ -181,32 +193,12 @@ class Recording:
         Events
         """
         if duration is not None:
-            duration = float(duration)
-            step = duration if stride is None else float(stride)
-            if not (np.isfinite(duration) and duration > 0):
-                raise ValueError(f"duration must be a positive number of seconds, got {duration}")
-            if not (np.isfinite(step) and step > 0):
-                raise ValueError(f"stride must be a positive number of seconds, got {step}")
-            if self.n_events == 0:
-                return
-            k = 0
-            while self.t_start + k * step <= self.t_end:
-                a = self.t_start + k * step
-                window = self.read_time(a, a + duration)
-                if len(window):
-                    yield window
-                k += 1
+            span = (self.t_start, self.t_end) if self.n_events else None
+            yield from iter_time_windows(self.read_time, span, duration, stride)
             return
         if n_events is None:
             raise ValueError("windows needs n_events or duration")
-        n = int(n_events)
-        step = n if stride is None else int(stride)
-        if n < 2:
-            raise ValueError(f"n_events must be at least 2, got {n}")
-        if step < 1:
-            raise ValueError(f"stride must be at least 1 event, got {step}")
-        for start in range(0, self.n_events - n + 1, step):
-            yield self.read(start, start + n)
+        yield from iter_count_windows(self.read, self.n_events, n_events, stride)
 
     # --- ground truth (None when the recording has none) ------------------------------------
     def angular_velocity(self, t) -> np.ndarray | None:

@@ -29,7 +29,7 @@ from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
 from cmax_taichi.io._flow import accumulate_flow
 from cmax_taichi.io._png import read_png
-from cmax_taichi.io.base import Recording
+from cmax_taichi.io.base import Recording, event_span
 
 SENSOR_SIZE = (640, 480)
 
@@ -133,7 +133,7 @@ class DSECRecording(Recording):
         self.events_file = _find_events_file(Path(path))
         ef = self.events_file
         self._file = _hdf5.open_h5(ef)
-        try:
+        with _hdf5.closed_on_error(self._file):
             self._x, self._y, self._t, self._p = (
                 _hdf5.dataset(self._file, f"events/{c}", ef, "not a DSEC events.h5 file?") for c in "xytp"
             )
@@ -143,8 +143,7 @@ class DSECRecording(Recording):
             self._ms_to_idx = _hdf5.dataset(self._file, "ms_to_idx", ef, "not a DSEC events.h5 file?")
             offset = _hdf5.dataset(self._file, "t_offset", ef, "not a DSEC events.h5 file?")
             self.t_offset_us = int(_hdf5.read(offset, (), ef))
-            t_start = self._seconds(_hdf5.read(self._t, np.s_[:1], ef))[0] if n else math.nan
-            t_end = self._seconds(_hdf5.read(self._t, np.s_[n - 1 :], ef))[0] if n else math.nan
+            span = event_span(n, lambda i: self._seconds(_hdf5.read(self._t, np.s_[i : i + 1], ef))[0])
             self._rectify_map = None
             map_file = ef.with_name("rectify_map.h5")
             if rectify is None:
@@ -172,13 +171,8 @@ class DSECRecording(Recording):
                 sensor_size=sensor_size,
                 camera=camera,
                 undistorted=bool(rectify),
-                n_events=n,
-                t_start=t_start,
-                t_end=t_end,
+                **span,
             )
-        except BaseException:
-            self._file.close()
-            raise
         self._flow_dir = self._locate_flow(flow_dir)
         self.flow_direction = flow_direction
         self._flow_index = None

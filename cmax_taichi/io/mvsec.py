@@ -23,7 +23,7 @@ import numpy as np
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
 from cmax_taichi.io._flow import NpzFrames, accumulate_flow
-from cmax_taichi.io.base import Recording
+from cmax_taichi.io.base import Recording, event_span
 
 SENSOR_SIZE = (346, 260)
 
@@ -69,7 +69,7 @@ class MVSECRecording(Recording):
     ) -> None:
         self.data_file = _find_data_file(Path(path))
         self._file = _hdf5.open_h5(self.data_file)
-        try:
+        with _hdf5.closed_on_error(self._file):
             key = f"davis/{side}/events"
             self._ds = _hdf5.dataset(self._file, key, self.data_file, "not an MVSEC *_data.hdf5 file?")
             if self._ds.ndim != 2 or self._ds.shape[1] != 4:
@@ -77,8 +77,7 @@ class MVSECRecording(Recording):
                     f"{self.data_file}: '{key}' has shape {self._ds.shape}; expected (N, 4) x y t p"
                 )
             n = self._ds.shape[0]
-            t_start = float(_hdf5.read(self._ds, (0, 2), self.data_file)) if n else np.nan
-            t_end = float(_hdf5.read(self._ds, (n - 1, 2), self.data_file)) if n else np.nan
+            span = event_span(n, lambda i: _hdf5.read(self._ds, (i, 2), self.data_file))
             calib_key = f"davis/{side}/calibration"
             if camera is None and calib_key in self._file:
                 values = np.ravel(_hdf5.read(self._file[calib_key], (), self.data_file))
@@ -91,13 +90,8 @@ class MVSECRecording(Recording):
                 sensor_size=sensor_size,
                 camera=camera,
                 undistorted=False,
-                n_events=n,
-                t_start=t_start,
-                t_end=t_end,
+                **span,
             )
-        except BaseException:
-            self._file.close()
-            raise
         if gt_flow is None:
             guess = self.data_file.with_name(self.data_file.name.replace("_data.hdf5", "_gt_flow_dist.npz"))
             gt_flow = guess if guess != self.data_file and guess.is_file() else None

@@ -18,7 +18,7 @@ from typing import BinaryIO
 import numpy as np
 
 from cmax_taichi.core.events import Camera
-from cmax_taichi.io._cache import cached_table
+from cmax_taichi.io._cache import CachedTableReads, cached_table
 from cmax_taichi.io.base import Recording
 
 #: the column layouts recognised by their count when ``columns=`` is not given
@@ -198,7 +198,7 @@ def read_calib(path: Path) -> tuple[Camera | None, tuple[int, int] | None]:
     return camera, size
 
 
-class TextRecording(Recording):
+class TextRecording(CachedTableReads, Recording):
     """Text events, any column layout (see :func:`open_recording` for the options).
 
     Parameters
@@ -269,22 +269,6 @@ class TextRecording(Recording):
             sensor_size=sensor_size,
             camera=camera if camera is not None else calib_camera,
             undistorted=(not integer) if undistorted is None else undistorted,
-            n_events=meta["n"],
-            t_start=meta["t_start"] if meta["n"] else math.nan,
-            t_end=meta["t_end"] if meta["n"] else math.nan,
+            **self.table_span(meta),
         )
         self.columns = tuple(names)
-
-    def _columns(self, start: int, stop: int):
-        rows = np.asarray(self._table[start:stop])
-        return rows[:, 1], rows[:, 2], rows[:, 0], rows[:, 3]
-
-    def _times(self, start: int, stop: int) -> np.ndarray:
-        return np.asarray(self._table[start:stop, 0])
-
-    def _search_time(self, t: float) -> int:
-        # a binary search on the mapped column touches only log2(N) pages
-        return int(np.searchsorted(self._table[:, 0], t, side="left"))
-
-    def _release(self) -> None:
-        self._table = None

@@ -22,242 +22,58 @@ Outputs in ``--out``: ``results.csv`` (one row per implementation and configurat
 ``results.md`` (machine, date, versions, tables), ``results.png`` (time and speed-up against N).
 The generic Taichi kernel chain (the autodiff chain the fused kernels replaced) runs as a fourth
 implementation, ``taichi-chain``, on the smaller windows: it is the "before" of the optimisation.
+
+This module holds the plans, the timing and the run; :mod:`cmax_taichi.lab.bench_impls` the
+implementations and their agreement check; :mod:`cmax_taichi.lab.bench_report` the report.
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
-import datetime as _dt
 import gc
-import math
 import os
-import platform
 import statistics
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cmax_taichi.core import backend
-from cmax_taichi.core.events import Camera, Events
-from cmax_taichi.pipeline.fused import FusedPipeline
+from cmax_taichi.core.events import Events
+from cmax_taichi.lab.bench_impls import (
+    REGS,
+    SENSORS,
+    THETAS,
+    BenchConfig,
+    Impl,
+    build_numpy,
+    build_taichi,
+    build_torch,
+    camera_for,
+    check_agreement,
+    make_window,
+)
+from cmax_taichi.lab.bench_report import machine_info, markdown_report, write_csv, write_plot
 from cmax_taichi.pipeline.problem import ContrastMaximization
-from cmax_taichi.testing import reference
 
 __all__ = [
     "BenchConfig",
     "Plan",
+    "Row",
     "quick_plan",
     "full_plan",
+    "run_config",
     "run_benchmark",
     "make_window",
     "check_agreement",
+    "add_arguments",
+    "run_from_args",
+    "main",
 ]
-
-#: the benchmark's parameter vector per warp (a moderate motion, a few px over the window)
-THETAS = {
-    "translation2": (120.0, -80.0),
-    "rotation3": (0.6, -0.4, 1.5),
-    "mitrokhin4": (120.0, -80.0, 4.0, 3.0),
-}
-SENSORS = {"240x180": (240, 180), "346x260": (346, 260), "640x480": (640, 480), "1280x720": (1280, 720)}
-REGS = {"none": {}, "div+def": {"divergence": 1.0, "deformation": 1.0}}
-DURATION = 0.05  # s, window length
-FD_CHECK_MAX_EVENTS = 10_000  # central differences of the reference (2P evaluations) up to this N
-FD_STEPS = (1e-7, 1e-8)  # relative steps: the second is tried when a pixel kink spoils the first
-TOLERANCES = {  # relative to max(1, |J|) for values, to max |grad| for gradients
-    "f64": {"value": 1e-9, "grad": 1e-6, "fd": 1e-4},
-    "f32": {"value": 2e-3, "grad": 5e-2, "fd": 5e-2},
-}
-
-
-# ----------------------------------------------------------------------------------------------
-# inputs
-# ----------------------------------------------------------------------------------------------
-def camera_for(sensor: tuple[int, int]) -> Camera:
-    """A pinhole camera with a ~70 degree horizontal field of view, centred."""
-    W, H = sensor
-    f = 0.7 * W
-    return Camera(fx=f, fy=f, cx=(W - 1) / 2.0, cy=(H - 1) / 2.0)
-
-
-def make_window(n: int, sensor: tuple[int, int], seed: int = 0):
-    """``n`` synthetic events (x, y, t, p) on 40 moving straight edges plus 10 % noise, time-sorted.
-
-    Returns float64 arrays ``x, y`` (px), ``t`` (s, spanning exactly ``DURATION``) and ``p`` in {0, 1}.
-    """
-    rng = np.random.default_rng(seed)
-    W, H = sensor
-    n_edge = int(0.9 * n)
-    k = 40
-    centres = rng.uniform([0.1 * W, 0.1 * H], [0.9 * W, 0.9 * H], size=(k, 2))
-    angles = rng.uniform(0, np.pi, k)
-    length = 0.15 * min(W, H)
-    which = rng.integers(0, k, n_edge)
-    s = rng.uniform(-length, length, n_edge)
-    t_edge = rng.uniform(0, DURATION, n_edge)
-    vel = np.array([100.0, -60.0])  # px/s: the edges move, so the identity warp is blurred
-    x = centres[which, 0] + s * np.cos(angles[which]) + vel[0] * t_edge + rng.normal(0, 0.5, n_edge)
-    y = centres[which, 1] + s * np.sin(angles[which]) + vel[1] * t_edge + rng.normal(0, 0.5, n_edge)
-    n_noise = n - n_edge
-    x = np.concatenate([x, rng.uniform(0, W - 1, n_noise)])
-    y = np.concatenate([y, rng.uniform(0, H - 1, n_noise)])
-    t = np.concatenate([t_edge, rng.uniform(0, DURATION, n_noise)])
-    x = np.clip(x, 0, W - 1)
-    y = np.clip(y, 0, H - 1)
-    order = np.argsort(t, kind="stable")
-    x, y, t = x[order], y[order], t[order]
-    t[0], t[-1] = 0.0, DURATION
-    p = rng.integers(0, 2, n)
-    return x, y, t, p
-
-
-# ----------------------------------------------------------------------------------------------
-# implementations
-# ----------------------------------------------------------------------------------------------
-@dataclass
-class Impl:
-    """One implementation bound to one window: ``vg(theta)`` and ``value(theta)`` callables."""
-
-    name: str
-    vg: Callable | None
-    value: Callable
-    setup_s: float
-    field_bytes: int = 0
-
-
-def build_taichi(win, cfg, *, fused: bool = True) -> Impl:
-    x, y, t, p = win
-    FusedPipeline.enabled = fused
-    try:
-        t0 = time.perf_counter()
-        prob = ContrastMaximization(
-            Events(x, y, t, p, cfg.sensor),
-            warp=cfg.warp,
-            regularizers=REGS[cfg.regs],
-            camera=camera_for(cfg.sensor),
-            blur_sigma=1.0,
-        )
-        prob.value_and_grad(THETAS[cfg.warp])  # compiles the gradient kernels too
-        setup = time.perf_counter() - t0
-    finally:
-        FusedPipeline.enabled = True
-    nbytes = prob._fused.nbytes() if prob._fused is not None else 0
-    return Impl("taichi" if fused else "taichi-chain", prob.value_and_grad, prob.value, setup, nbytes)
-
-
-def build_torch(win, cfg, precision: str) -> Impl:
-    import torch
-
-    from cmax_taichi.testing.torch_cmax import TorchCMax
-
-    x, y, t, _ = win
-    t0 = time.perf_counter()
-    # the twin takes the same problem description as the reference
-    dtype = torch.float64 if precision == "f64" else torch.float32
-    twin = TorchCMax(x, y, t, **reference_kwargs(cfg), dtype=dtype)
-    twin.value_and_grad(THETAS[cfg.warp])
-    return Impl("torch", twin.value_and_grad, twin.value, time.perf_counter() - t0)
-
-
-def reference_kwargs(cfg) -> dict:
-    cam = camera_for(cfg.sensor)
-    regs = REGS[cfg.regs]
-    return dict(
-        warp=cfg.warp,
-        sensor_size=cfg.sensor,
-        center=(cam.cx, cam.cy),
-        focal=(cam.fx, cam.fy),
-        blur_sigma=1.0,
-        lambda_div=regs.get("divergence", 0.0),
-        lambda_def=regs.get("deformation", 0.0),
-    )
-
-
-def build_numpy(win, cfg) -> Impl:
-    kwargs = reference_kwargs(cfg)
-
-    def value(theta):
-        return reference.evaluate(*win, theta, **kwargs)["J"]
-
-    t0 = time.perf_counter()
-    value(THETAS[cfg.warp])
-    return Impl("numpy", None, value, time.perf_counter() - t0)
-
-
-def reference_fd_grad(win, cfg, theta, rel_step: float = 1e-7) -> np.ndarray:
-    """Central differences of the reference J (2P evaluations).
-
-    The bilinear IWE makes J piecewise smooth in theta: it has a kink wherever an event's warped
-    position crosses a pixel boundary. A step of 1e-6 (relative) crossed such kinks at 1e4 events and
-    missed the exact gradient by 3e-4 to 1.4e-3 (relative) while Taichi and PyTorch agreed to 1e-15;
-    1e-7 agreed to 1e-8. In float64 the rounding error of a 1e-7 step is about 1e-9.
-    """
-    return reference.central_difference_grad(*win, theta, rel_step=rel_step, **reference_kwargs(cfg))
-
-
-# ----------------------------------------------------------------------------------------------
-# agreement
-# ----------------------------------------------------------------------------------------------
-def _rel(a, b, scale) -> float:
-    return float(np.max(np.abs(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64))) / scale)
-
-
-def check_agreement(impls: dict[str, Impl], win, cfg, precision: str) -> dict[str, str]:
-    """Status of every implementation: "ok", or "DISAGREES: ..." naming what and by how much.
-
-    Values are held against the NumPy reference where it runs (else against PyTorch), gradients
-    against each other (Taichi, the chain, PyTorch) and, up to ``FD_CHECK_MAX_EVENTS`` events, against
-    central differences of the reference (:func:`reference_fd_grad`). Tolerances: :data:`TOLERANCES`.
-    """
-    tol = TOLERANCES[precision]
-    theta = np.asarray(THETAS[cfg.warp], dtype=np.float64)
-    values, grads = {}, {}
-    for name, impl in impls.items():
-        if impl.vg is not None:
-            values[name], grads[name] = impl.vg(theta)
-        else:
-            values[name] = impl.value(theta)
-    status = {name: "ok" for name in impls}
-    # values: against the reference when it runs, else against torch, else taichi
-    anchor = "numpy" if "numpy" in values else ("torch" if "torch" in values else "taichi")
-    # a float32 implementation is checked against the float64 reference with the f32 tolerance
-    v_ref = values[anchor]
-    for name, v in values.items():
-        err = abs(v - v_ref) / max(1.0, abs(v_ref))
-        if not (math.isfinite(v) and err <= tol["value"]):
-            status[name] = f"DISAGREES: J = {v:.12g} vs {anchor} {v_ref:.12g} (rel {err:.1e})"
-    # gradients: the exact derivatives against each other (PyTorch's autograd is the anchor), then
-    # against central differences of the reference (a second, smaller step when a kink spoils the first)
-    exact = grads.get("torch", grads.get("taichi"))
-    anchor_name = "torch" if "torch" in grads else "taichi"
-    if exact is not None:
-        scale = max(float(np.max(np.abs(exact))), 1e-300)
-        for name, g in grads.items():
-            err = _rel(g, exact, scale)
-            if not (np.all(np.isfinite(g)) and err <= tol["grad"]) and status[name] == "ok":
-                status[name] = f"DISAGREES: gradient vs {anchor_name} (rel {err:.1e})"
-    if cfg.n <= FD_CHECK_MAX_EVENTS and grads:
-        fds: dict[float, np.ndarray] = {}  # computed on first use, shared by the implementations
-        for name, g in grads.items():
-            if status[name] != "ok":
-                continue
-            errs = []
-            for step in FD_STEPS:
-                if step not in fds:
-                    fds[step] = reference_fd_grad(win, cfg, theta, rel_step=step)
-                scale = max(float(np.max(np.abs(fds[step]))), 1e-300)
-                errs.append(_rel(g, fds[step], scale))
-                if np.all(np.isfinite(g)) and errs[-1] <= tol["fd"]:
-                    break
-            else:
-                status[name] = (
-                    f"DISAGREES: gradient vs finite differences of the reference (rel {min(errs):.1e})"
-                )
-    return status
 
 
 # ----------------------------------------------------------------------------------------------
@@ -292,26 +108,6 @@ def measure_peak(fn: Callable[[], object]) -> int:
     before = _rss_bytes("VmRSS")
     fn()
     return max(0, _rss_bytes("VmHWM") - before)
-
-
-@dataclass
-class BenchConfig:
-    """One row group of the sweep."""
-
-    n: int
-    sensor_name: str
-    warp: str
-    regs: str
-    precision: str = "f64"
-    impls: tuple[str, ...] = ("taichi", "torch", "numpy")
-
-    @property
-    def sensor(self) -> tuple[int, int]:
-        """``(W, H)`` of a named sensor, or of a ``"WxH"`` name."""
-        if self.sensor_name in SENSORS:
-            return SENSORS[self.sensor_name]
-        w, h = self.sensor_name.lower().split("x")
-        return int(w), int(h)
 
 
 @dataclass
@@ -562,176 +358,6 @@ def time_window_solve(repeats: int, log: Callable[[str], None]) -> dict:
 # ----------------------------------------------------------------------------------------------
 # reporting
 # ----------------------------------------------------------------------------------------------
-def machine_info() -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    versions = {"python": platform.python_version(), "numpy": np.__version__}
-    try:
-        import taichi as ti
-
-        versions["taichi"] = ".".join(str(v) for v in ti.__version__)
-    except Exception:  # pragma: no cover - taichi is a dependency
-        versions["taichi"] = "?"
-    try:
-        import torch
-
-        versions["torch"] = torch.__version__
-        torch_threads = torch.get_num_threads()
-    except ImportError:
-        versions["torch"] = "not installed"
-        torch_threads = 0
-    try:
-        load = os.getloadavg()
-    except OSError:
-        load = (float("nan"),) * 3
-    from cmax_taichi import __version__
-
-    versions["cmax-taichi"] = __version__
-    info = backend.info()
-    return {
-        "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "load_average_1min": round(load[0], 2),
-        "arch": info.arch,
-        "precision": info.precision,
-        "torch_threads": torch_threads,
-        "versions": versions,
-    }
-
-
-def _fmt(v, digits=3) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.{digits}g}" if abs(v) < 1000 else f"{v:.0f}"
-    return str(v)
-
-
-def segmentation_markdown(seg: list[dict]) -> list[str]:
-    """The segmentation timing table (``segment_eval.timing`` rows) with its caption."""
-    from cmax_taichi.lab.segment_eval import timing_table
-
-    return [
-        "",
-        "Motion segmentation (`cmax_taichi.segment`, mitrokhin4 with both regularizers, lambda = 1, "
-        "simulated 3-object windows; medians of 5 complete segmentations after one that compiles; CPU = "
-        "process time of all threads; value_and_grad of all clusters: median of 20):",
-        "",
-        *timing_table(seg),
-    ]
-
-
-def markdown_report(
-    rows: list[Row],
-    machine: dict,
-    plan: Plan,
-    solve: dict | None,
-    wall_s: float,
-    seg: list[dict] | None = None,
-) -> str:
-    """The Markdown report (also the table of docs/performance.md)."""
-    v = machine["versions"]
-    lines = [
-        f"Benchmark `{plan.label}` run on {machine['date']}: {machine['cpu']}, {machine['cores']} cores "
-        f"(load average {machine['load_average_1min']} at the start), Taichi {v['taichi']} "
-        f"({machine['arch']}, {machine['precision']}), PyTorch {v['torch']} "
-        f"({machine['torch_threads']} threads), NumPy {v['numpy']}, Python {v['python']}, "
-        f"cmax-taichi {v['cmax-taichi']}; {wall_s / 60:.1f} min in all.",
-        "",
-        "Times are medians over interleaved repeats after a warm-up, of one `value_and_grad` (NumPy: one "
-        "value); Mev/s = million events per second; `x torch` = PyTorch's median / this median. "
-        "Every implementation was first checked against the others on the same inputs "
-        "(value to 1e-9 relative in f64, gradient to 1e-6 against PyTorch and to 1e-4 against central "
-        "differences of the reference up to 1e4 events); a `DISAGREES` row has no time.",
-        "",
-        "| N | sensor | warp | regularizers | impl | measured | median ms | Mev/s | x torch "
-        "| first call s | peak RSS MB | fields MB |",
-        "|---:|---|---|---|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in rows:
-        if r.status != "ok":
-            lines.append(f"| {r.n} | {r.sensor} | {r.warp} | {r.regs} | {r.impl} | {r.status} | | | | | | |")
-            continue
-        lines.append(
-            f"| {r.n} | {r.sensor} | {r.warp} | {r.regs} | {r.impl} | {r.measured} | {_fmt(r.median_ms)} | "
-            f"{_fmt(r.events_per_s / 1e6)} | {_fmt(r.vs_torch)} | {_fmt(r.first_call_s)} | "
-            f"{_fmt(r.peak_rss_mb)} | {_fmt(r.field_mb)} |"
-        )
-    if solve:
-        lines += [
-            "",
-            f"Window solve ({solve['events']} events, {solve['sensor']}, {solve['warp']}, "
-            f"{solve['regularizers']}): "
-            f"`{solve['call']}` takes **{solve['median_ms']:.1f} ms** (median of {solve['repeats']}, min "
-            f"{solve['min_ms']:.1f} ms): {solve['n_evaluations']} evaluations, the winning run "
-            f"{solve['n_iterations_winning_run']} Adam iterations.",
-        ]
-    if seg:
-        lines += segmentation_markdown(seg)
-    if plan.notes:
-        lines += [""] + [f"* {n}" for n in plan.notes]
-    return "\n".join(lines) + "\n"
-
-
-def write_csv(rows: list[Row], path: Path) -> None:
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(asdict(rows[0]).keys()))
-        writer.writeheader()
-        for r in rows:
-            writer.writerow(asdict(r))
-
-
-def write_plot(rows: list[Row], path: Path) -> bool:
-    """Time per evaluation and speed-up over PyTorch against N (sensor 346x260); False without rows."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ok = [r for r in rows if r.status == "ok"]
-    if not ok:
-        return False
-    sensor = "346x260" if any(r.sensor == "346x260" for r in ok) else ok[0].sensor
-    sel = [r for r in ok if r.sensor == sensor]
-    combos = sorted({(r.warp, r.regs) for r in sel})
-    fig, axes = plt.subplots(2, len(combos), figsize=(3.2 * len(combos), 6.0), squeeze=False)
-    colors = {"taichi": "C0", "taichi-chain": "C2", "torch": "C1", "numpy": "C3"}
-    for j, (warp, regs) in enumerate(combos):
-        ax, ax2 = axes[0, j], axes[1, j]
-        for impl in colors:
-            pts = sorted(
-                (r.n, r.median_ms, r.vs_torch)
-                for r in sel
-                if r.impl == impl and (r.warp, r.regs) == (warp, regs)
-            )
-            if not pts:
-                continue
-            ns, ms, sp = zip(*pts, strict=True)
-            ax.loglog(ns, ms, "o-", color=colors[impl], label=impl, ms=3)
-            if impl != "torch":
-                ax2.semilogx(ns, sp, "o-", color=colors[impl], label=impl, ms=3)
-        ax.set_title(f"{warp}, {regs}", fontsize=9)
-        ax.set_xlabel("events N")
-        ax2.set_xlabel("events N")
-        ax2.axhline(1.0, color="k", lw=0.5)
-        if j == 0:
-            ax.set_ylabel(f"ms per evaluation ({sensor})")
-            ax2.set_ylabel("speed-up over PyTorch")
-            ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
-
-
 def run_benchmark(
     plan: Plan,
     out_dir: str | Path,
@@ -796,15 +422,39 @@ def run_benchmark(
     }
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``cmax-taichi bench`` and ``python -m benchmarks.run``."""
+    parser.add_argument("--quick", action="store_true", help="a sub-two-minute subset (CI)")
+    parser.add_argument("--out", default="bench-results", help="output folder (default: bench-results)")
+    parser.add_argument(
+        "--precision", default="f64", choices=["f64", "f32"], help="Taichi and PyTorch precision"
+    )
+    parser.add_argument("--no-solve", action="store_true", help="skip the window-solve timing")
+    parser.add_argument(
+        "--no-segment", action="store_true", help="skip the motion-segmentation timing (full run only)"
+    )
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Run the plan the options of :func:`add_arguments` describe and print the report; exit code 1
+    when an implementation disagrees with the others."""
+    plan = quick_plan(args.precision) if args.quick else full_plan(args.precision)
+    if args.no_solve:
+        plan.solve = False
+    if args.no_segment:
+        plan.segment = False
+    result = run_benchmark(plan, args.out)
+    print()
+    print(result["markdown"])
+    bad = [r for r in result["rows"] if r.status.startswith("DISAGREES")]
+    return 1 if bad else 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m benchmarks.run`` entry point (same options as ``cmax-taichi bench``)."""
-    import argparse
-
-    from cmax_taichi.cli import bench as cmd
-
+    """``python -m benchmarks.run`` entry point (the options of ``cmax-taichi bench``)."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__.split("\n\n")[0])
-    cmd.add_arguments(parser)
-    return cmd.run(parser.parse_args(argv))
+    add_arguments(parser)
+    return run_from_args(parser.parse_args(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover

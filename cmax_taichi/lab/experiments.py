@@ -32,11 +32,13 @@ box, then Adam from the best candidates). The regularizer weight is ``lam``, by 
 :data:`cmax_taichi.RECOMMENDED_LAMBDA`, which ``python -m cmax_taichi.lab.experiments_real``
 selects on the real MVSEC cut before these simulated tables are made (the paper's weights are not
 known).
+
+The paper's numbers and the layout of its tables are in :mod:`cmax_taichi.lab.paper`; the Markdown,
+CSV and plots are written by :mod:`cmax_taichi.lab.experiment_reports`.
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -49,11 +51,32 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax_taichi import sim as sm
 from cmax_taichi.core.events import Events
+from cmax_taichi.lab.experiment_reports import (
+    COMPLEXITY_CONFIGS,
+    complexity_outputs,
+    flow_table_csv,
+    flow_table_markdown,
+    rotation_table_csv,
+    rotation_table_markdown,
+    sensitivity_outputs,
+    write_rows_csv,
+)
+from cmax_taichi.lab.paper import (
+    FLOW_WARPS,
+    METRICS,
+    OBJECTIVES,
+    PAPER_TABLE1,
+    PAPER_TABLE2,
+    PAPER_TABLE3,
+    ROTATION_CUTS,
+    ROWS,
+    WARP_LABEL,
+)
 from cmax_taichi.metrics import angular_velocity_error, event_mask, flow_error, flow_from_warp, fwl_problem
 from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 from cmax_taichi.pipeline.problem import ContrastMaximization
-from cmax_taichi.sim import simulate as sm
 from cmax_taichi.solve.optimize import maximize
 from cmax_taichi.solve.sequence import ProgressBar
 
@@ -67,88 +90,7 @@ __all__ = [
 ]
 
 EXPERIMENTS = ("table1", "table2", "table3", "sensitivity", "complexity")
-OBJECTIVES = ("variance", "gradient_magnitude")
-FLOW_WARPS = ("zoom1", "mitrokhin4")
-METRICS = ("AEE", "3PE", "10PE", "20PE", "FWL")
-#: rows of the regularized experiments: (label, regularizer names, whitening)
-ROWS = (
-    ("No regularizer", (), False),
-    ("Whitening", (), True),
-    ("Divergence", ("divergence",), False),
-    ("Deformation", ("deformation",), False),
-    ("Div. + Def.", ("divergence", "deformation"), False),
-)
-WARP_LABEL = {"zoom1": "1-DOF", "mitrokhin4": "4-DOF"}
 N_EVENTS = 30_000  # the paper's MVSEC window
-
-# --- the paper's numbers (SPEC.md section 7): AEE, 3PE, 10PE, 20PE, FWL per objective --------------
-_NA = (math.nan,) * 4
-
-
-def _paper(var, gm):
-    return {"variance": var, "gradient_magnitude": gm}
-
-
-PAPER_TABLE1 = {
-    ("GT", ""): _paper(_NA + (1.05,), _NA + (1.05,)),
-    ("Identity", ""): _paper((4.85, 60.59, 10.38, 0.31, 1.00), (4.85, 60.59, 10.38, 0.31, 1.00)),
-    ("zoom1", "No regularizer"): _paper(
-        (89.34, 97.30, 95.42, 92.39, 1.90), (85.77, 93.96, 86.24, 83.45, 1.87)
-    ),
-    ("zoom1", "Whitening"): _paper((89.58, 97.18, 96.77, 93.76, 1.90), (81.10, 90.86, 89.04, 86.20, 1.85)),
-    ("zoom1", "Divergence"): _paper((4.00, 46.02, 2.77, 0.05, 1.12), (2.87, 32.68, 2.52, 0.03, 1.17)),
-    ("zoom1", "Deformation"): _paper((4.47, 52.60, 5.16, 0.13, 1.08), (3.97, 48.79, 3.21, 0.07, 1.09)),
-    ("zoom1", "Div. + Def."): _paper((3.30, 33.09, 2.61, 0.48, 1.20), (2.85, 32.34, 2.44, 0.03, 1.17)),
-    ("mitrokhin4", "No regularizer"): _paper(
-        (90.22, 90.22, 96.94, 93.86, 2.05), (91.26, 99.49, 95.06, 91.46, 2.01)
-    ),
-    ("mitrokhin4", "Whitening"): _paper(
-        (90.82, 99.11, 98.04, 95.04, 2.04), (88.38, 98.87, 92.41, 88.66, 2.00)
-    ),
-    ("mitrokhin4", "Divergence"): _paper((7.25, 81.75, 18.53, 0.69, 1.09), (5.37, 66.18, 10.81, 0.28, 1.14)),
-    ("mitrokhin4", "Deformation"): _paper((8.13, 87.46, 18.53, 1.09, 1.03), (5.25, 64.79, 13.18, 0.37, 1.15)),
-    ("mitrokhin4", "Div. + Def."): _paper((5.14, 65.61, 10.75, 0.38, 1.16), (5.41, 66.01, 13.19, 0.54, 1.14)),
-}
-
-PAPER_TABLE2 = {
-    ("GT", ""): _paper(_NA + (1.09,), _NA + (1.09,)),
-    ("Identity", ""): _paper((5.84, 60.45, 16.65, 3.40, 1.00), (5.84, 60.45, 16.65, 3.40, 1.00)),
-    ("zoom1", "No regularizer"): _paper(
-        (156.13, 99.88, 99.33, 98.18, 2.58), (156.08, 99.93, 99.40, 98.11, 2.58)
-    ),
-    ("zoom1", "Whitening"): _paper((156.18, 99.95, 99.51, 98.26, 2.58), (156.82, 99.88, 99.38, 98.33, 2.58)),
-    ("zoom1", "Divergence"): _paper((12.49, 69.86, 20.78, 6.66, 1.43), (5.47, 63.48, 14.66, 1.35, 1.34)),
-    ("zoom1", "Deformation"): _paper((9.01, 68.96, 18.86, 4.77, 1.40), (5.79, 64.02, 16.11, 2.75, 1.36)),
-    ("zoom1", "Div. + Def."): _paper((6.06, 68.48, 17.08, 2.27, 1.36), (5.53, 64.09, 15.06, 1.37, 1.35)),
-    ("mitrokhin4", "No regularizer"): _paper(
-        (157.54, 99.97, 99.64, 98.67, 2.64), (157.34, 99.94, 99.53, 98.44, 2.62)
-    ),
-    ("mitrokhin4", "Whitening"): _paper(
-        (157.73, 99.97, 99.66, 98.71, 2.60), (156.12, 99.91, 99.26, 97.93, 2.61)
-    ),
-    ("mitrokhin4", "Divergence"): _paper(
-        (14.35, 90.84, 41.62, 10.82, 1.35), (10.43, 91.38, 41.63, 9.43, 1.21)
-    ),
-    ("mitrokhin4", "Deformation"): _paper(
-        (15.12, 94.96, 62.59, 22.62, 1.25), (10.01, 90.15, 39.45, 8.67, 1.25)
-    ),
-    ("mitrokhin4", "Div. + Def."): _paper(
-        (10.06, 90.65, 40.61, 8.58, 1.26), (10.39, 91.02, 41.81, 9.40, 1.23)
-    ),
-}
-
-#: (row, sequence) -> (RMS deg/s, FWL); the paper has boxes_rotation and dynamic_rotation only
-PAPER_TABLE3 = {
-    ("GT", "boxes_rotation"): (math.nan, 1.559),
-    ("GT", "dynamic_rotation"): (math.nan, 1.414),
-    ("No regularizer", "boxes_rotation"): (8.858, 1.562),
-    ("No regularizer", "dynamic_rotation"): (4.823, 1.420),
-    ("Divergence", "boxes_rotation"): (9.237, 1.558),
-    ("Divergence", "dynamic_rotation"): (4.826, 1.420),
-    ("Deformation", "boxes_rotation"): (8.664, 1.561),
-    ("Deformation", "dynamic_rotation"): (4.822, 1.420),
-}
-ROTATION_CUTS = ("boxes_rotation", "dynamic_rotation", "shapes_rotation", "poster_rotation")
 
 
 @dataclass(frozen=True)
@@ -271,8 +213,38 @@ def _window_before(events: Events, t_end: float, n: int) -> Events:
     return events[max(0, i1 - n) : i1]
 
 
-def _fmt(v: float, digits: int = 2) -> str:
-    return "–" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
+def _simulated_intervals(preset: str, settings: Settings, n_intervals: int, label: str, progress: bool):
+    """Simulate ``preset`` for ``n_intervals`` evaluation intervals ``[t_k, t_k + dt]``, k = 1.. (dt = the
+    preset's ``dt_frames`` ground-truth frames), so that ``settings.n_events`` events precede each
+    interval's end.
+
+    Returns
+    -------
+    (SimulatedRecording, float, iterator)
+        The recording, dt (s), and per interval ``(t_a, t_b, interval events, optimisation window (the
+        last n_events events before t_b), mask of pixels with an event of the interval, ground-truth flow
+        from t_a to t_b (2, H, W) px)``.
+    """
+    p = sm.PRESETS[preset]
+    dt_gt = p.dt_frames / p.frame_rate
+    duration = (n_intervals + 1) * dt_gt + 1e-3
+    W, H = (round(v * settings.scale) for v in p.sensor_size)
+    _say(f"{label}: simulating {duration:.2f} s of {W}x{H} {preset} events", progress)
+    t0 = time.monotonic()
+    rec = sm.simulate_preset(
+        preset, duration=duration, seed=settings.seed, progress=progress, scale=settings.scale
+    )
+    _say(f"{label}: {len(rec)} events in {time.monotonic() - t0:.1f} s", progress)
+    all_events = rec.events()
+
+    def intervals():
+        for k in range(1, n_intervals + 1):
+            ta, tb = k * dt_gt, (k + 1) * dt_gt
+            interval = rec.events(ta, tb)
+            window = _window_before(all_events, tb, settings.n_events)
+            yield ta, tb, interval, window, event_mask(interval), rec.flow(ta, tb)
+
+    return rec, dt_gt, intervals()
 
 
 # --- tables 1 and 2 ----------------------------------------------------------------------------------
@@ -289,17 +261,7 @@ def flow_table(
     """
     lam = settings.lam if lam is None else lam
     p = sm.PRESETS[preset]
-    dt_gt = p.dt_frames / p.frame_rate
-    # intervals [t_k, t_k + dt], k = 1.., so that 30k events precede each interval's end
-    duration = (settings.windows + 1) * dt_gt + 1e-3
-    W, H = (round(v * settings.scale) for v in p.sensor_size)
-    _say(f"{preset}: simulating {duration:.2f} s of {W}x{H} events", progress)
-    t0 = time.monotonic()
-    rec = sm.simulate_preset(
-        preset, duration=duration, seed=settings.seed, progress=progress, scale=settings.scale
-    )
-    all_events = rec.events()
-    _say(f"{preset}: {len(rec)} events in {time.monotonic() - t0:.1f} s", progress)
+    rec, dt_gt, intervals = _simulated_intervals(preset, settings, settings.windows, preset, progress)
     per_obj = len(FLOW_WARPS) * len(ROWS)
     bar = _Bar(settings.windows * len(OBJECTIVES) * per_obj, preset, progress)
     acc: dict[tuple[str, str], dict[str, list]] = {}
@@ -308,13 +270,7 @@ def flow_table(
     def add(key, objective, values):
         acc.setdefault(key, {o: [] for o in OBJECTIVES})[objective].append(values)
 
-    for w in range(settings.windows):
-        ta = (w + 1) * dt_gt
-        tb = ta + dt_gt
-        interval = rec.events(ta, tb)
-        window = _window_before(all_events, tb, settings.n_events)
-        mask = event_mask(interval)
-        gt_flow = rec.flow(ta, tb)
+    for w, (ta, tb, interval, window, mask, gt_flow) in enumerate(intervals):
         fprob = fwl_problem(interval, p.motion.warp)
         gt_theta = rec.theta_at(interval.t[0])
         gt_fwl = fprob.value(gt_theta)
@@ -371,78 +327,6 @@ def _truth_in(warp: str, true_warp: str, theta: np.ndarray) -> np.ndarray | None
     return None
 
 
-def search_check(meta: list[dict]) -> list[str]:
-    """Markdown lines on the global search, per (row, interval): where J at the truth beats J at the
-    estimate (the search missed a better point), and where the estimate collapsed (FWL above 1.5 times
-    the ground truth's) with J at least that of the truth (the objective itself prefers the collapse)."""
-    missed, preferred, n = [], [], 0
-    for w, m in enumerate(meta):
-        for key, (j_est, j_true) in m.get("J_estimate_truth", {}).items():
-            n += 1
-            name = f"{key.replace('gradient_magnitude', 'GM')} (interval {w + 1})"
-            if j_true > j_est + 1e-9 * max(1.0, abs(j_est)):
-                missed.append(f"{name}: J {j_est:.4f} < {j_true:.4f}")
-            elif m["fwl"][key] > 1.5 * m["gt_fwl"]:
-                preferred.append(f"{name}: J {j_est:.4f} >= {j_true:.4f}")
-    lines = [f"Search check over {n} estimates (J at the estimate vs J at the true parameters):", ""]
-    lines.append(
-        f"* collapsed, and J prefers the collapse to the truth ({len(preferred)}): "
-        + ("; ".join(preferred) if preferred else "none")
-    )
-    lines.append(
-        f"* the truth has a higher J than the estimate, so the search missed it ({len(missed)}): "
-        + ("; ".join(missed) if missed else "none")
-    )
-    return lines
-
-
-def _row_keys():
-    yield ("GT", ""), "GT flow"
-    yield ("Identity", ""), "Identity warp"
-    for warp in FLOW_WARPS:
-        for label, _, _ in ROWS:
-            yield (warp, label), f"{WARP_LABEL[warp]} {label}"
-
-
-def flow_table_markdown(result: dict, paper: dict, title: str) -> str:
-    """Markdown: one line per row, each cell ``ours (paper)``."""
-    head = (
-        "| row | "
-        + " | ".join(f"{m} var." for m in METRICS)
-        + " | "
-        + " | ".join(f"{m} GM" for m in METRICS)
-        + " |"
-    )
-    lines = [f"### {title}", "", "Each cell: ours (paper). Var. = variance, GM = gradient magnitude.", ""]
-    lines += [head, "|" + "---|" * (1 + 2 * len(METRICS))]
-    for key, name in _row_keys():
-        cells = []
-        for objective in OBJECTIVES:
-            ours = result[key][objective]
-            theirs = paper[key][objective]
-            for i in range(len(METRICS)):
-                if not math.isfinite(ours[i]) and not math.isfinite(theirs[i]):
-                    cells.append("–")
-                else:
-                    cells.append(f"{_fmt(ours[i])} ({_fmt(theirs[i])})")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    if ("_meta", "") in result:
-        lines += [""] + search_check(result[("_meta", "")])
-    return "\n".join(lines) + "\n"
-
-
-def flow_table_csv(result: dict, paper: dict, path: Path, table: str) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["table", "row", "objective", "metric", "ours", "paper"])
-        for key, name in _row_keys():
-            for objective in OBJECTIVES:
-                for i, m in enumerate(METRICS):
-                    w.writerow(
-                        [table, name, objective, m, result[key][objective][i], paper[key][objective][i]]
-                    )
-
-
 # --- table 3 -----------------------------------------------------------------------------------------
 def rotation_table(
     data_dir: Path, settings: Settings, progress: bool = True, lam: float | None = None
@@ -482,62 +366,17 @@ def rotation_table(
     return out
 
 
-def rotation_table_markdown(result: dict) -> str:
-    cuts = [c for c in ROTATION_CUTS if ("GT", c) in result]
-    lines = [
-        "### Table 3: ECD rotation cuts, rotation3 (RMS deg/s / FWL)",
-        "",
-        "Each cell: ours (paper); the paper reports boxes_rotation and dynamic_rotation only.",
-        "",
-        "| row | " + " | ".join(cuts) + " |",
-        "|---|" + "---|" * len(cuts),
-    ]
-    for row in ("GT", "No regularizer", "Divergence", "Deformation"):
-        cells = []
-        for cut in cuts:
-            rms, fw = result[(row, cut)]
-            prms, pfw = PAPER_TABLE3.get((row, cut), (math.nan, math.nan))
-            ours = f"{_fmt(rms, 3)} / {_fmt(fw, 3)}"
-            theirs = f" ({_fmt(prms, 3)} / {_fmt(pfw, 3)})" if (row, cut) in PAPER_TABLE3 else ""
-            cells.append(ours + theirs)
-        lines.append(f"| {'GT pose' if row == 'GT' else row} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def rotation_table_csv(result: dict, path: Path) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["row", "sequence", "rms_deg_s", "fwl", "paper_rms_deg_s", "paper_fwl"])
-        for (row, cut), value in sorted(result.items()):
-            if row == "_meta":
-                continue
-            paper = PAPER_TABLE3.get((row, cut), (math.nan, math.nan))
-            w.writerow([row, cut, value[0], value[1], paper[0], paper[1]])
-
-
 # --- sensitivity -------------------------------------------------------------------------------------
 def sensitivity(settings: Settings, progress: bool = True) -> list[dict]:
     """AEE and FWL against lambda (``indoor_flying``, variance): one dict per (warp, regularizer,
     lambda), means over the intervals; lambda 0 is the unregularized estimate."""
     s = replace(settings, windows=settings.sensitivity_windows)
     p = sm.PRESETS["indoor_flying"]
-    dt_gt = p.dt_frames / p.frame_rate
-    duration = (s.windows + 1) * dt_gt + 1e-3
-    _say(f"sensitivity: simulating {duration:.2f} s of indoor_flying", progress)
-    rec = sm.simulate_preset(
-        "indoor_flying", duration=duration, seed=s.seed, progress=progress, scale=s.scale
-    )
-    all_events = rec.events()
+    rec, dt_gt, intervals = _simulated_intervals("indoor_flying", s, s.windows, "sensitivity", progress)
     combos = [("none", (), 0.0)] + [(label, names, lam) for label, names, _ in ROWS[2:] for lam in s.lambdas]
     bar = _Bar(s.windows * len(FLOW_WARPS) * len(combos), "sensitivity", progress)
     acc: dict[tuple, list] = {}
-    for w in range(s.windows):
-        ta = (w + 1) * dt_gt
-        tb = ta + dt_gt
-        interval = rec.events(ta, tb)
-        window = _window_before(all_events, tb, settings.n_events)
-        mask = event_mask(interval)
-        gt_flow = rec.flow(ta, tb)
+    for w, (_, _, interval, window, mask, gt_flow) in enumerate(intervals):
         ident = flow_error(np.zeros_like(gt_flow), gt_flow, mask)["AEE"]
         gt_fwl = fwl_problem(interval, p.motion.warp).value(rec.theta_at(interval.t[0]))
         acc.setdefault(("identity",), []).append((ident, 1.0))
@@ -575,72 +414,6 @@ def sensitivity(settings: Settings, progress: bool = True) -> list[dict]:
     return rows
 
 
-def sensitivity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    regs = [label for label, _, _ in ROWS[2:]]
-    lambdas = sorted({r["lambda"] for r in rows if r["lambda"] > 0})
-    fig, axes = plt.subplots(2, len(FLOW_WARPS), figsize=(5.2 * len(FLOW_WARPS), 7), squeeze=False)
-    for j, warp in enumerate(FLOW_WARPS):
-        none = next(r for r in rows if r["warp"] == warp and r["regularizer"] == "none")
-        for i, metric in enumerate(("AEE", "FWL")):
-            ax = axes[i, j]
-            for label in regs:
-                pts = sorted(
-                    (r["lambda"], r[metric]) for r in rows if r["warp"] == warp and r["regularizer"] == label
-                )
-                ax.plot([a for a, _ in pts], [b for _, b in pts], "o-", label=label)
-            ax.axhline(none[metric], color="k", ls=":", label="no regularizer")
-            ref = none["identity_AEE"] if metric == "AEE" else none["gt_FWL"]
-            ax.axhline(
-                ref, color="gray", ls="--", label="identity warp" if metric == "AEE" else "ground truth"
-            )
-            ax.set_xscale("log")
-            if metric == "AEE":
-                ax.set_yscale("log")
-            ax.set_xlabel("lambda")
-            ax.set_ylabel(f"{metric}" + (" (px)" if metric == "AEE" else ""))
-            ax.set_title(f"{WARP_LABEL[warp]} ({warp}), variance, indoor_flying")
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=7)
-    fig.tight_layout()
-    png = out / "sensitivity.png"
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
-    lines = [
-        "### Sensitivity: AEE (px) / FWL against lambda (indoor_flying, variance)",
-        "",
-        f"Identity warp AEE {rows[0]['identity_AEE']:.2f} px; ground-truth FWL {rows[0]['gt_FWL']:.2f}. "
-        "lambda = 0 is the unregularized estimate.",
-        "",
-        "| warp | regularizer | 0 | " + " | ".join(f"{lam:g}" for lam in lambdas) + " |",
-        "|---|---|---|" + "---|" * len(lambdas),
-    ]
-    for warp in FLOW_WARPS:
-        none = next(r for r in rows if r["warp"] == warp and r["regularizer"] == "none")
-        for label in regs:
-            cells = [f"{none['AEE']:.2f} / {none['FWL']:.2f}"]
-            for lam in lambdas:
-                r = next(
-                    r for r in rows if r["warp"] == warp and r["regularizer"] == label and r["lambda"] == lam
-                )
-                cells.append(f"{r['AEE']:.2f} / {r['FWL']:.2f}")
-            lines.append(f"| {WARP_LABEL[warp]} | {label} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n", png
-
-
-# --- complexity --------------------------------------------------------------------------------------
-COMPLEXITY_CONFIGS = (
-    ("none", ()),
-    ("divergence", ("divergence",)),
-    ("deformation", ("deformation",)),
-    ("both", ("divergence", "deformation")),
-)
-
-
 def complexity(settings: Settings, progress: bool = True) -> list[dict]:
     """Median seconds per ``value_and_grad`` (mitrokhin4, variance) against the number of events."""
     from cmax_taichi.core import backend
@@ -676,47 +449,6 @@ def complexity(settings: Settings, progress: bool = True) -> list[dict]:
             )
             bar.step(f"N={n} {label}")
     return rows
-
-
-def complexity_outputs(rows: list[dict], out: Path) -> tuple[str, Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    sizes = sorted({r["n_events"] for r in rows})
-    fig, ax = plt.subplots(figsize=(6, 4.2))
-    for label, _ in COMPLEXITY_CONFIGS:
-        pts = sorted((r["n_events"], r["seconds"]) for r in rows if r["config"] == label)
-        ax.plot([a for a, _ in pts], [1e3 * b for _, b in pts], "o-", label=label)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("events per window")
-    ax.set_ylabel("ms per value_and_grad")
-    ax.set_title(f"mitrokhin4, variance, 346x260 ({rows[0]['arch']}, {rows[0]['precision']})")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    png = out / "complexity.png"
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
-    lines = [
-        "### Complexity: ms per objective-and-gradient evaluation (mitrokhin4, variance, 346x260)",
-        "",
-        f"Backend: {rows[0]['arch']}, {rows[0]['precision']}; median of repeated runs. "
-        "In brackets: the ratio to no regularizer.",
-        "",
-        "| events | " + " | ".join(label for label, _ in COMPLEXITY_CONFIGS) + " |",
-        "|---|" + "---|" * len(COMPLEXITY_CONFIGS),
-    ]
-    for n in sizes:
-        base = next(r["seconds"] for r in rows if r["n_events"] == n and r["config"] == "none")
-        cells = []
-        for label, _ in COMPLEXITY_CONFIGS:
-            s = next(r["seconds"] for r in rows if r["n_events"] == n and r["config"] == label)
-            cells.append(f"{1e3 * s:.2f}" + ("" if label == "none" else f" ({s / base:.2f}x)"))
-        lines.append(f"| {n} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n", png
 
 
 # --- driver ------------------------------------------------------------------------------------------
@@ -802,12 +534,12 @@ def reproduce(
         elif name == "sensitivity":
             rows = sensitivity(settings, progress)
             md, png = sensitivity_outputs(rows, out)
-            _write_rows_csv(rows, out / "sensitivity.csv")
+            write_rows_csv(rows, out / "sensitivity.csv")
             files += [out / "sensitivity.md", out / "sensitivity.csv", png]
         else:
             rows = complexity(settings, progress)
             md, png = complexity_outputs(rows, out)
-            _write_rows_csv(rows, out / "complexity.csv")
+            write_rows_csv(rows, out / "complexity.csv")
             files += [out / "complexity.md", out / "complexity.csv", png]
         timings[name] = time.monotonic() - t0
         md += f"\n({name}: {timings[name]:.0f} s)\n"
@@ -825,10 +557,3 @@ def reproduce(
     }
     (out / f"run_{what}.json").write_text(json.dumps(run, indent=1))
     return written
-
-
-def _write_rows_csv(rows: list[dict], path: Path) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)

@@ -83,12 +83,12 @@ def synthetic_scene(
     sensor_size: tuple[int, int] = (240, 180),
     duration: float = 0.03,
     *,
-    speed: tuple[float, float] = (250.0, 600.0),
     zoom: float = 0.0,
     rotation: float = 0.0,
     noise_fraction: float = 0.02,
     jitter: float = 0.3,
     seed: int = 0,
+    speed: tuple[float, float] = (250.0, 600.0),
 ) -> SyntheticScene:
     """Objects of random edges moving independently over a static, event-free background.
 
@@ -102,9 +102,6 @@ def synthetic_scene(
         ``(W, H)``, px.
     duration : float
         Window length, s.
-    speed : (float, float)
-        Range of the objects' speeds, px/s; directions are spread around the circle so that the
-        objects' velocities differ.
     zoom, rotation : float
         Largest magnitude of each object's expansion rate (1/s) and in-plane rotation (rad/s) about
         its own centre (0: pure translation).
@@ -114,6 +111,9 @@ def synthetic_scene(
         Gaussian position noise of the object events, px.
     seed : int
         Random seed.
+    speed : (float, float)
+        Range of the objects' speeds, px/s; directions are spread around the circle so that the
+        objects' velocities differ.
     """
     if not 1 <= int(n_objects) <= 4:
         raise ValueError(f"n_objects must be 1 to 4, got {n_objects}")
@@ -263,9 +263,9 @@ def simulated_scene(
     n_events: int = 30000,
     sensor_size: tuple[int, int] = (240, 180),
     *,
-    speed: tuple[float, float] = (250.0, 400.0),
     rotation: float = 1.5,
     zoom: float = 2.0,
+    speed: tuple[float, float] = (250.0, 400.0),
     contrast_threshold: float = 0.5,
     skip: float = 0.01,
     seed: int = 0,
@@ -281,7 +281,7 @@ def simulated_scene(
     few events of the static background (none without noise); ``x_ref, y_ref`` are the exact positions
     of each event's scene point at the window's first event time.
     """
-    from cmax_taichi.sim.simulate import Motion, multi_object_scene, simulate
+    from cmax_taichi.sim import Motion, multi_object_scene, simulate
 
     W, H = (int(v) for v in sensor_size)
     rng = np.random.default_rng(seed)

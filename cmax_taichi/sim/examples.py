@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cmax_taichi.core.events import Camera, Events
-from cmax_taichi.sim.simulate import (
+from cmax_taichi.sim import (
     Motion,
     SimulatedRecording,
     default_camera,

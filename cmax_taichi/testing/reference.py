@@ -706,7 +706,8 @@ def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> 
     ``rel_step * max(1, |theta_i|)`` per parameter; ``kwargs`` go to :func:`evaluate`.
 
     J is piecewise smooth (bilinear votes have kinks where a warped event crosses a pixel boundary), so
-    the step must be small enough not to cross many kinks: see ``cmax_taichi.lab.bench.reference_fd_grad``.
+    the step must be small enough not to cross many kinks: see
+    ``cmax_taichi.lab.bench_impls.reference_fd_grad``.
     """
     theta = np.asarray(theta, dtype=np.float64)
     grad = np.empty_like(theta)

@@ -1,0 +1,194 @@
+"""Arguments and checks that several sub-commands share.
+
+Every list of names in a help text comes from where the names are defined: the warp, objective and
+regularizer registries (``cm.warp_names()``, ``cm.objective_names()``, ``cm.regularizer_names()``, with
+each warp's parameters and units), the readers (``cmax_taichi.io.FORMATS``), the backends
+(``cmax_taichi.core.backend.ARCHS``) and the optimizer (``METHODS``, ``INITS``). A model registered at
+run time shows up in the help without a change here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from cmax_taichi.core.backend import ARCHS
+from cmax_taichi.io import FORMATS
+from cmax_taichi.models.objectives import objective_names
+from cmax_taichi.models.regularizers import regularizer_names
+from cmax_taichi.models.warps import get_warp, warp_names
+
+__all__ = [
+    "T_REF_NAMES",
+    "names",
+    "warp_listing",
+    "add_recording_arguments",
+    "add_t_ref_argument",
+    "add_backend_arguments",
+    "init_backend",
+    "parse_regularizers",
+    "parse_t_ref",
+]
+
+#: the named reference times of a window (a number of seconds is accepted too)
+T_REF_NAMES = ("first", "middle", "last")
+
+
+def names(values) -> str:
+    """``"a | b | c"``: the choices of an option, for its help text."""
+    return " | ".join(values)
+
+
+def warp_listing() -> str:
+    """Every registered warp with its parameters and units, e.g. ``zoom1 (h_z [1/s])``; the warps that
+    need a calibration say so."""
+    parts = []
+    for name in warp_names():
+        model = get_warp(name)
+        params = ", ".join(f"{p} [{u}]" for p, u in zip(model.params, model.units, strict=True))
+        needs = "; needs a calibration" if model.needs_camera else ""
+        parts.append(f"{name} ({params}{needs})")
+    return ", ".join(parts)
+
+
+def add_recording_arguments(
+    parser: argparse.ArgumentParser,
+    *,
+    warp_default: str,
+    warp_help: str,
+    reg_help: str,
+    sensor_size: bool = False,
+    path_nargs: str | None = None,
+    path_note: str = "",
+    examples: dict | None = None,
+) -> None:
+    """The recording and model arguments of ``estimate`` and ``segment``: ``PATH``, ``--format``
+    (``--sensor-size``), ``--warp``, ``--objective`` and the repeatable ``--reg NAME=WEIGHT``.
+
+    Parameters
+    ----------
+    warp_default : str
+        Default of ``--warp``.
+    warp_help : str
+        What ``--warp`` means for this command; the list of registered warps and the default follow it.
+    reg_help : str
+        What ``--reg`` means for this command; the registered regularizers follow it.
+    sensor_size : bool
+        Also declare ``--sensor-size W H`` (for text files without a size).
+    path_nargs : str, optional
+        ``nargs`` of ``PATH`` (e.g. ``"?"`` when ``--example`` can replace it, ``"*"`` for several).
+    path_note : str
+        Appended to the help of ``PATH``.
+    examples : dict, optional
+        Name -> example (``cmax_taichi.sim.examples``): declare ``--example NAME`` instead of ``PATH``.
+        ``--warp`` then defaults to None, to be resolved as the example's model or ``warp_default``.
+    """
+    path_kwargs = {} if path_nargs is None else {"nargs": path_nargs, "default": None}
+    parser.add_argument(
+        "path",
+        metavar="PATH",
+        help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4, "
+        "Prophesee *.raw / *.dat, Event Stream *.es" + path_note,
+        **path_kwargs,
+    )
+    if examples is not None:
+        parser.add_argument(
+            "--example",
+            default=None,
+            metavar="NAME",
+            help="instead of PATH, a recording simulated on the fly (fixed seed, exact truth), run and "
+            "printed against the truth: " + "; ".join(f"{n}: {e.description}" for n, e in examples.items()),
+        )
+    parser.add_argument("--format", default=None, help=f"{names(FORMATS)} (default: detected)")
+    if sensor_size:
+        parser.add_argument(
+            "--sensor-size",
+            type=int,
+            nargs=2,
+            default=None,
+            metavar=("W", "H"),
+            help="sensor size in px, for text files without one "
+            "(default: the format's or the reader's guess)",
+        )
+    example_note = ", or the example's model" if examples is not None else ""
+    parser.add_argument(
+        "--warp",
+        default=None if examples is not None else warp_default,
+        help=f"{warp_help}; models: {warp_listing()} "
+        f"(default {warp_default}{example_note}; 'cmax-taichi info' describes them)",
+    )
+    parser.add_argument(
+        "--objective", default="variance", help=f"{names(objective_names())} (default variance)"
+    )
+    parser.add_argument(
+        "--reg",
+        action="append",
+        default=[],
+        metavar="NAME=WEIGHT",
+        help=f"{reg_help} (repeatable; NAME: {names(regularizer_names())})",
+    )
+
+
+def add_t_ref_argument(parser) -> None:
+    """``--t-ref`` (default ``first``), on a parser or an argument group; read it with :func:`parse_t_ref`."""
+    parser.add_argument(
+        "--t-ref", default="first", help=f"reference time: {names(T_REF_NAMES)} or seconds (default first)"
+    )
+
+
+def add_backend_arguments(parser, *, precision: bool = True) -> None:
+    """``--arch`` (and ``--precision``) of the Taichi backend, on a parser or an argument group."""
+    parser.add_argument("--arch", default=None, help=f"{names(ARCHS)} (default $CMAX_TAICHI_ARCH or cpu)")
+    if precision:
+        parser.add_argument(
+            "--precision", default=None, choices=["f32", "f64"], help="default f64 on cpu, f32 on gpu"
+        )
+
+
+def init_backend(arch: str | None, precision: str | None):
+    """Initialise Taichi unless it already runs with the requested arch and precision (a reset would
+    throw away the compiled kernels of the calling process)."""
+    from cmax_taichi.core import backend
+
+    current = backend.info() if backend.is_initialized() else None
+    if (
+        current is not None
+        and arch in (None, current.requested_arch)
+        and precision in (None, current.precision)
+    ):
+        return current
+    return backend.init(arch=arch, precision=precision)
+
+
+def parse_regularizers(items: list[str]) -> dict[str, float]:
+    """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names)."""
+    from cmax_taichi.cli import CliError
+
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, weight = item.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise CliError(f"--reg expects NAME=WEIGHT (e.g. divergence=1), got {item!r}")
+        if name not in regularizer_names():
+            raise CliError(f"--reg: unknown regularizer {name!r}; valid: {', '.join(regularizer_names())}")
+        try:
+            value = float(weight)
+        except ValueError:
+            raise CliError(f"--reg {name}: weight must be a number, got {weight!r}") from None
+        if not (math.isfinite(value) and value >= 0):
+            raise CliError(f"--reg {name}: weight must be finite and >= 0, got {weight!r}")
+        out[name] = value
+    return out
+
+
+def parse_t_ref(text: str) -> str | float:
+    """``--t-ref``: one of :data:`T_REF_NAMES`, or seconds (CliError otherwise)."""
+    from cmax_taichi.cli import CliError
+
+    if text in T_REF_NAMES:
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise CliError(f"--t-ref must be first, middle, last or seconds, got {text!r}") from None
