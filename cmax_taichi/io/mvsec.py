@@ -71,7 +71,10 @@ class MVSECRecording(Recording):
         self._file = _hdf5.open_h5(self.data_file)
         try:
             key = f"davis/{side}/events"
-            self._ds = _hdf5.dataset(self._file, key, self.data_file, "not an MVSEC *_data.hdf5 file?")
+            self._key = key
+            self._ds = _hdf5.numeric_dataset(
+                self._file, key, self.data_file, "not an MVSEC *_data.hdf5 file?"
+            )
             if self._ds.ndim != 2 or self._ds.shape[1] != 4:
                 raise ValueError(
                     f"{self.data_file}: '{key}' has shape {self._ds.shape}; expected (N, 4) x y t p"
@@ -105,6 +108,9 @@ class MVSECRecording(Recording):
             raise FileNotFoundError(f"{gt_flow}: no such ground-truth flow file")
         self.gt_flow_file = Path(gt_flow) if gt_flow is not None else None
         self._gt = None
+
+    def _where(self, start: int, stop: int) -> str:
+        return f"{self.data_file}: dataset '{self._key}', rows {start}..{stop}"
 
     def _columns(self, start: int, stop: int):
         rows = np.asarray(_hdf5.read(self._ds, np.s_[start:stop], self.data_file), dtype=np.float64)
