@@ -24,6 +24,7 @@ __all__ = [
     "whole_number",
     "seconds",
     "warn_dropped",
+    "UndistortionTally",
     "time_windows",
 ]
 
@@ -118,6 +119,39 @@ def warn_dropped(n_dropped: int, n_total: int, why: str, stacklevel: int = 2) ->
             EventsDroppedWarning,
             stacklevel=stacklevel + 1,
         )
+
+
+class UndistortionTally:
+    """Events lost by undistortion over the windows: the first lossy window warns with its own counts
+    (from :meth:`~cmax_taichi.Events.undistort`), later ones are held back (a real calibration drops
+    a share of every window) and :meth:`report` gives the totals once.
+
+    Use it inside ``warnings.catch_warnings()``: :meth:`add` installs the filter that holds the later
+    warnings back, and leaving the block removes it."""
+
+    _MESSAGE = r"dropped \d+ of \d+ event\(s\) in undistortion"
+
+    def __init__(self) -> None:
+        self.windows = self.dropped = self.events = 0
+
+    def add(self, window, used) -> None:
+        """Count ``window`` (the events read) and what undistortion dropped from it (``used``, the
+        undistorted events, or ``window`` itself when nothing was undistorted)."""
+        self.events += len(window)
+        if used is not window and used.n_dropped:
+            self.windows += 1
+            self.dropped += used.n_dropped
+            warnings.filterwarnings("ignore", message=self._MESSAGE, category=EventsDroppedWarning)
+
+    def report(self) -> None:
+        """The warning with the totals, when more than one window lost events."""
+        if self.windows > 1:
+            warn_dropped(
+                self.dropped,
+                self.events,
+                f"in undistortion over {self.windows} windows (the first window's warning has the details)",
+                stacklevel=3,
+            )
 
 
 def time_windows(

@@ -155,6 +155,14 @@ class Recording:
         -------
         Events
             Coordinates in px, times in seconds, polarities -1 / +1.
+
+        Raises
+        ------
+        TypeError
+            An index that is not an integer (``0.5``, a string).
+        ValueError
+            A closed recording, or malformed rows (NaN, polarities mixing the conventions): the
+            message names the file, the dataset where there is one, and the rows.
         """
         if self._closed:
             raise ValueError(f"{self.path}: the recording is closed")
@@ -169,7 +177,15 @@ class Recording:
         Parameters
         ----------
         t0, t1 : float
-            Interval bounds, seconds (the recording's clock: see ``t_start``, ``t_end``).
+            Interval bounds, seconds (the recording's clock: see ``t_start``, ``t_end``); an empty
+            interval (``t1 <= t0``) gives no events.
+
+        Raises
+        ------
+        TypeError
+            A bound that is not a number.
+        ValueError
+            A NaN or infinite bound; malformed rows as for :meth:`read`.
         """
         if self._closed:
             raise ValueError(f"{self.path}: the recording is closed")

@@ -473,7 +473,7 @@ def process(
     if progress:
         bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
     previous = None
-    lossy = _UndistortionTally()
+    lossy = checks.UndistortionTally()
     try:
         with warnings.catch_warnings():  # restores the filter that the tally adds
             for index, events in enumerate(_limited(windows, max_windows)):
@@ -520,33 +520,6 @@ def process(
             bar.close()
     lossy.report()
     return result
-
-
-class _UndistortionTally:
-    """Events lost by undistortion over the windows: the first lossy window warns with its own counts
-    (from :meth:`~cmax_taichi.Events.undistort`), later ones are held back (a real calibration drops
-    a share of every window) and :meth:`report` gives the totals once."""
-
-    _MESSAGE = r"dropped \d+ of \d+ event\(s\) in undistortion"
-
-    def __init__(self) -> None:
-        self.windows = self.dropped = self.events = 0
-
-    def add(self, window: Events, used: Events) -> None:
-        self.events += len(window)
-        if used is not window and used.n_dropped:
-            self.windows += 1
-            self.dropped += used.n_dropped
-            warnings.filterwarnings("ignore", message=self._MESSAGE, category=checks.EventsDroppedWarning)
-
-    def report(self) -> None:
-        if self.windows > 1:
-            checks.warn_dropped(
-                self.dropped,
-                self.events,
-                f"in undistortion over {self.windows} windows (the first window's warning has the details)",
-                stacklevel=3,
-            )
 
 
 def _limited(windows: Iterable[Events], max_windows: int | None) -> Iterator[Events]:
