@@ -462,3 +462,26 @@ def test_cli_window_options_one_line_exit_2(tmp_path, capsys, argv, message):
     assert err.startswith(f"cmax-taichi estimate: error: {message}") and "\n" not in err, err
     assert "Traceback" not in err
     assert sorted(p.name for p in folder.iterdir()) == ["events.txt"]  # nothing written beside the data
+
+
+def test_mvsec_pickled_flow_timestamps_are_refused(tmp_path):
+    data = _mvsec(tmp_path / "s_data.hdf5", np.array([[1, 2, 0.0, 1], [1, 2, 0.1, 1], [1, 2, 0.2, 1]]))
+    frames = np.zeros((2, 260, 346))
+    np.savez(
+        tmp_path / "s_gt_flow_dist.npz",
+        timestamps=np.array([0.0, "x"], dtype=object),
+        x_flow_dist=frames,
+        y_flow_dist=frames,
+        allow_pickle=True,
+    )
+    with io.open_recording(data) as rec:
+        with pytest.raises(ValueError, match=r"s_gt_flow_dist.npz: 'timestamps' is not a numeric array"):
+            rec.flow(0.0, 0.1)
+        assert len(rec.read()) == 3
+
+
+def test_cli_segment_refuses_a_nan_start_time(tmp_path, capsys):
+    folder = _write_text(tmp_path / "seq", [f"{0.001 * k:.3f} {k % 60} {k % 40} {k % 2}" for k in range(100)])
+    assert main(["segment", str(folder), "--out", str(tmp_path / "out"), "--t-start", "nan"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "cmax-taichi segment: error: --t-start must be a finite number of seconds, got nan"

@@ -130,10 +130,14 @@ class MVSECRecording(Recording):
             path = self.gt_flow_file
             fx, fy = NpzFrames(path, "x_flow_dist"), NpzFrames(path, "y_flow_dist")
             try:
-                with np.load(path) as npz:
+                with np.load(path, allow_pickle=False) as npz:
                     ts = np.asarray(npz["timestamps"], dtype=np.float64).ravel()
             except KeyError:
                 raise KeyError(f"{path}: no array 'timestamps'") from None
+            except (ValueError, TypeError, OSError) as exc:  # object (pickled) or string arrays
+                raise ValueError(f"{path}: 'timestamps' is not a numeric array ({exc})") from None
+            if not np.all(np.isfinite(ts)):
+                raise ValueError(f"{path}: 'timestamps' has non-finite values")
             W, H = self.sensor_size
             if fx.shape != fy.shape or fx.shape[1:] != (H, W) or len(ts) != fx.shape[0]:
                 raise ValueError(
