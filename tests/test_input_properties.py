@@ -100,6 +100,26 @@ def test_camera_raises_only_documented_errors(params, dist):
     assert camera.fx > 0 and camera.fy > 0 and len(camera.dist) == 5
 
 
+@FAST
+@given(n_events=anything, duration=anything, stride=st.one_of(st.none(), anything))
+def test_events_windows_raise_only_documented_errors(n_events, duration, stride):
+    """``Events.windows_by_count`` / ``windows_by_duration``: TypeError or ValueError when called, or
+    non-empty windows in time order."""
+    rng = np.random.default_rng(1)
+    t = np.sort(np.concatenate([rng.uniform(0, 0.01, 200), rng.uniform(2.0, 2.01, 200)]))
+    events = cm.Events(np.zeros(400), np.zeros(400), t, np.ones(400), (4, 4))
+    for make in (
+        lambda: events.windows_by_count(n_events, stride),
+        lambda: events.windows_by_duration(duration, stride),
+    ):
+        try:
+            windows = list(itertools.islice(make(), 50))
+        except (TypeError, ValueError):
+            continue
+        assert all(len(w) > 0 for w in windows)
+        assert all(a.t[0] <= b.t[0] for a, b in itertools.pairwise(windows))
+
+
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     folder = tmp_path_factory.mktemp("seq")
