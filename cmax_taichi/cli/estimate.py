@@ -133,6 +133,17 @@ def check_choices(args: argparse.Namespace) -> None:
         raise CliError(f"--window must be at least 2 events, got {args.window}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise CliError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.stride is not None:
+        if args.duration is not None:
+            if not (math.isfinite(args.stride) and args.stride > 0):
+                raise CliError(f"--stride must be a positive number of seconds, got {args.stride:g}")
+        elif not (math.isfinite(args.stride) and args.stride >= 1 and args.stride == math.floor(args.stride)):
+            raise CliError(
+                f"--stride must be a whole number of events >= 1 (or seconds with --duration), "
+                f"got {args.stride:g}"
+            )
+    if args.max_windows is not None and args.max_windows < 1:
+        raise CliError(f"--max-windows must be at least 1, got {args.max_windows}")
     common.parse_t_ref(args.t_ref)
 
 

@@ -23,6 +23,7 @@ import argparse
 import csv
 import json
 import math
+import warnings
 from pathlib import Path
 
 from cmax_taichi.cli._common import add_backend_arguments, init_backend, names
@@ -68,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
     import cmax_taichi as cm
     from cmax_taichi import io
     from cmax_taichi.cli import CliError
+    from cmax_taichi.core.checks import UndistortionTally
     from cmax_taichi.metrics import angular_velocity_error, event_mask, flow_error, flow_from_warp, fwl
     from cmax_taichi.solve.sequence import read_results
 
@@ -85,13 +87,15 @@ def run(args: argparse.Namespace) -> int:
     init_backend(args.arch, None)
     model = cm.get_warp(result.warp)
     rows = []
-    with io.open_recording(data, format=fmt) as rec:
+    lossy = UndistortionTally()
+    with io.open_recording(data, format=fmt) as rec, warnings.catch_warnings():
         camera = rec.camera
         for w in result.windows:
             row: dict = {"index": w.index, "t_start": w.t_start, "t_end": w.t_end, "fwl": w.fwl}
             events = rec.read_time(w.t_start, float(np.nextafter(w.t_end, np.inf)))
             if camera is not None and camera.has_distortion and not events.undistorted:
-                events = events.undistort(camera)
+                read, events = events, events.undistort(camera)
+                lossy.add(read, events)  # one warning for the first window, the totals at the end
             t_mid = 0.5 * (w.t_start + w.t_end)
             w_gt = rec.angular_velocity(t_mid)
             if w_gt is not None and model.name == "rotation3":
@@ -108,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
                 )
                 row.update(flow_error(pred, gt_flow, event_mask(events), thresholds))
             rows.append(row)
+    lossy.report()
     if not any(("error_deg_s" in r) or ("AEE" in r) for r in rows):
         raise CliError(
             f"{data}: no ground truth to compare with (angular velocity for rotation3, or optical flow)"

@@ -82,6 +82,8 @@ def _read_window(rec, args):
         raise CliError(f"--events must be at least 2, got {args.events}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise CliError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.t_start is not None and not math.isfinite(args.t_start):
+        raise CliError(f"--t-start must be a finite number of seconds, got {args.t_start}")
     if args.t_start is not None or args.duration is not None:
         t0 = rec.t_start if args.t_start is None else args.t_start
         if args.duration is not None:

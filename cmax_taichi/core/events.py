@@ -5,65 +5,29 @@ Nothing here touches Taichi: events are plain NumPy until a problem copies them 
 
 from __future__ import annotations
 
+import numbers
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Events", "Camera", "iter_count_windows", "iter_time_windows"]
+from cmax_taichi.core.checks import EventsDroppedWarning, time_windows, warn_dropped, whole_number
+from cmax_taichi.core.checks import sensor_size as _check_sensor_size
 
-
-def iter_count_windows(
-    read: Callable[[int, int], Events], n_total: int, n_events: int, stride: int | None = None
-) -> Iterator[Events]:
-    """Windows of ``n_events`` consecutive events starting every ``stride`` events (default: no overlap)
-    among ``n_total``, each ``read(start, stop)``; the last, shorter window is dropped.
-
-    Raises ValueError (on the first ``next``) for ``n_events < 2`` or ``stride < 1``.
-    """
-    n_events = int(n_events)
-    stride = n_events if stride is None else int(stride)
-    if n_events < 2:
-        raise ValueError(f"n_events must be at least 2, got {n_events}")
-    if stride < 1:
-        raise ValueError(f"stride must be at least 1 event, got {stride}")
-    for start in range(0, n_total - n_events + 1, stride):
-        yield read(start, start + n_events)
-
-
-def iter_time_windows(
-    read_time: Callable[[float, float], Events],
-    span: tuple[float, float] | None,
-    duration: float,
-    stride: float | None = None,
-) -> Iterator[Events]:
-    """Windows of ``duration`` seconds starting every ``stride`` s (default: no overlap) from ``span[0]``
-    while the start is at most ``span[1]`` (the first and last event times; None: no events), each
-    ``read_time(start, start + duration)``; empty windows are skipped.
-
-    Raises ValueError (on the first ``next``) for a duration or stride that is not a positive number.
-    """
-    duration = float(duration)
-    stride = duration if stride is None else float(stride)
-    if not (np.isfinite(duration) and duration > 0):
-        raise ValueError(f"duration must be a positive number of seconds, got {duration}")
-    if not (np.isfinite(stride) and stride > 0):
-        raise ValueError(f"stride must be a positive number of seconds, got {stride}")
-    if span is None:
-        return
-    t_first, t_last = span
-    k = 0
-    while t_first + k * stride <= t_last:
-        start = t_first + k * stride
-        window = read_time(start, start + duration)
-        if len(window):
-            yield window
-        k += 1
+__all__ = ["Events", "Camera", "EventsDroppedWarning"]
 
 
 def _as_1d(name: str, values, dtype) -> np.ndarray:
-    arr = np.asarray(values)
+    try:
+        arr = np.asarray(values)
+    except (TypeError, ValueError) as exc:  # ragged nested lists and the like
+        raise ValueError(f"{name} cannot be read as a one-dimensional numeric array ({exc})") from None
+    if np.iscomplexobj(arr):
+        # casting would drop the imaginary part without a word
+        raise TypeError(f"{name} has complex values (dtype {arr.dtype}); event coordinates must be real")
+    if arr.dtype.kind in "mM":  # timedelta64 / datetime64: the unit would be lost in the cast
+        raise TypeError(f"{name} has dtype {arr.dtype}; convert it to seconds (float) first")
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)):
         raise TypeError(f"{name} must be a numeric array, got dtype {arr.dtype}")
     if arr.ndim != 1:
@@ -87,11 +51,26 @@ class Events:
     t : array_like
         Timestamps, seconds. Sorted on input, or sorted here with a warning.
     p : array_like
-        Polarities, in {0, 1} or {-1, +1}; stored as -1 / +1.
+        Polarities, all in {0, 1} or all in {-1, +1} (bools count as {0, 1}); stored as -1 / +1.
     sensor_size : (int, int)
-        ``(W, H)``, px. Events outside ``[0, W-1] x [0, H-1]`` are dropped with a warning giving the count.
+        ``(W, H)``, px: positive whole numbers (``240.0`` is accepted, ``240.5`` is refused). Events
+        outside ``[0, W-1] x [0, H-1]`` are dropped with an :class:`EventsDroppedWarning` giving the
+        count (also in ``n_dropped``).
     undistorted : bool
         Whether ``x, y`` are already undistorted (a problem then skips the camera's undistortion).
+
+    Raises
+    ------
+    TypeError
+        An array that is not real numbers (strings, objects, complex values: the imaginary part is
+        never dropped silently; datetime64 / timedelta64), or a sensor size that is not numbers.
+    ValueError
+        Arrays of different lengths or not one-dimensional; NaN or infinite values; polarities outside
+        {-1, 0, 1}, or mixing the conventions (-1 and 0 together); a sensor size that is not a pair of
+        positive whole numbers.
+
+    Nothing else is raised for any input, and nothing is converted with a loss: every event is either
+    kept as given or dropped with a warning that counts it.
     """
 
     __slots__ = ("x", "y", "t", "p", "sensor_size", "undistorted", "n_dropped")
@@ -113,12 +92,7 @@ class Events:
             self.undistorted = undistorted
             self.n_dropped = 0
             return
-        try:
-            W, H = (int(v) for v in sensor_size)
-        except (TypeError, ValueError):
-            raise ValueError(f"sensor_size must be (W, H), got {sensor_size!r}") from None
-        if W <= 0 or H <= 0:
-            raise ValueError(f"sensor_size must be positive, got (W, H) = ({W}, {H})")
+        W, H = _check_sensor_size(sensor_size)
         xs = _as_1d("x", x, np.float64)
         ys = _as_1d("y", y, np.float64)
         ts = _as_1d("t", t, np.float64)
@@ -128,8 +102,16 @@ class Events:
             raise ValueError(
                 f"x, y, t, p must have the same length, got {len(xs)}, {len(ys)}, {len(ts)}, {len(ps)}"
             )
-        if not np.all(np.isin(ps, (-1.0, 0.0, 1.0))):
-            raise ValueError("p must hold polarities in {0, 1} or {-1, +1}")
+        values = set(np.unique(ps).tolist())
+        if not values <= {-1.0, 0.0, 1.0}:
+            odd = sorted(values - {-1.0, 0.0, 1.0})[:3]
+            raise ValueError(f"p must hold polarities in {{0, 1}} or {{-1, +1}}, got values such as {odd}")
+        if {-1.0, 0.0} <= values:
+            # 0 would merge into -1 silently: refuse the ambiguous mix
+            found = ", ".join(f"{v:g}" for v in sorted(values))
+            raise ValueError(
+                f"p mixes the polarity conventions (it holds {found}): use {{0, 1}} or {{-1, +1}}, not both"
+            )
         ps = np.where(ps > 0, 1, -1).astype(np.int8)
         if len(ts) > 1 and np.any(np.diff(ts) < 0):
             warnings.warn("events were not sorted by time; sorting them", RuntimeWarning, stacklevel=2)
@@ -138,9 +120,7 @@ class Events:
         inside = (xs >= 0) & (xs <= W - 1) & (ys >= 0) & (ys <= H - 1)
         n_out = int(len(xs) - np.count_nonzero(inside))
         if n_out:
-            warnings.warn(
-                f"dropped {n_out} event(s) outside the {W}x{H} sensor", RuntimeWarning, stacklevel=2
-            )
+            warn_dropped(n_out, len(xs), f"outside the {W}x{H} sensor", stacklevel=2)
             xs, ys, ts, ps = xs[inside], ys[inside], ts[inside], ps[inside]
         self.x, self.y, self.t, self.p = xs, ys, ts, ps
         self.sensor_size = (W, H)
@@ -201,18 +181,54 @@ class Events:
 
     def windows_by_count(self, n_events: int, stride: int | None = None) -> Iterator[Events]:
         """Consecutive windows of ``n_events`` events, starting every ``stride`` events (default: no
-        overlap). The last, shorter window is dropped."""
-        return iter_count_windows(lambda i0, i1: self._subset(slice(i0, i1)), len(self), n_events, stride)
+        overlap). The last, shorter window is dropped.
 
-    def windows_by_duration(self, duration: float, stride: float | None = None) -> Iterator[Events]:
+        Both are whole numbers (``n_events >= 2``, ``stride >= 1``), checked when this is called:
+        TypeError for a non-number, ValueError for a fraction or a value too small."""
+        n_events = whole_number("n_events", n_events, 2)
+        stride = n_events if stride is None else whole_number("stride (events)", stride, 1)
+        return self._count_windows(n_events, stride)
+
+    def _count_windows(self, n_events: int, stride: int) -> Iterator[Events]:
+        for start in range(0, len(self) - n_events + 1, stride):
+            yield self._subset(slice(start, start + n_events))
+
+    def windows_by_duration(
+        self, duration: float, stride: float | None = None, max_windows: int | None = None
+    ) -> Iterator[Events]:
         """Consecutive windows of ``duration`` seconds (start every ``stride`` s, default: no
-        overlap), from the first event's time; empty windows are skipped."""
-        span = (float(self.t[0]), float(self.t[-1])) if len(self) else None
-        return iter_time_windows(self.time_slice, span, duration, stride)
+        overlap), from the first event's time; empty windows are skipped (without stepping through
+        them one by one).
+
+        The arguments are checked when this is called (see :func:`cmax_taichi.core.checks.time_windows`):
+        ValueError for a non-positive or non-finite duration or stride, a duration below 1/1000 of the
+        mean event spacing, or more than ``max_windows`` (default 10,000,000) windows."""
+        ranges = time_windows(
+            float(self.t[0]) if len(self) else 0.0,
+            float(self.t[-1]) if len(self) else 0.0,
+            len(self),
+            duration,
+            stride,
+            lambda t: int(np.searchsorted(self.t, t, side="left")),
+            lambda i: float(self.t[i]),
+            max_windows,
+        )
+        first = next(ranges, None)  # runs the checks now, not at the first iteration of the caller
+        return self._ranges(first, ranges)
+
+    def _ranges(self, first, ranges) -> Iterator[Events]:
+        if first is None:
+            return
+        yield self._subset(slice(*first))
+        for i0, i1 in ranges:
+            yield self._subset(slice(i0, i1))
 
     def undistort(self, camera: Camera, return_mask: bool = False):
-        """Return new events with undistorted coordinates (those leaving the sensor are dropped).
+        """Return new events with undistorted coordinates.
 
+        Events whose undistorted position leaves the sensor, or where the distortion model does not
+        invert (a strong distortion folds the image), are dropped with an
+        :class:`EventsDroppedWarning` giving both counts; the result's ``n_dropped`` holds the total.
         With ``return_mask``, also return the boolean mask of the kept events (to filter arrays that
         go with the events, such as weights).
         """
@@ -220,8 +236,20 @@ class Events:
             return (self, np.ones(len(self), dtype=bool)) if return_mask else self
         xu, yu = camera.undistort_points(self.x, self.y)
         W, H = self.sensor_size
-        inside = np.isfinite(xu) & np.isfinite(yu)
-        inside &= (xu >= 0) & (xu <= W - 1) & (yu >= 0) & (yu <= H - 1)
+        inverted = np.isfinite(xu) & np.isfinite(yu)
+        with np.errstate(invalid="ignore"):
+            inside = inverted & (xu >= 0) & (xu <= W - 1) & (yu >= 0) & (yu <= H - 1)
+        n_out = int(len(inside) - np.count_nonzero(inside))
+        if n_out:
+            n_fold = int(len(inverted) - np.count_nonzero(inverted))
+            warn_dropped(
+                n_out,
+                len(inside),
+                f"in undistortion with dist (k1, k2, p1, p2, k3) = "
+                f"({', '.join(f'{d:.3g}' for d in camera.dist)}): {n_out - n_fold} "
+                f"outside the {W}x{H} sensor, {n_fold} where the distortion model does not invert",
+                stacklevel=2,
+            )
         result = Events(
             xu[inside],
             yu[inside],
@@ -231,7 +259,12 @@ class Events:
             undistorted=True,
             _validated=True,
         )
+        result.n_dropped = n_out
         return (result, inside) if return_mask else result
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
@@ -245,7 +278,19 @@ class Camera:
     cx, cy : float
         Principal point, px.
     dist : tuple of float
-        ``(k1, k2, p1, p2, k3)``; all zero means no distortion.
+        ``(k1, k2, p1, p2, k3)``; all zero means no distortion. Fewer than five values are padded
+        with zeros (``(k1, k2, p1, p2)`` is OpenCV's four-coefficient model).
+
+    Raises
+    ------
+    TypeError
+        A parameter that is not a real number (a string such as ``"200"``, None, a bool, a complex),
+        or ``dist`` that is not a sequence of real numbers.
+    ValueError
+        A non-finite value, a focal length ``<= 0``, or more than five distortion coefficients.
+
+    Undistortion (:meth:`undistort_points`) returns NaN where the model does not invert;
+    :meth:`Events.undistort` drops those events with a warning that counts them.
     """
 
     fx: float
@@ -255,12 +300,27 @@ class Camera:
     dist: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if not _is_real(value):
+                raise TypeError(
+                    f"Camera {name} must be a real number (px), got {value!r} ({type(value).__name__})"
+                )
+            object.__setattr__(self, name, float(value))
         values = [self.fx, self.fy, self.cx, self.cy]
         if not all(np.isfinite(v) for v in values):
             raise ValueError(f"camera intrinsics must be finite, got {values}")
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
-        dist = tuple(float(d) for d in self.dist)
+        try:
+            raw = list(self.dist)
+        except TypeError:  # not iterable (a single number)
+            raw = None
+        if raw is None or isinstance(self.dist, (str, bytes)) or not all(_is_real(d) for d in raw):
+            raise TypeError(
+                f"Camera dist must be a sequence of real numbers (k1, k2, p1, p2, k3), got {self.dist!r}"
+            )
+        dist = tuple(float(d) for d in raw)
         if len(dist) < 5:
             dist = dist + (0.0,) * (5 - len(dist))
         if len(dist) != 5 or not all(np.isfinite(d) for d in dist):

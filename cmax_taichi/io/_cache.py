@@ -2,8 +2,12 @@
 (seconds, px, px, polarity), stored in a user cache directory and memory-mapped afterwards.
 
 The cache never lives beside the data (data folders may be read-only and users' data must not be
-modified). A cache entry is keyed by the source's absolute path, size and modification time and by the
-decoder's options, so a changed file gets a new entry; the stale entries of the same path are removed.
+modified). A cache entry is keyed by the source's absolute path, by the decoder's options and by the
+file's state: size, modification time, status-change time (``st_ctime``, which every write updates
+and no tool sets back) and a SHA-256 of its content sampled in blocks (the whole file up to 1 MiB;
+else the first and last 64 KiB and 14 blocks of 4 KiB spread between). So a file rewritten in place
+with the same size and a restored modification time still gets a new entry; the stale entries of the
+same path are removed.
 """
 
 from __future__ import annotations
@@ -22,8 +26,8 @@ import numpy as np
 
 from cmax_taichi.io.base import event_span
 
-#: bump when the table layout or a decoder's output changes (old entries are then ignored)
-CACHE_VERSION = 1
+#: bump when the table layout, a decoder's output or the key changes (old entries are then ignored)
+CACHE_VERSION = 2
 #: the environment variable that overrides the cache directory
 CACHE_ENV = "CMAX_TAICHI_CACHE"
 COLUMNS = 4  # t, x, y, p
@@ -40,11 +44,43 @@ def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
     return Path(base).expanduser() / "cmax_taichi"
 
 
+_WHOLE_FILE = 1 << 20  # files up to this size are hashed whole
+_END_BLOCK = 64 << 10  # bytes hashed at the start and at the end of a larger file
+_MID_BLOCKS, _MID_BLOCK = 14, 4 << 10  # blocks hashed in between
+
+
+def content_fingerprint(source: Path, size: int) -> str:
+    """SHA-256 (hex, 16 digits) of the file's content sampled as described in the module docstring:
+    at most 1 MiB read, whatever the file's size."""
+    digest = hashlib.sha256()
+    with open(source, "rb") as f:
+        if size <= _WHOLE_FILE:
+            digest.update(f.read())
+        else:
+            offsets = [0, size - _END_BLOCK]
+            span = size - 2 * _END_BLOCK - _MID_BLOCK
+            offsets[1:1] = [_END_BLOCK + span * (k + 1) // (_MID_BLOCKS + 1) for k in range(_MID_BLOCKS)]
+            for k, offset in enumerate(offsets):
+                f.seek(offset)
+                digest.update(f.read(_END_BLOCK if k in (0, len(offsets) - 1) else _MID_BLOCK))
+    return digest.hexdigest()[:16]
+
+
 def _keys(source: Path, kind: str, options: dict) -> tuple[str, str]:
     st = source.stat()
     path_key = hashlib.sha256(str(source.resolve()).encode()).hexdigest()[:16]
     state = json.dumps(
-        [CACHE_VERSION, kind, st.st_size, st.st_mtime_ns, options], sort_keys=True, default=str
+        [
+            CACHE_VERSION,
+            kind,
+            st.st_size,
+            st.st_mtime_ns,
+            st.st_ctime_ns,
+            content_fingerprint(source, st.st_size),
+            options,
+        ],
+        sort_keys=True,
+        default=str,
     )
     return path_key, hashlib.sha256(state.encode()).hexdigest()[:16]
 

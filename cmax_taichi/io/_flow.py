@@ -132,6 +132,9 @@ class NpzFrames:
         if fortran:
             raise ValueError(f"{self.path}: array '{key}' is stored in Fortran order; expected C order")
         self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+        if self.dtype.kind not in "iuf" or len(self.shape) < 1:
+            # object arrays would need unpickling, which is never done
+            raise ValueError(f"{self.path}: array '{key}' holds {self.dtype} values; expected numbers")
         self._frame_bytes = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
         self._map = None
         self._zip = self._member = None

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
+import numpy as np
 
 
 def open_h5(path: Path) -> h5py.File:
@@ -56,6 +57,26 @@ def dataset(f: h5py.File, key: str, path: Path, what: str) -> h5py.Dataset:
                 f"(id {code}), which neither h5py nor hdf5plugin provides"
             )
     return ds
+
+
+def numeric_dataset(f: h5py.File, key: str, path: Path, what: str) -> h5py.Dataset:
+    """:func:`dataset`, and ValueError naming the file and the dataset when its values are not
+    real numbers (strings, compound or complex values)."""
+    ds = dataset(f, key, path, what)
+    if ds.dtype.kind not in "biuf":
+        raise ValueError(f"{path}: dataset '{key}' holds values of type {ds.dtype}; expected real numbers")
+    return ds
+
+
+def finite(values, path: Path, key: str, where: str = "") -> np.ndarray:
+    """``values`` as an array, with ValueError naming the file, the dataset and the first bad row when
+    one is NaN or infinite (``where``: the rows, e.g. ``"rows 0..100"``)."""
+    arr = np.asarray(values)
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        rows = f", {where}" if where else ""
+        raise ValueError(f"{path}: dataset '{key}'{rows} has {bad} non-finite value(s) (NaN or inf)")
+    return arr
 
 
 def read(ds: h5py.Dataset, index, path: Path):

@@ -9,13 +9,14 @@ all formats behave the same.
 from __future__ import annotations
 
 import math
-import warnings
+import operator
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-from cmax_taichi.core.events import Camera, Events, iter_count_windows, iter_time_windows
+from cmax_taichi.core import checks
+from cmax_taichi.core.events import Camera, Events
 
 #: rows read at once when a time is searched through ``_times`` (bounded memory)
 _SEARCH_BLOCK = 4096
@@ -53,13 +54,23 @@ class Recording:
     t_start, t_end : float
         Time of the first and the last event, seconds.
 
+    max_time_windows : int
+        The most windows :meth:`windows` plans by time (default
+        :data:`cmax_taichi.core.checks.MAX_TIME_WINDOWS`, 10,000,000); set it on the instance to allow more.
+
     A recording is a context manager: ``with open_recording(path) as rec: ...`` closes the files it
     holds open (HDF5). Reading never loads more than the rows asked for.
+
+    Every reading method checks its arguments first (TypeError for a non-number, ValueError for a
+    value out of range) and reports a malformed row (NaN, a polarity outside the conventions) as a
+    ValueError naming the file, the dataset where there is one, and the rows; the recording stays
+    usable after any of these errors.
     """
 
     format: str = ""
     _closed: bool = False
     _warned_outside: bool = False
+    max_time_windows: int = checks.MAX_TIME_WINDOWS
 
     def __init__(
         self,
@@ -72,10 +83,7 @@ class Recording:
         t_end: float,
     ) -> None:
         self.path = Path(path)
-        W, H = (int(v) for v in sensor_size)
-        if W <= 0 or H <= 0:
-            raise ValueError(f"{self.path}: sensor_size must be positive (W, H), got {sensor_size!r}")
-        self.sensor_size = (W, H)
+        self.sensor_size = checks.sensor_size(sensor_size, where=str(self.path))
         if camera is not None and not isinstance(camera, Camera):
             raise TypeError(f"camera must be cmax_taichi.Camera, got {type(camera).__name__}")
         self.camera = camera
@@ -83,6 +91,11 @@ class Recording:
         self.n_events = int(n_events)
         self.t_start = float(t_start)
         self.t_end = float(t_end)
+        if self.n_events and not (np.isfinite(self.t_start) and np.isfinite(self.t_end)):
+            raise ValueError(
+                f"{self._where(0, self.n_events)}: the first or last time is not finite "
+                f"(t = {self.t_start} .. {self.t_end})"
+            )
 
     # --- hooks of a format ------------------------------------------------------------------
     def _columns(self, start: int, stop: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -108,6 +121,10 @@ class Recording:
     def _release(self) -> None:
         """Close what the format holds open."""
 
+    def _where(self, start: int, stop: int) -> str:
+        """Where rows ``start:stop`` live, for error messages (a format adds its dataset names)."""
+        return f"{self.path}, events {start}..{stop}"
+
     def close(self) -> None:
         """Release open files and mappings (a closed recording cannot be read)."""
         if not self._closed:
@@ -115,22 +132,28 @@ class Recording:
             self._closed = True
 
     # --- reading ----------------------------------------------------------------------------
-    def _events(self, x, y, t, p) -> Events:
+    def _events(self, start: int, stop: int) -> Events:
+        x, y, t, p = self._columns(start, stop)
         W, H = self.sensor_size
-        inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+        with np.errstate(invalid="ignore"):  # NaN coordinates are reported by Events below
+            inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+        inside |= ~(np.isfinite(x) & np.isfinite(y))
         if not np.all(inside):
             # undistorted coordinates may leave the sensor a little: drop them, and say so once per
             # recording rather than once per window
             if not self._warned_outside:
-                warnings.warn(
-                    f"{self.path}: dropping events outside the {W}x{H} sensor (e.g. {int(np.sum(~inside))} "
-                    f"of {len(inside)} in this read); this warning is shown once per recording",
-                    RuntimeWarning,
+                checks.warn_dropped(
+                    int(np.sum(~inside)),
+                    len(inside),
+                    f"outside the {W}x{H} sensor in {self._where(start, stop)} (shown once per recording)",
                     stacklevel=3,
                 )
                 self._warned_outside = True
             x, y, t, p = x[inside], y[inside], t[inside], p[inside]
-        return Events(x, y, t, p, self.sensor_size, undistorted=self.undistorted)
+        try:
+            return Events(x, y, t, p, self.sensor_size, undistorted=self.undistorted)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{self._where(start, stop)}: {exc}") from None
 
     def read(self, start: int = 0, stop: int | None = None) -> Events:
         """Events ``start:stop`` by index, with Python slice semantics (negative counts from the end).
@@ -144,12 +167,21 @@ class Recording:
         -------
         Events
             Coordinates in px, times in seconds, polarities -1 / +1.
+
+        Raises
+        ------
+        TypeError
+            An index that is not an integer (``0.5``, a string).
+        ValueError
+            A closed recording, or malformed rows (NaN, polarities mixing the conventions): the
+            message names the file, the dataset where there is one, and the rows.
         """
         if self._closed:
             raise ValueError(f"{self.path}: the recording is closed")
+        start, stop = _index("start", start), None if stop is None else _index("stop", stop)
         start, stop, _ = slice(start, stop).indices(self.n_events)
         stop = max(start, stop)
-        return self._events(*self._columns(start, stop))
+        return self._events(start, stop)
 
     def read_time(self, t0: float, t1: float) -> Events:
         """Events with ``t0 <= t < t1``.
@@ -157,13 +189,19 @@ class Recording:
         Parameters
         ----------
         t0, t1 : float
-            Interval bounds, seconds (the recording's clock: see ``t_start``, ``t_end``).
+            Interval bounds, seconds (the recording's clock: see ``t_start``, ``t_end``); an empty
+            interval (``t1 <= t0``) gives no events.
+
+        Raises
+        ------
+        TypeError
+            A bound that is not a number.
+        ValueError
+            A NaN or infinite bound; malformed rows as for :meth:`read`.
         """
         if self._closed:
             raise ValueError(f"{self.path}: the recording is closed")
-        t0, t1 = float(t0), float(t1)
-        if not (np.isfinite(t0) and np.isfinite(t1)):
-            raise ValueError(f"read_time needs finite times, got t0={t0}, t1={t1}")
+        t0, t1 = checks.seconds("read_time t0", t0), checks.seconds("read_time t1", t1)
         i0 = self._search_time(t0)
         i1 = max(i0, self._search_time(t1)) if t1 > t0 else i0
         return self.read(i0, i1)
@@ -191,14 +229,47 @@ class Recording:
         Yields
         ------
         Events
+
+        Raises
+        ------
+        TypeError
+            ``n_events`` or ``stride`` is not a number (None for ``n_events`` without ``duration``).
+        ValueError
+            Raised by this call, before any window is read: ``n_events < 2`` or a fraction; a count
+            ``stride`` below 1 or a fraction (0.5 events); a ``duration`` or time ``stride`` that is
+            not a positive finite number of seconds; a ``duration`` below 1/1000 of the mean event
+            spacing (nearly every window empty: seconds expected), or more than
+            ``max_time_windows`` windows by time. Runs of empty time windows are skipped without
+            being stepped through.
         """
+        if self._closed:
+            raise ValueError(f"{self.path}: the recording is closed")
         if duration is not None:
-            span = (self.t_start, self.t_end) if self.n_events else None
-            yield from iter_time_windows(self.read_time, span, duration, stride)
-            return
+            ranges = checks.time_windows(
+                self.t_start,
+                self.t_end,
+                self.n_events,
+                duration,
+                stride,
+                self._search_time,
+                lambda i: float(self._times(i, i + 1)[0]),
+                self.max_time_windows,
+            )
+            first = next(ranges, None)  # the checks run now, not at the caller's first iteration
+            return self._read_ranges(first, ranges)
         if n_events is None:
-            raise ValueError("windows needs n_events or duration")
-        yield from iter_count_windows(self.read, self.n_events, n_events, stride)
+            raise TypeError("windows needs n_events (events per window) or duration (seconds); both are None")
+        n = checks.whole_number("n_events", n_events, 2)
+        step = n if stride is None else checks.whole_number("stride (events)", stride, 1)
+        return self._read_ranges(
+            None, ((start, start + n) for start in range(0, self.n_events - n + 1, step))
+        )
+
+    def _read_ranges(self, first, ranges) -> Iterator[Events]:
+        if first is not None:
+            yield self.read(*first)
+        for i0, i1 in ranges:
+            yield self.read(i0, i1)
 
     # --- ground truth (None when the recording has none) ------------------------------------
     def angular_velocity(self, t) -> np.ndarray | None:
@@ -232,6 +303,15 @@ class Recording:
             f"t=[{self.t_start:.6f}, {self.t_end:.6f}] s, sensor={W}x{H}, "
             f"camera={'yes' if self.camera else 'no'}, undistorted={self.undistorted})"
         )
+
+
+def _index(name: str, value) -> int:
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise TypeError(
+            f"{name} must be an integer event index, got {value!r} ({type(value).__name__})"
+        ) from None
 
 
 def interpolate_rows(t_query, t_table: np.ndarray, values: np.ndarray, name: str) -> np.ndarray:

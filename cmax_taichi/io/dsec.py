@@ -30,8 +30,10 @@ from cmax_taichi.io import _hdf5
 from cmax_taichi.io._flow import accumulate_flow
 from cmax_taichi.io._png import read_png
 from cmax_taichi.io.base import Recording, event_span
+from cmax_taichi.io.text import read_text_file
 
 SENSOR_SIZE = (640, 480)
+_MAX_US = 2**62  # microseconds; beyond, the int64 sums of times and offsets could overflow
 
 
 def _find_events_file(path: Path) -> Path:
@@ -78,7 +80,7 @@ def _yaml_list(text: str, key: str) -> list[float]:
 def _yaml_camera(path: Path, name: str) -> Camera | None:
     """``camera_matrix`` [fx, fy, cx, cy] and ``distortion_coeffs`` of block ``name`` in DSEC's
     ``cam_to_cam.yaml`` (None when the block is not there)."""
-    lines = path.read_text().splitlines()
+    lines = read_text_file(path).splitlines()
     for k, line in enumerate(lines):
         if line.strip() == f"{name}:":
             indent = len(line) - len(line.lstrip())
@@ -88,13 +90,24 @@ def _yaml_camera(path: Path, name: str) -> Camera | None:
                     break
                 block.append(nxt)
             text = "\n".join(block)
-            K = _yaml_list(text, "camera_matrix")
+            try:
+                K = _yaml_list(text, "camera_matrix")
+                dist = _yaml_list(text, "distortion_coeffs")
+            except ValueError as exc:
+                raise ValueError(f"{path}: '{name}': not a number ({exc})") from None
             if len(K) != 4:
                 raise ValueError(f"{path}: '{name}' has no camera_matrix [fx, fy, cx, cy]")
-            dist = _yaml_list(text, "distortion_coeffs")
             if dist and "equidistant" in text:
                 raise ValueError(f"{path}: '{name}' uses the equidistant model; pass camera= instead")
-            return Camera(*K, dist=tuple(dist[:5]) or (0.0,) * 5)
+            if len(dist) > 5:
+                raise ValueError(
+                    f"{path}: '{name}' has {len(dist)} distortion coefficients; the radial-tangential "
+                    "model takes at most 5 (k1, k2, p1, p2, k3): pass camera= instead"
+                )
+            try:
+                return Camera(*K, dist=tuple(dist) or (0.0,) * 5)
+            except ValueError as exc:
+                raise ValueError(f"{path}: '{name}': {exc}") from None
     return None
 
 
@@ -135,14 +148,25 @@ class DSECRecording(Recording):
         self._file = _hdf5.open_h5(ef)
         with _hdf5.closed_on_error(self._file):
             self._x, self._y, self._t, self._p = (
-                _hdf5.dataset(self._file, f"events/{c}", ef, "not a DSEC events.h5 file?") for c in "xytp"
+                _hdf5.numeric_dataset(self._file, f"events/{c}", ef, "not a DSEC events.h5 file?")
+                for c in "xytp"
             )
             n = self._t.shape[0]
             if any(ds.shape != (n,) for ds in (self._x, self._y, self._p)):
                 raise ValueError(f"{ef}: events/x, y, t, p must have the same length")
-            self._ms_to_idx = _hdf5.dataset(self._file, "ms_to_idx", ef, "not a DSEC events.h5 file?")
-            offset = _hdf5.dataset(self._file, "t_offset", ef, "not a DSEC events.h5 file?")
-            self.t_offset_us = int(_hdf5.read(offset, (), ef))
+            self._ms_to_idx = _hdf5.numeric_dataset(self._file, "ms_to_idx", ef, "not a DSEC events.h5 file?")
+            offset = _hdf5.numeric_dataset(self._file, "t_offset", ef, "not a DSEC events.h5 file?")
+            offset_value = np.ravel(_hdf5.finite(_hdf5.read(offset, (), ef), ef, "t_offset"))
+            if (
+                offset_value.size != 1
+                or offset_value[0] != np.floor(offset_value[0])
+                or abs(offset_value[0]) >= _MAX_US
+            ):
+                raise ValueError(
+                    f"{ef}: dataset 't_offset' must hold one whole number of microseconds below 2**62, "
+                    f"got {offset_value.tolist()}"
+                )
+            self.t_offset_us = int(offset_value[0])
             span = event_span(n, lambda i: self._seconds(_hdf5.read(self._t, np.s_[i : i + 1], ef))[0])
             self._rectify_map = None
             map_file = ef.with_name("rectify_map.h5")
@@ -178,26 +202,46 @@ class DSECRecording(Recording):
         self._flow_index = None
 
     # --- events -----------------------------------------------------------------------------
-    def _seconds(self, t_us) -> np.ndarray:
-        return (np.asarray(t_us, dtype=np.int64) + self.t_offset_us) / 1e6
+    def _seconds(self, t_us, where: str = "") -> np.ndarray:
+        t_us = _hdf5.finite(t_us, self.events_file, "events/t", where)
+        if t_us.dtype.kind == "f":  # keep fractions of a microsecond (the format stores integers)
+            return (t_us.astype(np.float64) + self.t_offset_us) / 1e6
+        if t_us.size:
+            largest = max(abs(int(t_us.min())), abs(int(t_us.max()))) + abs(self.t_offset_us)
+            if largest >= _MAX_US:  # int64 arithmetic would wrap around without a word
+                rows = f", {where}" if where else ""
+                raise ValueError(
+                    f"{self.events_file}: dataset 'events/t'{rows}: times of {largest} us with t_offset "
+                    "are out of range (2**62 us)"
+                )
+        return (t_us.astype(np.int64) + self.t_offset_us) / 1e6
+
+    def _where(self, start: int, stop: int) -> str:
+        return f"{self.events_file}: datasets 'events/x, y, t, p', rows {start}..{stop}"
 
     def _columns(self, start: int, stop: int):
         ef = self.events_file
         sl = np.s_[start:stop]
         x = np.asarray(_hdf5.read(self._x, sl, ef), dtype=np.float64)
         y = np.asarray(_hdf5.read(self._y, sl, ef), dtype=np.float64)
-        t = self._seconds(_hdf5.read(self._t, sl, ef))
+        t = self._seconds(_hdf5.read(self._t, sl, ef), f"rows {start}..{stop}")
         p = np.asarray(_hdf5.read(self._p, sl, ef), dtype=np.float64)
         if self._rectify_map is not None:
             W, H = self.sensor_size
-            if len(x) and (x.max() > W - 1 or y.max() > H - 1):
-                raise ValueError(f"{ef}: events at x > {W - 1} or y > {H - 1}, outside the rectify map")
+            rows = f"rows {start}..{stop}"
+            x, y = _hdf5.finite(x, ef, "events/x", rows), _hdf5.finite(y, ef, "events/y", rows)
+            if len(x) and (x.max() > W - 1 or y.max() > H - 1 or x.min() < 0 or y.min() < 0):
+                raise ValueError(
+                    f"{ef}: events ({rows}) outside 0 <= x <= {W - 1}, 0 <= y <= {H - 1}, the rectify map"
+                )
             xi, yi = x.astype(np.int64), y.astype(np.int64)
             x, y = self._rectify_map[yi, xi, 0], self._rectify_map[yi, xi, 1]
         return x, y, t, p
 
     def _times(self, start: int, stop: int) -> np.ndarray:
-        return self._seconds(_hdf5.read(self._t, np.s_[start:stop], self.events_file))
+        return self._seconds(
+            _hdf5.read(self._t, np.s_[start:stop], self.events_file), f"rows {start}..{stop}"
+        )
 
     def _search_time(self, t: float) -> int:
         """``ms_to_idx`` brackets the answer within +-1 ms; one block of ``t`` is then searched.
@@ -250,7 +294,7 @@ class DSECRecording(Recording):
             if not stamps.is_file():
                 raise FileNotFoundError(f"{stamps}: no flow timestamps file")
             rows = []
-            for k, line in enumerate(stamps.read_text().splitlines(), start=1):
+            for k, line in enumerate(read_text_file(stamps).splitlines(), start=1):
                 content = line.split("#", 1)[0].replace(",", " ").split()
                 if not content:
                     continue

@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax_taichi.core import checks
 from cmax_taichi.io.base import interpolate_rows
-from cmax_taichi.io.text import TextRecording
+from cmax_taichi.io.text import TextRecording, read_text_file
 
 
 def _load_table(path: Path, ncols: int) -> np.ndarray:
@@ -79,7 +80,7 @@ class ECDRecording(TextRecording):
         if not path.is_file():
             return None
         out = []
-        for k, line in enumerate(path.read_text().splitlines(), start=1):
+        for k, line in enumerate(read_text_file(path).splitlines(), start=1):
             fields = line.split("#", 1)[0].split()
             if not fields:
                 continue
@@ -96,11 +97,22 @@ class ECDRecording(TextRecording):
         path = self.folder / "flow.npy"
         if not path.is_file():
             return None
-        flow = np.load(path)
+        try:
+            # never unpickle: a pickled .npy runs code of whoever wrote it
+            flow = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise ValueError(
+                f"{path}: not a plain numeric .npy array ({exc}); pickled object arrays are refused"
+            ) from None
+        if not isinstance(flow, np.ndarray) or flow.dtype.kind not in "iuf":
+            kind = flow.dtype if isinstance(flow, np.ndarray) else type(flow).__name__
+            raise ValueError(f"{path}: expected a float array of flow in px, got {kind}")
         W, H = self.sensor_size
         if flow.shape not in ((1, 2, H, W), (2, H, W)):
             raise ValueError(f"{path}: expected shape (1, 2, {H}, {W}), got {flow.shape}")
         span = self.t_end - self.t_start
         if not span > 0:
             raise ValueError(f"{self.events_file}: the window has no duration to scale flow.npy by")
-        return flow.reshape(2, H, W).astype(np.float64) * ((float(t1) - float(t0)) / span)
+        t0 = checks.seconds("flow t0", t0)
+        t1 = checks.seconds("flow t1", t1)
+        return flow.reshape(2, H, W).astype(np.float64) * ((t1 - t0) / span)

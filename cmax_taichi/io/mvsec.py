@@ -71,7 +71,10 @@ class MVSECRecording(Recording):
         self._file = _hdf5.open_h5(self.data_file)
         with _hdf5.closed_on_error(self._file):
             key = f"davis/{side}/events"
-            self._ds = _hdf5.dataset(self._file, key, self.data_file, "not an MVSEC *_data.hdf5 file?")
+            self._key = key
+            self._ds = _hdf5.numeric_dataset(
+                self._file, key, self.data_file, "not an MVSEC *_data.hdf5 file?"
+            )
             if self._ds.ndim != 2 or self._ds.shape[1] != 4:
                 raise ValueError(
                     f"{self.data_file}: '{key}' has shape {self._ds.shape}; expected (N, 4) x y t p"
@@ -100,6 +103,9 @@ class MVSECRecording(Recording):
         self.gt_flow_file = Path(gt_flow) if gt_flow is not None else None
         self._gt = None
 
+    def _where(self, start: int, stop: int) -> str:
+        return f"{self.data_file}: dataset '{self._key}', rows {start}..{stop}"
+
     def _columns(self, start: int, stop: int):
         rows = np.asarray(_hdf5.read(self._ds, np.s_[start:stop], self.data_file), dtype=np.float64)
         return rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3]
@@ -118,10 +124,14 @@ class MVSECRecording(Recording):
             path = self.gt_flow_file
             fx, fy = NpzFrames(path, "x_flow_dist"), NpzFrames(path, "y_flow_dist")
             try:
-                with np.load(path) as npz:
+                with np.load(path, allow_pickle=False) as npz:
                     ts = np.asarray(npz["timestamps"], dtype=np.float64).ravel()
             except KeyError:
                 raise KeyError(f"{path}: no array 'timestamps'") from None
+            except (ValueError, TypeError, OSError) as exc:  # object (pickled) or string arrays
+                raise ValueError(f"{path}: 'timestamps' is not a numeric array ({exc})") from None
+            if not np.all(np.isfinite(ts)):
+                raise ValueError(f"{path}: 'timestamps' has non-finite values")
             W, H = self.sensor_size
             if fx.shape != fy.shape or fx.shape[1:] != (H, W) or len(ts) != fx.shape[0]:
                 raise ValueError(

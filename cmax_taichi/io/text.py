@@ -17,6 +17,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from cmax_taichi.core import checks
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io._cache import CachedTableReads, cached_table
 from cmax_taichi.io.base import Recording
@@ -26,6 +27,21 @@ DEFAULT_COLUMNS = {4: ("t", "x", "y", "p"), 5: ("t", "x", "y", "depth", "p")}
 #: file names looked for, in this order, when a folder is opened
 EVENT_FILE_NAMES = ("events.txt", "events_chunk.txt")
 _CHUNK = 8 << 20  # bytes parsed at once (bounded memory)
+
+
+def read_text_file(path: Path) -> str:
+    """The text of a small side file (calibration, timestamps, image list): ValueError naming the
+    file when it is not UTF-8 text (a binary file), OSError naming it when it cannot be read."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise OSError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(
+            f"{path}: not a text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} is not UTF-8)"
+        ) from None
 
 
 def find_events_file(path: Path) -> Path:
@@ -99,7 +115,8 @@ def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> di
     """Parse the text events of ``path`` chunk by chunk; write ``t x y p`` rows (float64) to ``out``.
 
     Raises ValueError naming the file and the line for a malformed or truncated line, a non-finite
-    value, a polarity outside {-1, 0, 1} or a time that goes backwards.
+    value, a polarity outside {-1, 0, 1}, a polarity of the other convention than the lines before
+    (-1 after 0 or 0 after -1: ``{0, 1}`` and ``{-1, +1}`` do not mix) or a time that goes backwards.
     """
     ncols = len(columns)
     pick = [columns.index(c) for c in ("t", "x", "y", "p")]
@@ -109,6 +126,7 @@ def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> di
     lo = np.full(2, np.inf)
     hi = np.full(2, -np.inf)
     integer = True
+    off_polarity = None  # the value marking OFF events so far (0 or -1), to refuse a mix
     rest = b""
     with open(path, "rb") as f:
         while True:
@@ -131,7 +149,7 @@ def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> di
                 if arr.shape[1] != ncols:
                     raise _bad_line(path, chunk, line_no, ncols)
                 rows = arr if pick == [0, 1, 2, 3] else np.ascontiguousarray(arr[:, pick])
-                _check_rows(path, chunk, line_no, rows, t_last)
+                off_polarity = _check_rows(path, chunk, line_no, rows, t_last, off_polarity)
                 if len(rows):
                     if n == 0:
                         t_first = float(rows[0, 0])
@@ -157,7 +175,11 @@ def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> di
     }
 
 
-def _check_rows(path: Path, chunk: bytes, line_no: int, rows: np.ndarray, t_prev: float) -> None:
+def _check_rows(
+    path: Path, chunk: bytes, line_no: int, rows: np.ndarray, t_prev: float, off_polarity: float | None
+) -> float | None:
+    """ValueError naming the line of the first bad row; returns the OFF polarity value seen so far."""
+
     def where(i: int) -> str:
         k, content = _data_lines(chunk)[i]
         return f"{path}, line {line_no + k - 1} ({content[:80].decode(errors='replace')!r})"
@@ -168,18 +190,30 @@ def _check_rows(path: Path, chunk: bytes, line_no: int, rows: np.ndarray, t_prev
     pol_ok = np.isin(rows[:, 3], (-1.0, 0.0, 1.0))
     if not pol_ok.all():
         raise ValueError(f"{where(int(np.argmin(pol_ok)))}: polarity must be 0/1 or -1/+1")
+    off = np.flatnonzero(rows[:, 3] <= 0)
+    if len(off):
+        first = float(rows[off[0], 3]) if off_polarity is None else off_polarity
+        other = np.flatnonzero(rows[off, 3] != first)
+        if len(other):
+            raise ValueError(
+                f"{where(int(off[other[0]]))}: polarity {rows[off[other[0]], 3]:+.0f} after earlier "
+                f"{first:+.0f} polarities: use {{0, 1}} or {{-1, +1}}, not both"
+            )
+        off_polarity = first
     t = rows[:, 0]
     previous = np.concatenate([[-np.inf if math.isnan(t_prev) else t_prev], t[:-1]])
     back = np.flatnonzero(t < previous)
     if len(back):
         raise ValueError(f"{where(int(back[0]))}: time goes backwards (events must be sorted by time)")
+    return off_polarity
 
 
 def read_calib(path: Path) -> tuple[Camera | None, tuple[int, int] | None]:
     """``calib.txt``: line 1 ``fx fy cx cy [k1 k2 p1 p2 [k3]]``, optional line 2 ``W H``."""
     if not path.is_file():
         return None, None
-    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    text = read_text_file(path)
+    lines = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
     if not lines:
         raise ValueError(f"{path}: empty calibration file")
     try:
@@ -189,12 +223,12 @@ def read_calib(path: Path) -> tuple[Camera | None, tuple[int, int] | None]:
     size = None
     if len(lines) > 1:
         try:
-            W, H = (int(float(v)) for v in lines[1])
-        except ValueError:
+            size = checks.sensor_size([float(v) for v in lines[1]])
+        except (TypeError, ValueError) as exc:
             raise ValueError(
-                f"{path}, line 2: expected the sensor size 'W H', got {' '.join(lines[1])!r}"
+                f"{path}, line 2: expected the sensor size 'W H' (positive whole numbers), got "
+                f"{' '.join(lines[1])!r} ({exc})"
             ) from None
-        size = (W, H)
     return camera, size
 
 
@@ -256,6 +290,7 @@ class TextRecording(CachedTableReads, Recording):
             if not meta["n"]:
                 raise ValueError(f"{self.events_file}: no events and no sensor size (pass sensor_size=)")
             sensor_size = (int(math.ceil(meta["xy_max"][0])) + 1, int(math.ceil(meta["xy_max"][1])) + 1)
+        sensor_size = checks.sensor_size(sensor_size, where=str(self.events_file))
         if integer and meta["n"]:
             (x0, y0), (x1, y1) = meta["xy_min"], meta["xy_max"]
             W, H = sensor_size

@@ -15,6 +15,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,7 @@ from typing import Any, TextIO
 import numpy as np
 from tqdm import tqdm
 
+from cmax_taichi.core import checks
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.metrics import fwl_problem
 from cmax_taichi.models.warps import get_warp
@@ -405,7 +407,29 @@ def process(
     Returns
     -------
     SequenceResult
+
+    Raises
+    ------
+    TypeError
+        ``n_events``, ``stride``, ``duration`` or ``max_windows`` is not a number (e.g. None for
+        ``n_events`` without ``duration``).
+    ValueError
+        Before any window is read: ``n_events < 2``; a count ``stride`` below 1 or not whole (0,
+        0.5); a ``duration`` or time ``stride`` that is not a positive finite number of seconds;
+        ``max_windows < 1``; time windows far shorter than the event spacing or too many of them
+        (see :meth:`cmax_taichi.io.Recording.windows`).
+
+    Events dropped by undistortion are reported by the first window that drops some, then once
+    more at the end with the totals over all windows (not once per window).
     """
+    if duration is None:
+        n_events = checks.whole_number("n_events", n_events, 2)
+        stride = None if stride is None else checks.whole_number("stride (events)", stride, 1)
+    else:
+        duration = checks.seconds("duration", duration, positive=True)
+        stride = None if stride is None else checks.seconds("stride", stride, positive=True)
+    if max_windows is not None:
+        max_windows = checks.whole_number("max_windows", max_windows, 1)
     if isinstance(source, (str, os.PathLike)):
         from cmax_taichi import io
 
@@ -460,50 +484,54 @@ def process(
     if progress:
         bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
     previous = None if initial_theta is None else np.asarray(initial_theta, dtype=np.float64)
+    lossy = checks.UndistortionTally()
     try:
-        for index, events in enumerate(_limited(windows, max_windows)):
-            if index < first_window:
-                continue  # done by an earlier, interrupted run
-            t0 = time.perf_counter()
-            if len(events) < 2 or not events.duration > 0:
-                continue  # nothing to estimate (a window with all events at one time stamp)
-            prob = ContrastMaximization(
-                events, warp=model, objective=objective, regularizers=regularizers, camera=camera, **popts
-            )
-            theta0 = previous if warm_start else None
-            res = maximize(prob, theta0=theta0, method=method, **oopts)
-            value_fwl = math.nan
-            if compute_fwl:
-                fprob = fwl_problem(
-                    prob.events,  # already undistorted: the same events as the estimate
-                    model,
-                    camera=camera,
-                    blur_sigma=prob.blur_sigma,
-                    t_ref=popts.get("t_ref", "first"),
-                    polarity=prob.polarity,
+        with warnings.catch_warnings():  # restores the filter that the tally adds
+            for index, events in enumerate(_limited(windows, max_windows)):
+                if index < first_window:
+                    continue  # done by an earlier, interrupted run
+                t0 = time.perf_counter()
+                if len(events) < 2 or not events.duration > 0:
+                    continue  # nothing to estimate (a window with all events at one time stamp)
+                prob = ContrastMaximization(
+                    events, warp=model, objective=objective, regularizers=regularizers, camera=camera, **popts
                 )
-                value_fwl = fprob.value(res.theta)
-            row = WindowResult(
-                index=index,
-                t_start=float(events.t[0]),
-                t_end=float(events.t[-1]),
-                n_events=prob.n_events,
-                theta=np.asarray(res.theta, dtype=np.float64),
-                value=float(res.value),
-                fwl=float(value_fwl),
-                iterations=res.n_iterations,
-                seconds=time.perf_counter() - t0,
-                converged=res.converged,
-            )
-            result.windows.append(row)
-            if on_window is not None:
-                on_window(row, prob, res)
-            previous = res.theta
-            if bar is not None:
-                bar.update(f"J={res.value:.3f}")
+                lossy.add(events, prob.events)
+                theta0 = previous if warm_start else None
+                res = maximize(prob, theta0=theta0, method=method, **oopts)
+                value_fwl = math.nan
+                if compute_fwl:
+                    fprob = fwl_problem(
+                        prob.events,  # already undistorted: the same events as the estimate
+                        model,
+                        camera=camera,
+                        blur_sigma=prob.blur_sigma,
+                        t_ref=popts.get("t_ref", "first"),
+                        polarity=prob.polarity,
+                    )
+                    value_fwl = fprob.value(res.theta)
+                row = WindowResult(
+                    index=index,
+                    t_start=float(events.t[0]),
+                    t_end=float(events.t[-1]),
+                    n_events=prob.n_events,
+                    theta=np.asarray(res.theta, dtype=np.float64),
+                    value=float(res.value),
+                    fwl=float(value_fwl),
+                    iterations=res.n_iterations,
+                    seconds=time.perf_counter() - t0,
+                    converged=res.converged,
+                )
+                result.windows.append(row)
+                if on_window is not None:
+                    on_window(row, prob, res)
+                previous = res.theta
+                if bar is not None:
+                    bar.update(f"J={res.value:.3f}")
     finally:
         if bar is not None:
             bar.close()
+    lossy.report()
     return result
 
 

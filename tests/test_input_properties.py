@@ -1,0 +1,258 @@
+"""Property-based tests (hypothesis): generated bad and edge inputs of the input layer raise only the
+documented exception types, within a deadline, and whatever is accepted keeps the containers'
+invariants.
+
+Documented types: ``Events`` and ``Camera`` raise TypeError or ValueError; ``Recording.read``,
+``read_time`` and ``windows`` raise TypeError or ValueError; the readers (``open_recording`` and
+reading) raise ValueError, OSError or KeyError (TypeError only for arguments). Anything else (an
+OverflowError, an IndexError, a UnicodeDecodeError that names no file, a hang) fails these tests.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+import tempfile
+import warnings
+from datetime import timedelta
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+import cmax_taichi as cm
+from cmax_taichi import io
+
+DOCUMENTED = (ValueError, TypeError, OSError, KeyError)
+# small example counts: the file runs in well under a minute on a loaded 2-core machine
+FAST = settings(max_examples=100, deadline=timedelta(seconds=2), database=None)
+FILES = settings(
+    max_examples=40,
+    deadline=timedelta(seconds=5),
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+
+numbers = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-(10**20), 10**20),
+    st.sampled_from([0, 1, -1, 0.5, 240.0, 240.5, 1e308, -0.0]),
+)
+anything = st.one_of(
+    numbers,
+    st.none(),
+    st.booleans(),
+    st.text(max_size=4),
+    st.complex_numbers(max_magnitude=1e3),
+    st.lists(st.integers(0, 5), max_size=3),
+)
+
+
+def _array(n):
+    dtypes = st.sampled_from(["f8", "f4", "i8", "u1", "c16", "bool", "U3", "O", "m8[us]"])
+    return dtypes.flatmap(
+        lambda dt: hnp.arrays(np.dtype(dt), n) if dt != "O" else st.just(np.array([None] * n))
+    )
+
+
+@FAST
+@given(
+    n=st.integers(0, 20),
+    extra=st.integers(-1, 1),
+    data=st.data(),
+    size=st.one_of(st.tuples(numbers, numbers), anything),
+)
+def test_events_raise_only_documented_errors(n, extra, data, size):
+    """``Events``: TypeError or ValueError, or a valid container (sorted, on the sensor, p = -1/+1)."""
+    arrays = [data.draw(_array(n)) for _ in range(3)] + [data.draw(_array(max(0, n + extra)))]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            events = cm.Events(*arrays, size)
+    except (TypeError, ValueError):
+        return
+    W, H = events.sensor_size
+    assert isinstance(W, int) and isinstance(H, int) and W > 0 and H > 0
+    assert len(events) + events.n_dropped == n
+    assert np.all(np.diff(events.t) >= 0) and np.all(np.isfinite(events.t))
+    assert np.all((events.x >= 0) & (events.x <= W - 1) & (events.y >= 0) & (events.y <= H - 1))
+    assert set(np.unique(events.p).tolist()) <= {-1, 1}
+
+
+@FAST
+@given(
+    params=st.lists(st.one_of(anything, st.floats(1e-3, 1e3)), min_size=4, max_size=4),
+    dist=st.one_of(anything, st.lists(st.one_of(numbers, anything), max_size=7)),
+)
+def test_camera_raises_only_documented_errors(params, dist):
+    """``Camera``: TypeError or ValueError, or finite float intrinsics with positive focal lengths."""
+    try:
+        camera = cm.Camera(*params, dist=dist)
+    except (TypeError, ValueError):
+        return
+    values = [camera.fx, camera.fy, camera.cx, camera.cy, *camera.dist]
+    assert all(type(v) is float and math.isfinite(v) for v in values)
+    assert camera.fx > 0 and camera.fy > 0 and len(camera.dist) == 5
+
+
+@FAST
+@given(n_events=anything, duration=anything, stride=st.one_of(st.none(), anything))
+def test_events_windows_raise_only_documented_errors(n_events, duration, stride):
+    """``Events.windows_by_count`` / ``windows_by_duration``: TypeError or ValueError when called, or
+    non-empty windows in time order."""
+    rng = np.random.default_rng(1)
+    t = np.sort(np.concatenate([rng.uniform(0, 0.01, 200), rng.uniform(2.0, 2.01, 200)]))
+    events = cm.Events(np.zeros(400), np.zeros(400), t, np.ones(400), (4, 4))
+    for make in (
+        lambda: events.windows_by_count(n_events, stride),
+        lambda: events.windows_by_duration(duration, stride),
+    ):
+        try:
+            windows = list(itertools.islice(make(), 50))
+        except (TypeError, ValueError):
+            continue
+        assert all(len(w) > 0 for w in windows)
+        assert all(a.t[0] <= b.t[0] for a, b in itertools.pairwise(windows))
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("seq")
+    rng = np.random.default_rng(0)
+    t = np.sort(np.concatenate([rng.uniform(0, 0.01, 300), rng.uniform(0.5, 0.51, 300)]))
+    lines = [f"{tk:.9f} {k % 60} {k % 40} {k % 2}\n" for k, tk in enumerate(t)]
+    (folder / "events.txt").write_text("".join(lines))
+    rec = io.open_recording(folder, cache_dir=tmp_path_factory.mktemp("cache"))
+    yield rec
+    rec.close()
+
+
+@settings(FAST, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(n_events=anything, duration=st.one_of(st.none(), anything), stride=st.one_of(st.none(), anything))
+def test_recording_windows_raise_only_documented_errors(recording, n_events, duration, stride):
+    """``Recording.windows``: TypeError or ValueError when called, or windows that hold events."""
+    try:
+        windows = recording.windows(n_events=n_events, duration=duration, stride=stride)
+        for window in itertools.islice(windows, 50):
+            assert len(window) > 0
+    except (TypeError, ValueError):
+        pass
+    assert len(recording.read(0, 10)) == 10  # still usable
+
+
+@settings(FAST, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(a=anything, b=anything)
+def test_recording_reads_raise_only_documented_errors(recording, a, b):
+    """``read_time`` and ``read``: TypeError or ValueError, or the events asked for."""
+    try:
+        events = recording.read_time(a, b)
+        assert np.all((events.t >= a) & (events.t < b))
+    except (TypeError, ValueError):
+        pass
+    with contextlib.suppress(TypeError, ValueError):
+        recording.read(a, b)
+    assert len(recording.read(0, 10)) == 10
+
+
+text_line = st.one_of(
+    st.tuples(
+        st.one_of(st.floats(-1, 10), st.sampled_from([math.nan, math.inf])),
+        st.integers(-5, 300),
+        st.integers(-5, 300),
+        st.sampled_from([-1, 0, 1, 2]),
+    ).map(lambda r: " ".join(str(v) for v in r)),
+    st.binary(max_size=12).map(lambda b: b.decode("latin-1")),
+    st.sampled_from(["", "# comment", "0.1 2 3", "0.1 2 3 1 5", "nan nan nan nan", "1e400 1 1 1"]),
+)
+
+
+@FILES
+@given(
+    lines=st.lists(text_line, max_size=12),
+    calib=st.one_of(st.none(), st.binary(max_size=40), st.lists(text_line, max_size=3).map("\n".join)),
+)
+def test_text_reader_raises_only_documented_errors(lines, calib):
+    """A generated ``events.txt`` (and ``calib.txt``): ValueError / OSError / KeyError, or events."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "seq"
+        folder.mkdir()
+        (folder / "events.txt").write_text("\n".join(lines) + "\n", encoding="latin-1")
+        if isinstance(calib, bytes):
+            (folder / "calib.txt").write_bytes(calib)
+        elif calib is not None:
+            (folder / "calib.txt").write_text(calib, encoding="latin-1")
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                with io.open_recording(folder, cache_dir=Path(tmp) / "cache") as rec:
+                    events = rec.read()
+                    assert len(events) == rec.n_events
+                    list(itertools.islice(rec.windows(2), 5))
+        except DOCUMENTED:
+            pass
+
+
+@FILES
+@given(
+    rows=st.one_of(
+        hnp.arrays(np.float64, st.tuples(st.integers(0, 6), st.just(4))),
+        hnp.arrays(np.int32, st.tuples(st.integers(0, 6), st.sampled_from([3, 4]))),
+        hnp.arrays(np.dtype("S2"), st.tuples(st.integers(1, 4), st.just(4))),
+        hnp.arrays(np.complex64, st.tuples(st.integers(1, 4), st.just(4))),
+    ),
+    calibration=st.one_of(st.none(), hnp.arrays(np.float64, st.integers(0, 10))),
+)
+def test_mvsec_reader_raises_only_documented_errors(rows, calibration):
+    """A generated MVSEC file (any dtype, NaN anywhere): ValueError / OSError / KeyError, or events."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "gen_data.hdf5"
+        with h5py.File(path, "w") as f:
+            f["davis/left/events"] = rows
+            if calibration is not None:
+                f["davis/left/calibration"] = calibration
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                with io.open_recording(path) as rec:
+                    events = rec.read()
+                    assert len(events) <= rec.n_events
+                    list(itertools.islice(rec.windows(duration=0.5), 5))
+        except DOCUMENTED:
+            pass
+
+
+@FILES
+@given(
+    t=st.one_of(
+        hnp.arrays(np.int64, 3, elements=st.integers(-(10**12), 10**12)),
+        hnp.arrays(np.float64, 3),
+        hnp.arrays(np.dtype("S3"), 3),
+    ),
+    xy=hnp.arrays(np.int64, 3, elements=st.integers(-5, 700)),
+    p=hnp.arrays(np.int8, 3, elements=st.integers(-2, 2)),
+    offset=st.one_of(st.integers(-(10**9), 10**9), st.floats(allow_nan=True, allow_infinity=True)),
+)
+def test_dsec_reader_raises_only_documented_errors(t, xy, p, offset):
+    """A generated DSEC ``events.h5``: ValueError / OSError / KeyError, or events."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "events.h5"
+        with h5py.File(path, "w") as f:
+            f["events/x"] = xy
+            f["events/y"] = xy[::-1]
+            f["events/t"] = t
+            f["events/p"] = p
+            f["ms_to_idx"] = np.array([0], dtype=np.uint64)
+            f["t_offset"] = offset
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                with io.open_recording(path) as rec:
+                    rec.read()
+                    rec.read_time(rec.t_start, rec.t_end)
+        except DOCUMENTED:
+            pass
