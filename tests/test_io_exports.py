@@ -142,7 +142,7 @@ def test_results_to_hdf5(tmp_path):
     with h5py.File(path, "r") as f:
         assert list(f.attrs["columns"]) == [
             "index", "t_start", "t_end", "n_events", "v_x", "v_y",
-            "value", "fwl", "iterations", "seconds", "converged",
+            "value", "fwl", "iterations", "evaluations", "seconds", "converged",
         ]  # fmt: skip
         np.testing.assert_array_equal(f["index"][()], [0, 1, 2])
         np.testing.assert_array_equal(f["t_end"][()], [w.t_end for w in result.windows])

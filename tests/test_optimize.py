@@ -177,3 +177,31 @@ def test_tpe_search(edges, monkeypatch):
         pytest.skip("optuna is not installed (optional extra 'tpe'): checked the error message only")
     res = cm.maximize(prob, init="tpe", n_init=80, seed=1)
     assert np.all(np.abs(res.theta - V_TRUE) < 6.0)
+
+
+def test_far_warm_start_never_ends_below_the_identity():
+    """Issue 12: a warm start far outside the search box (6000 px/s) gave J = 0.09 < J(identity) = 1
+    reported as converged, because the identity was clipped into the local box and never evaluated."""
+    prob = cm.ContrastMaximization(moving_edges(), "translation2")
+    j_identity = prob.value([0.0, 0.0])
+    for init in ("auto", "local", "warm"):
+        method = "bfgs" if init == "warm" else "adam"
+        res = cm.maximize(prob, theta0=[6000.0, 0.0], init=init, method=method)
+        assert res.value >= j_identity, (init, res)
+        assert res.value_identity == pytest.approx(j_identity)
+        assert np.allclose(res.theta, V_TRUE, atol=10.0), (init, res.theta)
+
+
+def test_warm_refinement_converges_in_few_evaluations():
+    prob = cm.ContrastMaximization(moving_edges(), "translation2")
+    res = cm.maximize(prob, theta0=V_TRUE + [15.0, -10.0], init="warm", method="bfgs")
+    assert res.converged and res.init == "warm" and res.method == "bfgs"
+    assert res.n_evaluations <= 25, res
+    assert np.allclose(res.theta, V_TRUE, atol=6.0), res.theta
+    # the candidates (earlier estimates) are evaluated with theta0 and the identity
+    far = cm.maximize(prob, theta0=[-300.0, 200.0], init="warm", method="bfgs", candidates=[V_TRUE])
+    assert np.allclose(far.theta, V_TRUE, atol=6.0), far.theta
+    with pytest.raises(ValueError, match="init='warm' refines a warm start: pass theta0"):
+        cm.maximize(prob, init="warm")
+    with pytest.raises(ValueError, match="candidates must hold 2 finite numbers"):
+        cm.maximize(prob, theta0=V_TRUE, init="warm", candidates=[[1.0]])

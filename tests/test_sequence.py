@@ -55,7 +55,11 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
     for w in result.windows:
         assert abs(w.theta[0] - V[0]) < 8.0 and abs(w.theta[1] - V[1]) < 8.0, w
         assert w.fwl > 1.0 and w.t_end > w.t_start and w.iterations > 0 and w.seconds > 0
-    assert [s[1] for s in seen] == ["grid", "local", "local"]  # warm start after the first window
+    assert [s[1] for s in seen] == ["grid", "warm", "warm"]  # warm start after the first window
+    assert [w.search for w in result.windows] == ["global", "warm", "warm"]
+    # the warm refinement converges in few evaluations; the first window pays for the global search
+    assert all(w.evaluations <= 25 for w in result.windows[1:]), [w.evaluations for w in result.windows]
+    assert result.windows[0].evaluations > 100
     assert seen[1][2] == seen[2][2]  # the same pooled fields for every window (no new compile)
     assert stream.getvalue().splitlines()[-1].startswith("windows: 100%")
     assert "3/3" in stream.getvalue().splitlines()[-1] and "\r" not in stream.getvalue()
@@ -75,6 +79,8 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
         "iterations",
         "seconds",
         "converged",
+        "evaluations",
+        "search",
     ]
     assert len(rows) == 4 and float(rows[1][4]) == pytest.approx(result.windows[0].theta[0])
     json_path = result.to_json(tmp_path / "r.json")
@@ -83,6 +89,8 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
     assert data["settings"]["window_events"] == 1000
     back = sequence.read_results(json_path)
     np.testing.assert_allclose(back.theta, result.theta)
+    assert [w.evaluations for w in back.windows] == [w.evaluations for w in result.windows]
+    assert result.real_time_factor() > 0
     assert [w.t_start for w in back.windows] == [w.t_start for w in result.windows]
 
 

@@ -413,6 +413,13 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(result.windows)} window(s) of {path}, warp {result.warp}, objective {args.objective}")
     for i, (name, unit) in enumerate(zip(result.param_names, result.units, strict=True)):
         print(f"  {name}: median {float(_median(theta[:, i])):.6g} {unit}")
+    evaluations = [w.evaluations for w in result.windows[1:]]
+    if evaluations:
+        print(
+            f"  speed: real-time factor {result.real_time_factor():.2f} (seconds of data per second, "
+            f"without the first window: {result.windows[0].seconds:.2f} s with compilation); "
+            f"median {_median(evaluations):.0f} evaluations per warm-started window"
+        )
     fwls = [w.fwl for w in result.windows if math.isfinite(w.fwl)]
     if fwls:
         print(f"  FWL: median {_median(fwls):.4f}")

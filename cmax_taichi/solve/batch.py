@@ -369,6 +369,7 @@ def estimate_recording(
         summary.resumed_from = first
         warm = options.get("warm_start", True)
         initial = done_rows[-1].theta if (done_rows and warm) else None
+        initial_value = done_rows[-1].value if (done_rows and warm) else None
         crash = _crash_hook(crash_hook, name)
         t0 = time.perf_counter()
         with io.open_recording(path, format=format) as rec:
@@ -399,6 +400,7 @@ def estimate_recording(
                 progress=False,
                 first_window=first,
                 initial_theta=initial,
+                initial_value=initial_value,
                 on_window=on_window,
             )
         result.windows = written.windows

@@ -122,6 +122,9 @@ class OptimizeResult:
         ``s`` of ``u = theta * s`` (px of displacement over the window per unit of theta).
     param_names, units : tuple of str
         Names and units of the parameters.
+    value_identity : float
+        J at the identity warp (theta = 0), NaN when the search did not evaluate it (the identity
+        outside a user-given box).
     """
 
     theta: np.ndarray
@@ -139,6 +142,7 @@ class OptimizeResult:
     scales: np.ndarray
     param_names: tuple[str, ...] = field(default=())
     units: tuple[str, ...] = field(default=())
+    value_identity: float = math.nan
 
     def as_dict(self) -> dict:
         """A JSON-friendly summary (no history)."""
@@ -780,4 +784,5 @@ def maximize(
         scales=scales,
         param_names=tuple(model.params),
         units=tuple(model.units),
+        value_identity=math.nan if identity_value is None else float(identity_value),
     )

@@ -17,7 +17,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -31,7 +31,23 @@ from cmax_taichi.models.warps import get_warp
 from cmax_taichi.pipeline.problem import ContrastMaximization
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
 
-__all__ = ["WindowResult", "SequenceResult", "ProgressBar", "process", "read_results"]
+__all__ = [
+    "TRACKING_LOSS_RATIO",
+    "WindowResult",
+    "SequenceResult",
+    "ProgressBar",
+    "process",
+    "read_results",
+]
+
+#: a warm-started window whose refined J falls below this fraction of the previous window's J has lost
+#: track of the motion (a sudden change): the global search runs too. J is normalised by the identity's
+#: objective, so windows of one recording compare; small fluctuations of a weak J (a few %) are not a loss
+TRACKING_LOSS_RATIO = 0.8
+
+#: problem options under which the estimate's own problem measures the FWL (variance, normalised, no
+#: weights or whitening): then its J at the estimate is the FWL and no second problem is built
+_FWL_COMPATIBLE_OPTIONS = {"blur_sigma", "t_ref", "polarity"}
 
 
 @dataclass
@@ -58,6 +74,12 @@ class WindowResult:
         Wall time of the window (problem, optimisation, FWL), s.
     converged : bool
         The optimizer met a stopping rule.
+    evaluations : int
+        Evaluations of J (with or without gradient) spent on the window.
+    search : str
+        How the window was solved: ``"global"`` (search, then local ascent), ``"warm"`` (refinement
+        of the previous estimate) or ``"warm+global"`` (the refinement lost track, so a global
+        search ran too).
     """
 
     index: int
@@ -70,6 +92,8 @@ class WindowResult:
     iterations: int
     seconds: float
     converged: bool
+    evaluations: int = 0
+    search: str = ""
 
 
 @dataclass
@@ -95,6 +119,18 @@ class SequenceResult:
         """``(K,)`` window middle times, s."""
         return np.array([0.5 * (w.t_start + w.t_end) for w in self.windows])
 
+    def real_time_factor(self, skip_first: bool = True) -> float:
+        """Seconds of data per wall second (above 1: faster than the camera records).
+
+        The data seconds of a window are its span ``t_end - t_start``; ``skip_first`` leaves out the
+        first window, whose time includes compiling the kernels (reported apart by the command line).
+        NaN without windows to count.
+        """
+        rows = self.windows[1:] if skip_first else self.windows
+        wall = sum(w.seconds for w in rows)
+        data = sum(w.t_end - w.t_start for w in rows)
+        return data / wall if rows and wall > 0 else math.nan
+
     def columns(self) -> list[str]:
         """CSV header: times, event count, each parameter as ``name [unit]``, then the diagnostics."""
         params = [f"{n} [{u}]" for n, u in zip(self.param_names, self.units, strict=True)]
@@ -104,6 +140,8 @@ class SequenceResult:
             "iterations",
             "seconds",
             "converged",
+            "evaluations",
+            "search",
         ]
 
     def to_csv(self, path: str | os.PathLike) -> Path:
@@ -122,6 +160,8 @@ class SequenceResult:
                         w.iterations,
                         f"{w.seconds:.4f}",
                         int(w.converged),
+                        w.evaluations,
+                        w.search,
                     ]
                 )
         return path
@@ -149,6 +189,8 @@ class SequenceResult:
                     "iterations": w.iterations,
                     "seconds": w.seconds,
                     "converged": w.converged,
+                    "evaluations": w.evaluations,
+                    "search": w.search,
                 }
                 for w in self.windows
             ],
@@ -168,7 +210,9 @@ class SequenceResult:
         else as JSON text; all of them also in ``settings_json``). Returns the path."""
         import h5py
 
-        diagnostics = ("index", "t_start", "t_end", "n_events", "value", "fwl", "iterations", "seconds")
+        diagnostics = (
+            "index", "t_start", "t_end", "n_events", "value", "fwl", "iterations", "evaluations", "seconds"
+        )  # fmt: skip
         clash = set(self.param_names) & {*diagnostics, "converged"}
         if clash:
             raise ValueError(f"parameter names {sorted(clash)} clash with the result columns")
@@ -186,6 +230,7 @@ class SequenceResult:
             value=(np.array([w.value for w in ws], dtype=np.float64), ""),
             fwl=(np.array([w.fwl for w in ws], dtype=np.float64), ""),
             iterations=(np.array([w.iterations for w in ws], dtype=np.int64), ""),
+            evaluations=(np.array([w.evaluations for w in ws], dtype=np.int64), ""),
             seconds=(np.array([w.seconds for w in ws], dtype=np.float64), "s"),
             converged=(np.array([w.converged for w in ws], dtype=bool), ""),
         )
@@ -234,6 +279,8 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
                     iterations=int(w["iterations"]),
                     seconds=float(w["seconds"]),
                     converged=bool(w["converged"]),
+                    evaluations=int(w.get("evaluations", 0)),
+                    search=str(w.get("search", "")),
                 )
             )
     except (KeyError, TypeError) as exc:
@@ -358,6 +405,8 @@ def process(
     format: str | None = None,
     first_window: int = 0,
     initial_theta: Sequence[float] | np.ndarray | None = None,
+    initial_value: float | None = None,
+    warm_method: str = "bfgs",
 ) -> SequenceResult:
     """Estimate the motion of every window of a recording.
 
@@ -377,10 +426,15 @@ def process(
     stride : int or float, optional
         Start-to-start step (events, or s for time windows); default the window size.
     method : str
-        Local optimizer of :func:`~cmax_taichi.maximize`.
+        Local optimizer of :func:`~cmax_taichi.maximize` after a global search (the first window, and
+        every window without ``warm_start`` or after a tracking loss).
     warm_start : bool
-        Start each window from the previous window's estimate (``init="local"``); the first window
-        gets the global search.
+        Refine the previous window's estimate (``maximize(init="warm", method=warm_method)``: the
+        previous estimate and the identity are the candidates, a few quasi-Newton steps follow); the
+        first window gets the global search. When the refined J falls below
+        :data:`TRACKING_LOSS_RATIO` times the previous window's J, tracking is lost: the global
+        search runs too and the better result is kept. An ``init`` in ``optimize_options`` replaces
+        this (that init in every window, from the previous estimate).
     compute_fwl : bool
         Compute the FWL of each estimate on the window's events.
     max_windows : int, optional
@@ -403,6 +457,10 @@ def process(
     initial_theta : array_like, optional
         Warm start of the first estimated window (physical units): the estimate of the window before
         ``first_window``, so that a resumed run gives the same results as an uninterrupted one.
+    initial_value : float, optional
+        That window's J (the tracking reference of the next window), for the same reason.
+    warm_method : str
+        Local optimizer of the warm-start refinement (default the quasi-Newton ``"bfgs"``).
 
     Returns
     -------
@@ -453,6 +511,8 @@ def process(
                 on_window=on_window,
                 first_window=first_window,
                 initial_theta=initial_theta,
+                initial_value=initial_value,
+                warm_method=warm_method,
             )
     if first_window < 0:
         raise ValueError(f"first_window must be >= 0, got {first_window}")
@@ -484,6 +544,12 @@ def process(
     if progress:
         bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
     previous = None if initial_theta is None else np.asarray(initial_theta, dtype=np.float64)
+    previous_value = initial_value
+    fwl_is_value = (
+        objective == "variance"
+        and not any(float(w) for w in (regularizers or {}).values())
+        and set(popts) <= _FWL_COMPATIBLE_OPTIONS
+    )
     lossy = checks.UndistortionTally()
     try:
         with warnings.catch_warnings():  # restores the filter that the tally adds
@@ -497,19 +563,23 @@ def process(
                     events, warp=model, objective=objective, regularizers=regularizers, camera=camera, **popts
                 )
                 lossy.add(events, prob.events)
-                theta0 = previous if warm_start else None
-                res = maximize(prob, theta0=theta0, method=method, **oopts)
+                res, search = _solve_window(
+                    prob, previous if warm_start else None, previous_value, method, warm_method, oopts
+                )
                 value_fwl = math.nan
                 if compute_fwl:
-                    fprob = fwl_problem(
-                        prob.events,  # already undistorted: the same events as the estimate
-                        model,
-                        camera=camera,
-                        blur_sigma=prob.blur_sigma,
-                        t_ref=popts.get("t_ref", "first"),
-                        polarity=prob.polarity,
-                    )
-                    value_fwl = fprob.value(res.theta)
+                    if fwl_is_value:
+                        value_fwl = res.value  # the estimate's problem is the FWL problem
+                    else:
+                        fprob = fwl_problem(
+                            prob.events,  # already undistorted: the same events as the estimate
+                            model,
+                            camera=camera,
+                            blur_sigma=prob.blur_sigma,
+                            t_ref=popts.get("t_ref", "first"),
+                            polarity=prob.polarity,
+                        )
+                        value_fwl = fprob.value(res.theta)
                 row = WindowResult(
                     index=index,
                     t_start=float(events.t[0]),
@@ -521,11 +591,13 @@ def process(
                     iterations=res.n_iterations,
                     seconds=time.perf_counter() - t0,
                     converged=res.converged,
+                    evaluations=res.n_evaluations,
+                    search=search,
                 )
                 result.windows.append(row)
                 if on_window is not None:
                     on_window(row, prob, res)
-                previous = res.theta
+                previous, previous_value = res.theta, row.value
                 if bar is not None:
                     bar.update(f"J={res.value:.3f}")
     finally:
@@ -533,6 +605,39 @@ def process(
             bar.close()
     lossy.report()
     return result
+
+
+def _solve_window(
+    prob: ContrastMaximization,
+    previous: np.ndarray | None,
+    previous_value: float | None,
+    method: str,
+    warm_method: str,
+    oopts: dict,
+) -> tuple[OptimizeResult, str]:
+    """Solve one window: the global search, or the warm refinement with its tracking test."""
+    if previous is None:
+        return maximize(prob, method=method, **oopts), "global"
+    if "init" in oopts:  # the caller's init in every window, from the previous estimate
+        return maximize(prob, theta0=previous, method=method, **oopts), oopts["init"]
+    res = maximize(prob, theta0=previous, method=warm_method, init="warm", **oopts)
+    lost = (
+        previous_value is not None
+        and math.isfinite(previous_value)
+        and res.value < TRACKING_LOSS_RATIO * previous_value
+    )
+    if not lost:
+        return res, "warm"
+    full = maximize(prob, method=method, candidates=[previous], **oopts)
+    best = full if full.value > res.value else res
+    return (
+        replace(
+            best,
+            n_evaluations=res.n_evaluations + full.n_evaluations,
+            seconds=res.seconds + full.seconds,
+        ),
+        "warm+global",
+    )
 
 
 def _limited(windows: Iterable[Events], max_windows: int | None) -> Iterator[Events]:
