@@ -146,18 +146,10 @@ def add_backend_arguments(parser, *, precision: bool = True) -> None:
 
 
 def init_backend(arch: str | None, precision: str | None):
-    """Initialise Taichi unless it already runs with the requested arch and precision (a reset would
-    throw away the compiled kernels of the calling process)."""
+    """:func:`cmax_taichi.core.backend.init_if_needed` (kept under this name for the commands)."""
     from cmax_taichi.core import backend
 
-    current = backend.info() if backend.is_initialized() else None
-    if (
-        current is not None
-        and arch in (None, current.requested_arch)
-        and precision in (None, current.precision)
-    ):
-        return current
-    return backend.init(arch=arch, precision=precision)
+    return backend.init_if_needed(arch, precision)
 
 
 def parse_regularizers(items: list[str]) -> dict[str, float]:

@@ -133,6 +133,22 @@ def init(
     return _state
 
 
+def init_if_needed(arch: str | None = None, precision: str | None = None) -> BackendInfo:
+    """Initialise Taichi unless it already runs with the requested arch and precision (None: any).
+
+    A reset would throw away every compiled kernel of the process, so drivers that may run several
+    times in one process (the command line, batch workers) call this instead of :func:`init`.
+    """
+    current = info() if is_initialized() else None
+    if (
+        current is not None
+        and arch in (None, current.requested_arch)
+        and precision in (None, current.precision)
+    ):
+        return current
+    return init(arch=arch, precision=precision)
+
+
 def is_initialized() -> bool:
     """Whether :func:`init` has run (explicitly or on first use)."""
     return _state is not None

@@ -258,21 +258,6 @@ def _mtime(path: Path) -> int:
 # the worker
 
 
-def _init_backend(arch: str | None, precision: str | None) -> None:
-    """Initialise Taichi unless it already runs with the requested arch and precision (a reset would
-    throw away the compiled kernels of this worker)."""
-    from cmax_taichi.core import backend
-
-    current = backend.info() if backend.is_initialized() else None
-    if (
-        current is not None
-        and arch in (None, current.requested_arch)
-        and precision in (None, current.precision)
-    ):
-        return
-    backend.init(arch=arch, precision=precision)
-
-
 def _crash_hook(spec: str | None, name: str) -> Callable[[int], None]:
     """The test hook of :data:`CRASH_HOOK_ENV` for recording ``name`` (a no-op when unset)."""
     if not spec:
@@ -335,7 +320,7 @@ def estimate_recording(
         unknown = set(options) - set(PROCESS_OPTIONS)
         if unknown:
             raise TypeError(f"unknown estimation option(s) {sorted(unknown)}; valid: {list(PROCESS_OPTIONS)}")
-        _init_backend(arch, precision)
+        backend.init_if_needed(arch, precision)
         from cmax_taichi import io
 
         folder.mkdir(parents=True, exist_ok=True)
@@ -425,8 +410,10 @@ class RecordingWorker:
     Ray engine wraps it as an actor; the local engine keeps one per pool process)."""
 
     def __init__(self, arch: str | None = None, precision: str | None = None) -> None:
+        from cmax_taichi.core import backend
+
         self.arch, self.precision = arch, precision
-        _init_backend(arch, precision)
+        backend.init_if_needed(arch, precision)
 
     def estimate(self, path: str, folder: str, options: Mapping[str, Any], **kwargs: Any) -> RecordingSummary:
         return estimate_recording(path, folder, options, arch=self.arch, precision=self.precision, **kwargs)
