@@ -5,7 +5,6 @@ against Taichi autodiff; finite differences of the reference are in test_pipelin
 import numpy as np
 import pytest
 import taichi as ti
-from cmax_taichi.kernels import param_jac as kpj
 from conftest import CAMERA, SENSOR, THETAS, edge_events
 
 import cmax_taichi as cm
@@ -131,7 +130,7 @@ def test_param_jacobians_equal_autodiff(warp):
     """Each closed-form column against reverse-mode autodiff of warp, det and div (one event at a time
     is not needed: the sum over events of a selected output has the summed Jacobian as gradient)."""
     model = cm.get_warp(warp)
-    pj = kpj.PARAM_JACOBIANS[(model.warp, model.det, model.div)]
+    pj = model.param_jac
     P = model.n_params
     x, y, t, _ = edge_events(n=50, seed=4)
     n = len(x)
