@@ -14,8 +14,17 @@ from cmax_taichi.models.regularizers import (
     Regularizer,
     register_regularizer,
     regularizer_names,
+    unregister_regularizer,
 )
-from cmax_taichi.models.warps import WARPS, WarpModel, get_warp, register_warp, warp_names
+from cmax_taichi.models.warps import (
+    WARPS,
+    WarpModel,
+    get_warp,
+    register_warp,
+    unregister_warp,
+    warp_names,
+)
+from cmax_taichi.pipeline.fused import ChainPathWarning
 from cmax_taichi.pipeline.jacobians import event_jacobians
 from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
 from cmax_taichi.sim import (
@@ -34,6 +43,7 @@ __version__ = "0.1.0"
 __all__ = [
     "BackendInfo",
     "Camera",
+    "ChainPathWarning",
     "ContrastMaximization",
     "Evaluation",
     "Events",
@@ -65,5 +75,7 @@ __all__ = [
     "regularizer_names",
     "segment",
     "simulate_preset",
+    "unregister_regularizer",
+    "unregister_warp",
     "warp_names",
 ]

@@ -4,7 +4,7 @@
 determinant of the first is the deformation ``det dx'/dx``, the trace of the second the divergence.
 Each output depends on its own event only, so seeding every output's adjoint with a unit vector gives a
 whole row of every event's Jacobian in one reverse pass. These kernels check the closed forms of
-``warps.py`` and serve user-registered warps; they differentiate with respect to positions held in
+``kernels/warps/`` and serve user-registered warps; they differentiate with respect to positions held in
 their own fields (``px, py`` with ``needs_grad``), never the problem's event arrays.
 """
 

@@ -19,8 +19,8 @@ SENSOR = (64, 48)
 DURATION = 0.05  # s
 CAMERA = cm.Camera(fx=50.0, fy=52.0, cx=31.3, cy=23.7)
 
-#: a moderate parameter vector per warp (displacements of a few px over DURATION)
-THETAS = {
+#: hand-picked moderate parameter vectors (displacements of a few px over DURATION)
+_CHOSEN_THETAS = {
     "zoom1": [4.0],
     "translation2": [40.0, -25.0],
     "rotation3": [0.8, -1.2, 2.0],
@@ -28,6 +28,19 @@ THETAS = {
     "sim2": [30.0, -20.0, 3.0, 2.5],
     "mitrokhin4": [30.0, -20.0, 3.0, 2.0],
 }
+#: per parameter kind (WarpModel.parameter_kinds), a value that moves pixels by a few px over DURATION
+_MODERATE = {"velocity": 40.0, "rate": 3.0, "focal": 1.0, None: 1.0}
+
+
+def moderate_theta(model: cm.WarpModel) -> list[float]:
+    """A moderate parameter vector from the model's declared parameter kinds (alternating signs)."""
+    kinds = model.parameter_kinds or (None,) * model.n_params
+    return [_MODERATE[k] * (-1.0) ** i for i, k in enumerate(kinds)]
+
+
+#: every warp model of the registry (its built-ins) with a moderate parameter vector: the tests that
+#: run "on every model" iterate over this, so a newly registered built-in is tested without an edit here
+THETAS = {name: _CHOSEN_THETAS.get(name) or moderate_theta(cm.get_warp(name)) for name in cm.warp_names()}
 
 
 def use_precision(precision: str) -> None:

@@ -2,13 +2,16 @@
 atomic (GPU-style) splat against the per-thread slices, and the closed-form parameter Jacobians
 against Taichi autodiff; finite differences of the reference are in test_pipeline_gradients.py."""
 
+import dataclasses
+import warnings
+
 import numpy as np
 import pytest
 import taichi as ti
-from cmax_taichi.kernels import param_jac as kpj
 from conftest import CAMERA, SENSOR, THETAS, edge_events
 
 import cmax_taichi as cm
+from cmax_taichi.pipeline import problem as problem_module
 from cmax_taichi.pipeline.fused import FusedPipeline
 
 pytestmark = pytest.mark.usefixtures("f64")
@@ -131,7 +134,7 @@ def test_param_jacobians_equal_autodiff(warp):
     """Each closed-form column against reverse-mode autodiff of warp, det and div (one event at a time
     is not needed: the sum over events of a selected output has the summed Jacobian as gradient)."""
     model = cm.get_warp(warp)
-    pj = kpj.PARAM_JACOBIANS[(model.warp, model.det, model.div)]
+    pj = model.param_jac
     P = model.n_params
     x, y, t, _ = edge_events(n=50, seed=4)
     n = len(x)
@@ -202,7 +205,53 @@ def test_no_allocation_per_call_and_fields_reused(monkeypatch):
 
 
 def test_user_objective_and_whitening_take_the_generic_chain():
-    prob = _problem("mitrokhin4", regularizers=BOTH, whitening=True)
-    assert prob._fused is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", cm.ChainPathWarning)  # whitening is a choice: no warning
+        prob = _problem("mitrokhin4", regularizers=BOTH, whitening=True)
+    assert prob._fused is None and prob.path == "chain" and "whitening" in prob.path_reason
     v, g = prob.value_and_grad(THETAS["mitrokhin4"])
     assert np.isfinite(v) and np.all(np.isfinite(g))
+
+
+def test_the_path_follows_the_regularizer_declarations(monkeypatch):
+    """A user's divergence regularizer (its own penalty functions) that declares its quantity kind and
+    penalty gradient takes the fused path; without penalty_grad, or with a quantity function instead of
+    a kind, the chain, with the reason and one ChainPathWarning per reason; all give the built-in's J."""
+
+    @ti.func
+    def penalty(avg):
+        return avg
+
+    @ti.func
+    def penalty_grad(avg):
+        return 1.0 + 0.0 * avg
+
+    monkeypatch.setattr(problem_module, "_WARNED_REASONS", set())
+    declared = cm.Regularizer("test_div_declared", "div", penalty, lambda d, o: o * d, True)
+    no_grad = dataclasses.replace(declared, name="test_div_no_grad")
+    declared = dataclasses.replace(declared, penalty_grad=penalty_grad)
+    own_quantity = dataclasses.replace(
+        declared, name="test_div_own", quantity=lambda model: model.quantity("div")
+    )
+    regs = (declared, no_grad, own_quantity)
+    for reg in regs:
+        cm.register_regularizer(reg)
+    try:
+        theta = np.asarray(THETAS["zoom1"])
+        builtin = _problem("zoom1", regularizers={"divergence": 2.0})
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            probs = [_problem("zoom1", regularizers={reg.name: 2.0}) for reg in regs]
+            _problem("zoom1", regularizers={"test_div_no_grad": 1.0})  # the same reason again: no warning
+        assert [p.path for p in probs] == ["fused", "chain", "chain"]
+        assert "penalty_grad" in probs[1].path_reason and "quantity kind" in probs[2].path_reason
+        messages = [str(w.message) for w in caught if issubclass(w.category, cm.ChainPathWarning)]
+        assert messages == [probs[1].path_reason, probs[2].path_reason]
+        v0, g0 = builtin.value_and_grad(theta)
+        for prob in probs:
+            v, g = prob.value_and_grad(theta)
+            assert v == pytest.approx(v0, rel=1e-11)
+            np.testing.assert_allclose(g, g0, rtol=1e-8, atol=1e-10 * np.max(np.abs(g0)))
+    finally:
+        for reg in regs:
+            cm.unregister_regularizer(reg.name)

@@ -35,7 +35,8 @@ def test_non_editable_install_ships_kernels(tmp_path):
     if build.returncode != 0 and "setuptools" in build.stderr.lower() and "no module" in build.stderr.lower():
         pytest.skip("setuptools is not installed in this environment")
     assert build.returncode == 0, build.stderr
-    assert (target / "cmax_taichi" / "kernels" / "warps.py").is_file()
+    assert (target / "cmax_taichi" / "kernels" / "warps" / "zoom1.py").is_file()
+    assert (target / "cmax_taichi" / "kernels" / "warps" / "common.py").is_file()
     # every sub-package of the source tree is shipped
     for init in (ROOT / "cmax_taichi").rglob("__init__.py"):
         rel = init.relative_to(ROOT)
@@ -52,9 +53,11 @@ def test_non_editable_install_ships_kernels(tmp_path):
 
 
 def test_editable_or_source_import_resolves_kernels():
-    import cmax_taichi.kernels.warps as kw
+    import cmax_taichi.kernels.iwe as kiwe
+    import cmax_taichi.kernels.warps.zoom1 as kzoom
 
     import cmax_taichi
 
-    assert Path(kw.__file__).resolve().parent == ROOT / "kernels"
+    assert Path(kiwe.__file__).resolve().parent == ROOT / "kernels"
+    assert Path(kzoom.__file__).resolve().parent == ROOT / "kernels" / "warps"
     assert Path(cmax_taichi.__file__).resolve().parent == ROOT / "cmax_taichi"

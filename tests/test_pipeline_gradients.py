@@ -70,7 +70,7 @@ def check_against_reference(precision: str, options: dict, seed: int = 0) -> Non
         normalize=kwargs["normalize"],
         whitening=kwargs["whitening"],
     )
-    theta = np.asarray(options.get("theta", THETAS[options["warp"]]), dtype=np.float64)
+    theta = np.asarray(options["theta"] if "theta" in options else THETAS[options["warp"]], dtype=np.float64)
     value, grad = prob.value_and_grad(theta)
     ref = reference.evaluate(*raw, theta, **kwargs)
     fd = _ref_fd_grad(raw, theta, kwargs)

@@ -1,21 +1,16 @@
-"""Tests of the float64 NumPy reference (cmax_taichi/reference.py) alone.
+"""Tests of the float64 NumPy reference (cmax_taichi/testing/reference.py) alone.
 
 The reference is checked against independent mathematics: finite differences, closed forms,
 an independent quaternion rotation, matrix exponentials, the published Mitrokhin form and
-scipy.ndimage filters. It is loaded from its file path (the package is not importable yet).
+scipy.ndimage filters.
 """
 
-import importlib.util
 import math
-import pathlib
 
 import numpy as np
 import pytest
 
-_PATH = pathlib.Path(__file__).resolve().parents[1] / "cmax_taichi" / "reference.py"
-_SPEC = importlib.util.spec_from_file_location("reference", _PATH)
-reference = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(reference)
+from cmax_taichi.testing import reference
 
 W, H = 64, 48
 CENTER = (30.3, 24.6)  # deliberately not the image centre

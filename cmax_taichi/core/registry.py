@@ -46,6 +46,12 @@ class Registry(Generic[T]):
                 f"unknown {self.kind} {name!r}; valid {self.kind}s are: {', '.join(self.names())}"
             ) from None
 
+    def unregister(self, name: str) -> T:
+        """Remove the entry called ``name`` and return it; KeyError naming the valid names otherwise."""
+        if name not in self._entries:
+            raise KeyError(f"no {self.kind} named {name!r}; registered: {', '.join(self.names())}")
+        return self._entries.pop(name)
+
     def names(self) -> list[str]:
         return list(self._entries)
 

@@ -1,8 +1,10 @@
 """Event-collapse regularizers (Shiba et al. 2022) and their registry.
 
-A :class:`Regularizer` says which per-event quantity is voted into its map (built from the warp model),
-how a pixel's map value becomes a penalty, and how the penalty is scaled. Built-ins: ``divergence``
-(R_Div) and ``deformation`` (R_Def), registered explicitly by :func:`register_builtin_regularizers`.
+A :class:`Regularizer` says which per-event quantity is voted into its map (a kind the warp model
+provides, "div" or "absdet", or a user function of the model), how a pixel's map value becomes a
+penalty (and, for the fused pipeline, the penalty's derivative), and how the penalty is scaled.
+Built-ins: ``divergence`` (R_Div) and ``deformation`` (R_Def), registered explicitly by
+:func:`register_builtin_regularizers`.
 """
 
 from __future__ import annotations
@@ -10,17 +12,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import taichi as ti
-
 from cmax_taichi.core.registry import Registry
 from cmax_taichi.kernels import maps as km
-from cmax_taichi.models.warps import WarpModel
+from cmax_taichi.models.warps import QUANTITY_KINDS, WarpModel
 
 __all__ = [
     "RECOMMENDED_LAMBDA",
     "Regularizer",
     "REGULARIZERS",
     "register_regularizer",
+    "unregister_regularizer",
     "regularizer_names",
     "penalty_value",
 ]
@@ -45,8 +46,11 @@ class Regularizer:
     ----------
     name : str
         Registry name (the key in ``regularizers={...}``).
-    quantity : callable
-        ``quantity(model: WarpModel) -> ti.func(p, dt, th, ctx) -> scalar``, the per-event value.
+    quantity : {"div", "absdet"} or callable
+        The per-event value voted into the map: a kind every warp model provides (``div v`` in 1/s, or
+        ``|det dx'/dx|``; see :meth:`WarpModel.quantity`), or
+        ``quantity(model: WarpModel) -> ti.func(p, dt, th, ctx) -> scalar`` for anything else (such a
+        regularizer runs on the generic autodiff chain: the fused backward knows the two kinds only).
     penalty : ti.func
         ``penalty(map_value) -> scalar``, the pixel penalty.
     scale : callable
@@ -61,16 +65,42 @@ class Regularizer:
         Map value of an area-preserving warp (0 for divergence, 1 for deformation).
     description : str
         One line for listings.
+    penalty_grad : ti.func, optional
+        ``d penalty / d map_value`` as a Taichi function, for the fused pipeline's hand-written backward
+        (at a kink, the side Taichi's autodiff of ``penalty`` takes). Without it (or with a callable
+        ``quantity``) problems using this regularizer run on the generic autodiff chain.
     """
 
     name: str
-    quantity: Callable[[WarpModel], Callable]
+    quantity: str | Callable[[WarpModel], Callable]
     penalty: Callable
     scale: Callable[[float, float], float]
     one_sided: bool = False
     map_unit: str = ""
     neutral: float = 0.0
     description: str = ""
+    penalty_grad: Callable | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.quantity, str):
+            if self.quantity not in QUANTITY_KINDS:
+                raise ValueError(
+                    f"regularizer {self.name!r}: quantity {self.quantity!r} is not one of {QUANTITY_KINDS} "
+                    "(or pass a function of the warp model)"
+                )
+        elif not callable(self.quantity):
+            raise TypeError(f"regularizer {self.name!r}: quantity must be a kind name or a callable")
+
+    @property
+    def kind(self) -> str | None:
+        """The declared quantity kind ("div" or "absdet"), or None for a user quantity function."""
+        return self.quantity if isinstance(self.quantity, str) else None
+
+    def quantity_fn(self, model: WarpModel) -> Callable:
+        """The per-event Taichi function ``q(p, dt, th, ctx)`` of this regularizer for ``model``."""
+        if isinstance(self.quantity, str):
+            return model.quantity(self.quantity)
+        return self.quantity(model)
 
 
 REGULARIZERS: Registry[Regularizer] = Registry("regularizer")
@@ -89,38 +119,14 @@ def register_regularizer(reg: Regularizer, *, replace: bool = False) -> Regulari
     return REGULARIZERS.register(reg.name, reg, replace=replace)
 
 
+def unregister_regularizer(name: str) -> Regularizer:
+    """Remove the regularizer called ``name`` and return it (KeyError if absent)."""
+    return REGULARIZERS.unregister(name)
+
+
 def regularizer_names() -> list[str]:
     """Names of the registered regularizers."""
     return REGULARIZERS.names()
-
-
-_quantity_cache: dict = {}
-
-
-def _divergence_quantity(model: WarpModel):
-    key = ("divergence", model.name, id(model))
-    if key not in _quantity_cache:
-        div = model.div_fn
-
-        @ti.func
-        def q(p, dt, th, ctx):
-            return div(p, th, ctx)
-
-        _quantity_cache[key] = q
-    return _quantity_cache[key]
-
-
-def _deformation_quantity(model: WarpModel):
-    key = ("deformation", model.name, id(model))
-    if key not in _quantity_cache:
-        det = model.det_fn
-
-        @ti.func
-        def q(p, dt, th, ctx):
-            return ti.abs(det(p, dt, th, ctx))
-
-        _quantity_cache[key] = q
-    return _quantity_cache[key]
 
 
 def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
@@ -128,26 +134,28 @@ def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
         "divergence",
         Regularizer(
             "divergence",
-            _divergence_quantity,
+            "div",
             km.divergence_penalty,
             scale=lambda duration, orientation: orientation * duration,
             one_sided=True,
             map_unit="1/s",
             neutral=0.0,
             description="net flow divergence per window when events contract, else 0 (R_Div)",
+            penalty_grad=km.divergence_penalty_grad,
         ),
     )
     registry.register(
         "deformation",
         Regularizer(
             "deformation",
-            _deformation_quantity,
+            "absdet",
             km.deformation_penalty,
             scale=lambda duration, orientation: 1.0,
             one_sided=False,
             map_unit="",
             neutral=1.0,
             description="mean of max(DEF, 1/DEF) - 1 of the area deformation map (R_Def)",
+            penalty_grad=km.deformation_penalty_grad,
         ),
     )
 

@@ -1,23 +1,48 @@
-"""Warp models: metadata around the Taichi functions of ``kernels/warps.py``, and their registry.
+"""Warp models: metadata and capabilities around the Taichi functions of ``kernels/warps/``, and their
+registry.
 
-The six built-in models are registered explicitly by :func:`register_builtin_warps`, called once at the
-bottom of this module. Users add models with :func:`register_warp`.
+Each built-in model is one module of ``kernels/warps/`` (its ``warp``, ``det``, ``div``, ``flow`` and
+``param_jac``) and one registration below, with its metadata beside it. Users add models with
+:func:`register_warp` (recipe: docs/RECIPE_WARP.md).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from types import ModuleType
+
+import taichi as ti
 
 from cmax_taichi.core.registry import Registry
 from cmax_taichi.kernels import warps as kw
+from cmax_taichi.kernels.warps import mitrokhin4, rotation3, se2, sim2, translation2, zoom1
 
-__all__ = ["WarpModel", "WARPS", "register_warp", "get_warp", "warp_names"]
+__all__ = [
+    "QUANTITY_KINDS",
+    "SCALE_KINDS",
+    "WarpModel",
+    "WARPS",
+    "register_warp",
+    "unregister_warp",
+    "get_warp",
+    "warp_names",
+]
+
+#: per-event quantities of a warp that regularizers vote into maps: ``div v`` (1/s) and
+#: ``|det dx'/dx|`` (unitless)
+QUANTITY_KINDS = ("div", "absdet")
+
+#: how one unit of a parameter moves pixels over a window of T seconds (the optimizer's scaling):
+#: "velocity" T px (px/s), "rate" T r px (1/s, or rad/s about the centre; r = RMS pixel radius),
+#: "focal" T f px (rad/s about an axis in the image plane; f = focal length)
+SCALE_KINDS = ("velocity", "rate", "focal")
+_KIND_OF_UNIT = {"px/s": "velocity", "1/s": "rate", "rad/s": "rate"}
 
 
 @dataclass(frozen=True)
 class WarpModel:
-    """A motion model that warps events to the reference time.
+    """A motion model that warps events to the reference time, with its declared capabilities.
 
     Parameters
     ----------
@@ -26,14 +51,32 @@ class WarpModel:
     params : tuple of str
         Parameter names, in the order of ``theta``.
     units : tuple of str
-        Physical unit of each parameter (px/s, 1/s, rad/s).
+        Physical unit of each parameter (px/s, 1/s, rad/s, ...).
     warp : ti.func
-        ``warp(p, dt, th, ctx) -> vec2`` (see ``kernels/warps.py`` for the signature).
+        ``warp(p, dt, th, ctx) -> vec2`` (signatures: ``kernels/warps/__init__.py``).
     flow : ti.func
         ``flow(p, th, ctx) -> vec2``, the instantaneous flow (px/s), ``v = -dW/d(dt)`` at ``dt = 0``.
     det, div : ti.func, optional
         Closed forms of ``det dx'/dx`` and ``div v``; when omitted, central differences of ``warp`` and
         ``flow`` stand in (approximate; check them with :func:`cmax_taichi.event_jacobians`).
+    param_jac : ti.func, optional
+        ``param_jac(p, dt, th, ctx) -> (jx, ddet, ddiv)``: ``d x'/d theta`` (2 x P matrix) and the
+        P-vectors ``d det/d theta``, ``d div/d theta`` of the closed forms (needs ``det`` and ``div``).
+        Declaring it puts the model on the fused pipeline (one kernel launch per value-and-gradient);
+        without it, value and gradient run on the generic autodiff chain (slower, and
+        :class:`~cmax_taichi.ChainPathWarning` says so once).
+    constant_quantities : tuple of str
+        Which of :data:`QUANTITY_KINDS` do not depend on the event (e.g. ``("div",)`` when ``div v``
+        depends on theta only): the fused pipeline then does not vote their maps. Declare only what
+        holds for every ``p`` and ``dt``.
+    positive_det : bool
+        ``det dx'/dx > 0`` wherever an event can be warped, for every theta. The fused backward then
+        differentiates ``|det|`` as ``det``; otherwise it multiplies ``d det/d theta`` by the sign of
+        ``det`` (one more ``det`` per event when a deformation regularizer is used).
+    scale_kinds : tuple of str, optional
+        One of :data:`SCALE_KINDS` per parameter, for the optimizer's scaling and search box. Default:
+        from ``units`` (px/s: "velocity"; 1/s, rad/s: "rate"); a model with any other unit gets its
+        scales numerically from its flow.
     needs_camera : bool
         The model needs intrinsics (``rotation3``).
     collapse_enabled : bool
@@ -49,6 +92,10 @@ class WarpModel:
     flow: Callable
     det: Callable | None = None
     div: Callable | None = None
+    param_jac: Callable | None = None
+    constant_quantities: tuple[str, ...] = ()
+    positive_det: bool = False
+    scale_kinds: tuple[str, ...] | None = None
     needs_camera: bool = False
     collapse_enabled: bool = False
     description: str = ""
@@ -57,6 +104,34 @@ class WarpModel:
     def __post_init__(self) -> None:
         if len(self.params) != len(self.units) or not self.params:
             raise ValueError(f"warp {self.name!r}: params and units must be non-empty, same length")
+        object.__setattr__(self, "constant_quantities", tuple(self.constant_quantities))
+        unknown = [k for k in self.constant_quantities if k not in QUANTITY_KINDS]
+        if unknown:
+            raise ValueError(
+                f"warp {self.name!r}: constant_quantities {unknown} are not among {QUANTITY_KINDS}"
+            )
+        if self.param_jac is not None and (self.det is None or self.div is None):
+            raise ValueError(
+                f"warp {self.name!r}: param_jac differentiates the closed forms det and div; pass them too"
+            )
+        if self.scale_kinds is not None:
+            object.__setattr__(self, "scale_kinds", tuple(self.scale_kinds))
+            if len(self.scale_kinds) != len(self.params) or any(
+                k not in SCALE_KINDS for k in self.scale_kinds
+            ):
+                raise ValueError(f"warp {self.name!r}: scale_kinds needs one of {SCALE_KINDS} per parameter")
+
+    @classmethod
+    def from_module(
+        cls, name: str, module: ModuleType, params: tuple[str, ...], units: tuple[str, ...], **metadata
+    ) -> WarpModel:
+        """The model whose Taichi functions are the module's ``warp``, ``flow``, ``det``, ``div`` and
+        ``param_jac`` (those present) and whose ``constant_quantities`` is its ``CONSTANT_QUANTITIES``.
+        ``metadata`` sets the other fields."""
+        fns = {k: getattr(module, k) for k in ("det", "div", "param_jac") if hasattr(module, k)}
+        if hasattr(module, "CONSTANT_QUANTITIES"):
+            fns["constant_quantities"] = module.CONSTANT_QUANTITIES
+        return cls(name, tuple(params), tuple(units), module.warp, module.flow, **fns, **metadata)
 
     @property
     def n_params(self) -> int:
@@ -76,6 +151,41 @@ class WarpModel:
             return self.div
         return self._fallbacks.setdefault("div", kw.make_fd_div(self.flow))
 
+    def quantity(self, kind: str) -> Callable:
+        """The per-event quantity ``q(p, dt, th, ctx)`` of ``kind``: "div" (``div v``, 1/s) or "absdet"
+        (``|det dx'/dx|``), from the closed forms or their stand-ins; one Taichi function per model and
+        kind (kernels compiled for it are cached by function)."""
+        key = "quantity_" + kind
+        if key not in self._fallbacks:
+            if kind == "div":
+                div = self.div_fn
+
+                @ti.func
+                def q(p, dt, th, ctx):
+                    return div(p, th, ctx)
+
+            elif kind == "absdet":
+                det = self.det_fn
+
+                @ti.func
+                def q(p, dt, th, ctx):
+                    return ti.abs(det(p, dt, th, ctx))
+
+            else:
+                raise ValueError(f"unknown quantity {kind!r}; valid: {', '.join(QUANTITY_KINDS)}")
+            self._fallbacks[key] = q
+        return self._fallbacks[key]
+
+    @property
+    def parameter_kinds(self) -> tuple[str, ...] | None:
+        """One of :data:`SCALE_KINDS` per parameter (declared, or from the units), or None when a unit
+        is not one of px/s, 1/s, rad/s (the optimizer then scales numerically)."""
+        if self.scale_kinds is not None:
+            return self.scale_kinds
+        if all(u in _KIND_OF_UNIT for u in self.units):
+            return tuple(_KIND_OF_UNIT[u] for u in self.units)
+        return None
+
 
 WARPS: Registry[WarpModel] = Registry("warp")
 
@@ -85,6 +195,11 @@ def register_warp(model: WarpModel, *, replace: bool = False) -> WarpModel:
     if not isinstance(model, WarpModel):
         raise TypeError(f"expected a WarpModel, got {type(model).__name__}")
     return WARPS.register(model.name, model, replace=replace)
+
+
+def unregister_warp(name: str) -> WarpModel:
+    """Remove the model called ``name`` from the registry and return it (KeyError if absent)."""
+    return WARPS.unregister(name)
 
 
 def get_warp(name_or_model: str | WarpModel) -> WarpModel:
@@ -100,75 +215,78 @@ def warp_names() -> list[str]:
 
 
 def register_builtin_warps(registry: Registry[WarpModel]) -> None:
-    """Register the six models of docs/FORMULAS.md."""
-    builtins = [
-        WarpModel(
+    """Register the six models of docs/FORMULAS.md: one module of ``kernels/warps/`` each."""
+
+    def builtin(model: WarpModel) -> None:
+        registry.register(model.name, model)
+
+    # Every built-in determinant is > 0 where an event is warped (squares, exponentials, and 1/z^3 with
+    # z clamped to MIN_RAY_Z > 0): positive_det=True.
+    builtin(
+        WarpModel.from_module(
             "zoom1",
+            zoom1,
             ("h_z",),
             ("1/s",),
-            kw.zoom1_warp,
-            kw.zoom1_flow,
-            kw.zoom1_det,
-            kw.zoom1_div,
+            positive_det=True,
             collapse_enabled=True,
             description="1-DOF zoom in/out about the centre (forward/backward camera motion)",
-        ),
-        WarpModel(
+        )
+    )
+    builtin(
+        WarpModel.from_module(
             "translation2",
+            translation2,
             ("v_x", "v_y"),
             ("px/s", "px/s"),
-            kw.translation2_warp,
-            kw.translation2_flow,
-            kw.translation2_det,
-            kw.translation2_div,
+            positive_det=True,
             description="2-DOF constant feature flow",
-        ),
-        WarpModel(
+        )
+    )
+    builtin(
+        WarpModel.from_module(
             "rotation3",
+            rotation3,
             ("w_x", "w_y", "w_z"),
             ("rad/s", "rad/s", "rad/s"),
-            kw.rotation3_warp,
-            kw.rotation3_flow,
-            kw.rotation3_det,
-            kw.rotation3_div,
+            positive_det=True,
+            scale_kinds=("focal", "focal", "rate"),  # w_x, w_y tilt the rays: f px per rad
             needs_camera=True,
             description="3-DOF camera rotation (SO(3), needs intrinsics)",
-        ),
-        WarpModel(
+        )
+    )
+    builtin(
+        WarpModel.from_module(
             "se2",
+            se2,
             ("v_x", "v_y", "w"),
             ("px/s", "px/s", "rad/s"),
-            kw.se2_warp,
-            kw.se2_flow,
-            kw.se2_det,
-            kw.se2_div,
+            positive_det=True,
             description="3-DOF planar Euclidean motion (SE(2) exponential)",
-        ),
-        WarpModel(
+        )
+    )
+    builtin(
+        WarpModel.from_module(
             "sim2",
+            sim2,
             ("v_x", "v_y", "w", "s"),
             ("px/s", "px/s", "rad/s", "1/s"),
-            kw.sim2_warp,
-            kw.sim2_flow,
-            kw.sim2_det,
-            kw.sim2_div,
+            positive_det=True,
             collapse_enabled=True,
             description="4-DOF similarity (Sim(2) exponential)",
-        ),
-        WarpModel(
+        )
+    )
+    builtin(
+        WarpModel.from_module(
             "mitrokhin4",
+            mitrokhin4,
             ("h_x", "h_y", "h_z", "theta"),
             ("px/s", "px/s", "1/s", "rad/s"),
-            kw.mitrokhin4_warp,
-            kw.mitrokhin4_flow,
-            kw.mitrokhin4_det,
-            kw.mitrokhin4_div,
+            positive_det=True,
             collapse_enabled=True,
             description="4-DOF in-plane camera motion of Mitrokhin et al. (IROS 2018)",
-        ),
-    ]
-    for model in builtins:
-        registry.register(model.name, model)
+        )
+    )
 
 
 register_builtin_warps(WARPS)

@@ -303,7 +303,7 @@ class MultiClusterCMax:
         models, W, H, K = self.models, self.width, self.height, self.n_clusters
         regs: list[Regularizer] = [REGULARIZERS.get(n) for n in self._reg_names]
         warp_fns = tuple(m.warp for m in models)
-        quantities = tuple(tuple(r.quantity(m) for r in regs) for m in models)
+        quantities = tuple(tuple(r.quantity_fn(m) for r in regs) for m in models)
         penalties = tuple(r.penalty for r in regs)
         reg_key = tuple((r.name, id(r)) for r in regs)
         model_key = tuple((m.name, id(m)) for m in models)

@@ -2,9 +2,19 @@
 
 The fused pipeline computes the same J and dJ/dtheta as the generic kernel chain of ``problem.py`` in
 one kernel launch per value-and-gradient, with no atomics on the CPU, no per-call fills and no
-per-call allocation. It serves the built-in objectives, regularizers and warp models (their
-closed-form parameter Jacobians are in ``kernels/param_jac.py``), all polarity modes, weights and
-blur widths; the generic chain serves the rest (whitening, user warps, objectives or penalties).
+per-call allocation. It serves every problem whose parts declare what its hand-written backward needs
+(all polarity modes, weights and blur widths):
+
+* the warp model: its closed-form parameter Jacobian ``WarpModel.param_jac`` (the built-ins' are in
+  their modules of ``kernels/warps/``), at most ``MAX_PARAMS`` parameters, and optionally
+  ``constant_quantities`` and ``positive_det``;
+* each regularizer: its quantity kind (``Regularizer.kind``, "div" or "absdet") and
+  ``Regularizer.penalty_grad``;
+* the objective: one of the fused objectives;
+* no whitening.
+
+The choice reads these declarations only (never the identity of a function). Where one is missing,
+:meth:`FusedPipeline.for_problem` says why and the generic chain of ``problem.py`` serves the problem.
 
 The image fields are pooled per shape (``workspace.py``): problems of the same sensor, channel count,
 regularizer count, parameter count and blur footprint share them and the compiled kernels; the events
@@ -14,17 +24,18 @@ reuses the kernels).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import taichi as ti
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
-from cmax_taichi.kernels import maps as kmaps
 from cmax_taichi.kernels import objectives as kobj
-from cmax_taichi.kernels import param_jac as kpj
-from cmax_taichi.models.regularizers import REGULARIZERS, _deformation_quantity, _divergence_quantity
+from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
+from cmax_taichi.models.warps import WarpModel
 
-__all__ = ["FusedPipeline"]
+__all__ = ["ChainPathWarning", "FusedPipeline", "PathChoice"]
 
 MAX_PARAMS = kfused.MAX_PARAMS
 
@@ -37,8 +48,73 @@ _OBJECTIVES = {
 }
 
 
-#: per-event quantities of the built-in regularizers, as the hand-written backward names them
-_QUANTITY_KINDS = {_divergence_quantity: "div", _deformation_quantity: "absdet"}
+class ChainPathWarning(UserWarning):
+    """A problem runs on the generic autodiff chain because a part of it does not declare what the fused
+    pipeline needs (e.g. a warp model without ``param_jac``); value and gradient are the same, only
+    slower. Issued once per distinct reason per process; ``ContrastMaximization.path_reason`` says it."""
+
+
+@dataclass(frozen=True)
+class PathChoice:
+    """The outcome of :meth:`FusedPipeline.for_problem`.
+
+    Attributes
+    ----------
+    pipeline : FusedPipeline or None
+        The fused pipeline, or None where the generic chain serves the problem.
+    reason : str
+        Why the chain serves the problem ("" on the fused path).
+    undeclared : bool
+        The reason is a missing declaration (a :class:`ChainPathWarning` is due), not a choice of the
+        user (whitening) or a limit of the kernels.
+    """
+
+    pipeline: FusedPipeline | None
+    reason: str = ""
+    undeclared: bool = False
+
+
+def model_gap(model: WarpModel) -> str:
+    """Why ``model`` cannot take the fused pipeline ("" when it can)."""
+    if model.param_jac is None:
+        return (
+            f"warp {model.name!r} declares no param_jac (closed-form d x'/d theta, d det/d theta, "
+            "d div/d theta): value and gradient run on the generic autodiff chain (docs/RECIPE_WARP.md)"
+        )
+    return ""
+
+
+def regularizer_gap(reg: Regularizer) -> str:
+    """Why ``reg`` cannot take the fused pipeline ("" when it can)."""
+    if reg.kind is None:
+        return (
+            f"regularizer {reg.name!r} declares no quantity kind (quantity='div' or 'absdet'): the fused "
+            "backward differentiates those two only; value and gradient run on the generic autodiff chain"
+        )
+    if reg.penalty_grad is None:
+        return (
+            f"regularizer {reg.name!r} declares no penalty_grad (d penalty / d map value): value and "
+            "gradient run on the generic autodiff chain"
+        )
+    return ""
+
+
+def _abs_det_param_jac(model: WarpModel):
+    """``model.param_jac`` with ``d|det|/d theta = sign(det) d det/d theta`` in place of ``d det/d theta``
+    (for a model that does not declare ``positive_det``); one Taichi function per model."""
+    key = "abs_det_param_jac"
+    if key not in model._fallbacks:
+        param_jac, det = model.param_jac, model.det
+
+        @ti.func
+        def signed(p, dt, th, ctx):
+            jx, ddet, ddiv = param_jac(p, dt, th, ctx)
+            if det(p, dt, th, ctx) < 0.0:  # d|det| = -d det where det < 0
+                ddet = -ddet
+            return jx, ddet, ddiv
+
+        model._fallbacks[key] = signed
+    return model._fallbacks[key]
 
 
 def n_slices() -> int:
@@ -51,7 +127,7 @@ def n_slices() -> int:
 class FusedPipeline:
     """J and dJ/dtheta of one problem by the fused kernels.
 
-    Build it with :meth:`for_problem`, which returns None where the fused kernels do not apply.
+    Build it with :meth:`for_problem`, which says why where the fused kernels do not apply.
     """
 
     #: switches for tests and the benchmark: ``enabled = False`` builds every problem on the generic
@@ -60,22 +136,34 @@ class FusedPipeline:
     force_atomic = False
 
     @classmethod
-    def for_problem(cls, problem, vote_w: np.ndarray | None) -> FusedPipeline | None:
-        """The fused pipeline of ``problem`` (a ContrastMaximization being built), or None."""
-        if not cls.enabled or problem.whitening or problem.model.n_params > MAX_PARAMS:
-            return None
+    def for_problem(cls, problem, vote_w: np.ndarray | None) -> PathChoice:
+        """The fused pipeline of ``problem`` (a ContrastMaximization being built), or why not.
+
+        Decided from the declarations of the model, the regularizers and the objective only.
+        """
+        if not cls.enabled:
+            return PathChoice(None, "the fused pipeline is switched off (FusedPipeline.enabled = False)")
+        if problem.whitening:
+            return PathChoice(None, "whitening runs on the generic autodiff chain only")
+        model = problem.model
+        if model.n_params > MAX_PARAMS:
+            return PathChoice(
+                None,
+                f"warp {model.name!r} has {model.n_params} parameters; the fused kernels take {MAX_PARAMS}",
+            )
+        gap = model_gap(model)
+        if gap:
+            return PathChoice(None, gap, undeclared=True)
+        regs = [REGULARIZERS.get(name) for name in problem.regularizer_weights]
+        for reg in regs:
+            gap = regularizer_gap(reg)
+            if gap:
+                return PathChoice(None, gap, undeclared=True)
         objective = _OBJECTIVES.get(problem.objective.make_reduce)
         if objective is None:
-            return None
-        regs = [REGULARIZERS.get(name) for name in problem.regularizer_weights]
-        if any(r.penalty not in kmaps.PENALTY_GRADS for r in regs):
-            return None
-        model = problem.model
-        if (model.warp, model.det, model.div) not in kpj.PARAM_JACOBIANS:
-            return None  # a user warp: no closed-form parameter Jacobian
-        if any(r.quantity not in _QUANTITY_KINDS for r in regs):
-            return None
-        return cls(problem, objective, regs, vote_w)
+            reason = f"objective {problem.objective.name!r} has no fused implementation"
+            return PathChoice(None, reason, undeclared=True)
+        return PathChoice(cls(problem, objective, regs, vote_w))
 
     def __init__(self, problem, objective: str, regs: list, vote_w: np.ndarray | None) -> None:
         self.problem = problem
@@ -91,11 +179,12 @@ class FusedPipeline:
         real = backend.real()
         self.n_params = P
         self.n_events = problem.n_events
-        # closed-form parameter Jacobians (for_problem checked that the model and quantities have them)
-        param_jac = kpj.PARAM_JACOBIANS[(model.warp, model.det, model.div)]
-        kinds = tuple(_QUANTITY_KINDS[r.quantity] for r in regs)
-        const_kinds = kpj.CONSTANT_QUANTITIES.get((model.warp, model.det, model.div), ())
-        constant = tuple(k in const_kinds for k in kinds)
+        # the declared capabilities (for_problem checked that they are there)
+        kinds = tuple(r.kind for r in regs)
+        param_jac = model.param_jac
+        if "absdet" in kinds and not model.positive_det:
+            param_jac = _abs_det_param_jac(model)
+        constant = tuple(k in model.constant_quantities for k in kinds)
         n_voted = len(regs) - sum(constant)
 
         key = (
@@ -146,9 +235,9 @@ class FusedPipeline:
             self._ws.kernels[kkey] = kfused.make_fused_kernels(
                 self.fields,
                 model.warp,
-                tuple(r.quantity(model) for r in regs),
+                tuple(r.quantity_fn(model) for r in regs),
                 penalties,
-                tuple(kmaps.PENALTY_GRADS[pf] for pf in penalties),
+                tuple(r.penalty_grad for r in regs),
                 tuple(bool(getattr(r, "one_sided", False)) for r in regs),
                 objective=objective,
                 width=W,

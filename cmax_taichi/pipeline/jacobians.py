@@ -54,7 +54,7 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
     if method == "closed":
         out = ti.field(real, shape=n)
         result = {}
-        for name, fn in (("det", model.det_fn), ("div", _div_as_quantity(model))):
+        for name, fn in (("det", model.det_fn), ("div", model.quantity("div"))):
             k = _cached(
                 ("quantity", name, model.name, id(model)),
                 lambda fn=fn: kad.make_quantity_kernel(fn),
@@ -91,19 +91,3 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
     det = jw[:, 0, 0] * jw[:, 1, 1] - jw[:, 0, 1] * jw[:, 1, 0]
     div = rows["flow"][:, 0, 0] + rows["flow"][:, 1, 1]
     return {"det": det, "div": div, "jacobian": jw}
-
-
-_div_quantities: dict = {}
-
-
-def _div_as_quantity(model):
-    key = (model.name, id(model))
-    if key not in _div_quantities:
-        div = model.div_fn
-
-        @ti.func
-        def q(p, dt, th, ctx):
-            return div(p, th, ctx)
-
-        _div_quantities[key] = q
-    return _div_quantities[key]

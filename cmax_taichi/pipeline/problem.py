@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -28,9 +29,19 @@ from cmax_taichi.kernels import whitening as kwhite
 from cmax_taichi.models.objectives import OBJECTIVES, Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
 from cmax_taichi.models.warps import WarpModel, get_warp
-from cmax_taichi.pipeline.fused import FusedPipeline
+from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline
 
 __all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
+
+# reasons already warned about in this process (ChainPathWarning is issued once per reason)
+_WARNED_REASONS: set[str] = set()
+
+
+def _warn_chain_path(reason: str) -> None:
+    if reason not in _WARNED_REASONS:
+        _WARNED_REASONS.add(reason)
+        warnings.warn(reason, ChainPathWarning, stacklevel=3)
+
 
 POLARITY_MODES = ("ignore", "signed", "split")
 
@@ -112,6 +123,16 @@ class ContrastMaximization:
         Use ``G(theta) / G(0)`` (default) rather than the raw objective in J.
     whitening : bool
         Whitening baseline: build the IWE from whitened warped positions.
+
+    Attributes
+    ----------
+    path : {"fused", "chain"}
+        Which pipeline computes value and gradient: the fused kernels (one launch) or the generic
+        autodiff kernel chain (slower; same values).
+    path_reason : str
+        Why the chain serves this problem ("" on the fused path). When the reason is a missing
+        declaration (a warp without ``param_jac``, a regularizer without quantity kind or
+        ``penalty_grad``, ...), a :class:`~cmax_taichi.ChainPathWarning` says it once per process.
 
     Notes
     -----
@@ -196,7 +217,12 @@ class ContrastMaximization:
         self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
         # The fused kernels (cmax_taichi/fused.py) serve value and gradient where they apply; the
         # generic chain's fields are then allocated only if maps(), evaluate() or jacobians need them.
-        self._fused = FusedPipeline.for_problem(self, vote_w)
+        choice = FusedPipeline.for_problem(self, vote_w)
+        self._fused = choice.pipeline
+        self.path = "fused" if self._fused is not None else "chain"
+        self.path_reason = choice.reason
+        if choice.undeclared:
+            _warn_chain_path(choice.reason)
         self._generic_args = (vote_w, focal)
         self._generic_ready = False
         if self._fused is None:
@@ -392,7 +418,7 @@ class ContrastMaximization:
     def _build_kernels(self) -> None:
         m, W, H, C = self.model, self.width, self.height, self.n_channels
         regs: list[Regularizer] = [REGULARIZERS.get(n) for n in self._reg_names]
-        quantities = tuple(r.quantity(m) for r in regs)
+        quantities = tuple(r.quantity_fn(m) for r in regs)
         penalties = tuple(r.penalty for r in regs)
         reg_key = tuple((r.name, id(r)) for r in regs)
         flags = dict(
@@ -572,7 +598,7 @@ class ContrastMaximization:
         )
         splat = _cached(
             ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
-            lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity(m) for r in regs), **flags),
+            lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity_fn(m) for r in regs), **flags),
         )
         images = _cached(
             ("map_images", reg_key, W, H),

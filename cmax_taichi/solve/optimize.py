@@ -33,8 +33,10 @@ out-of-plane angular velocity, rad/s             ``T sqrt(f_x f_y)``    ``f |the
 centre). Velocities are searched up to half the image per window. Rates are searched up to
 ``|h_z| T = 1``: at ``h_z T = 1`` the zoom sends the window's last events into the centre (time to
 contact = T), and beyond it the events pass through the centre (a non-physical, mirrored warp).
-A warp registered by a user gets its scales numerically (the RMS over the pixel grid of the flow a
-unit parameter causes, times T) and the velocity range for every parameter.
+The kind of each parameter comes from the model's registry entry (``WarpModel.parameter_kinds``: its
+units px/s, 1/s, rad/s, unless it declares ``scale_kinds``, as rotation3 does for ``w_x, w_y``). A
+model with another unit gets its scales numerically (the RMS over the pixel grid of the flow a unit
+parameter causes, times T) and the velocity range for every parameter.
 
 Learning rates, tolerances and grid spacings below are in these units (px over the window).
 """
@@ -179,27 +181,14 @@ def _rms_radius(prob: ContrastMaximization) -> float:
     return math.sqrt(var_x + var_y)
 
 
-# (model name) -> per parameter "velocity" (range: half the image) or "rate" (range: |theta T| <= 1),
-# and the scale per second of window.
-_BUILTIN_KINDS = {
-    "zoom1": ("rate",),
-    "translation2": ("velocity", "velocity"),
-    "rotation3": ("focal", "focal", "rate"),
-    "se2": ("velocity", "velocity", "rate"),
-    "sim2": ("velocity", "velocity", "rate", "rate"),
-    "mitrokhin4": ("velocity", "velocity", "rate", "rate"),
-}
-
 _NUMERIC_SCALES: dict = {}
 
 
 def _kinds(model: WarpModel) -> tuple[str, ...] | None:
-    from cmax_taichi.models.warps import WARPS
-
-    kinds = _BUILTIN_KINDS.get(model.name)
-    if kinds is None or model.name not in WARPS or WARPS.get(model.name) is not model:
-        return None  # a user model (or a replaced built-in): numeric scales
-    return kinds
+    """Per parameter "velocity" (range: half the image), "rate" (range: |theta T| <= 1) or "focal", as
+    the model declares them (``WarpModel.parameter_kinds``: from its units unless declared); None:
+    numeric scales."""
+    return model.parameter_kinds
 
 
 def _numeric_scales_per_second(prob: ContrastMaximization) -> np.ndarray:

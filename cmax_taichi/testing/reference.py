@@ -7,6 +7,10 @@ regularizers, the augmented objective and the whitening baseline. It is written 
 the Taichi kernels and is used by the tests (as the oracle the kernels are held against) and by the
 benchmark. It favours readability over speed and depends on NumPy only.
 
+The warps form a small registry of their own (:class:`ReferenceWarp`, :func:`register_reference_warp`):
+the six built-ins register below, and a test registers the NumPy twin of a new model there (see
+``tests/test_user_warp.py``) without editing this module.
+
 Units: positions in pixels (px), times in seconds (s), parameters in physical units (px/s, 1/s,
 rad/s), flows in px/s, divergences in 1/s.
 """
@@ -14,11 +18,11 @@ rad/s), flows in px/s, divergences in 1/s.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-WARP_NAMES = ("zoom1", "translation2", "rotation3", "se2", "sim2", "mitrokhin4")
-N_PARAMS = {"zoom1": 1, "translation2": 2, "rotation3": 3, "se2": 3, "sim2": 4, "mitrokhin4": 4}
 OBJECTIVE_NAMES = ("variance", "gradient_magnitude", "mean_square")
 POLARITY_MODES = ("ignore", "signed", "split")
 T_REF_NAMES = ("first", "middle", "last")
@@ -44,18 +48,17 @@ _SOBEL_Y = _SOBEL_X.T.copy()
 # ----------------------------------------------------------------------------------------------
 # validation helpers
 # ----------------------------------------------------------------------------------------------
-def _check_warp(warp: str) -> None:
-    if warp not in N_PARAMS:
-        raise ValueError(f"unknown warp {warp!r}; expected one of {WARP_NAMES}")
+def _check_warp(warp: str) -> ReferenceWarp:
+    if warp not in REFERENCE_WARPS:
+        raise ValueError(f"unknown warp {warp!r}; expected one of {tuple(REFERENCE_WARPS)}")
+    return REFERENCE_WARPS[warp]
 
 
 def _check_theta(warp: str, theta) -> np.ndarray:
-    _check_warp(warp)
+    n = _check_warp(warp).n_params
     theta = np.asarray(theta, dtype=np.float64).reshape(-1)
-    if theta.size != N_PARAMS[warp]:
-        raise ValueError(
-            f"warp {warp!r} takes {N_PARAMS[warp]} parameter(s), got theta of length {theta.size}"
-        )
+    if theta.size != n:
+        raise ValueError(f"warp {warp!r} takes {n} parameter(s), got theta of length {theta.size}")
     return theta
 
 
@@ -69,11 +72,73 @@ def _check_focal(warp: str, focal) -> tuple[float, float]:
 
 
 def _check_duration(warp: str, duration) -> float:
-    if warp != "mitrokhin4":
+    if not _check_warp(warp).needs_duration:
         return float("nan") if duration is None else float(duration)
     if duration is None or not float(duration) > 0.0:
-        raise ValueError(f"warp 'mitrokhin4' needs a window duration T > 0 s, got {duration!r}")
+        raise ValueError(f"warp {warp!r} needs a window duration T > 0 s, got {duration!r}")
     return float(duration)
+
+
+def _context(warp: str, focal, duration) -> dict:
+    """The validated keyword arguments ``focal`` and ``duration`` of a reference warp's functions."""
+    rw = _check_warp(warp)
+    focal = _check_focal(warp, focal) if rw.needs_focal else focal
+    return {"focal": focal, "duration": _check_duration(warp, duration)}
+
+
+# ----------------------------------------------------------------------------------------------
+# the registry of reference warps
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ReferenceWarp:
+    """A float64 NumPy warp model of the oracle.
+
+    Parameters
+    ----------
+    name : str
+        The model's name (the same as its Taichi registry entry).
+    n_params : int
+        Length of ``theta``.
+    warp : callable
+        ``warp(theta, x, y, dt, *, center, focal, duration) -> (xw, yw, det, div)``: warped positions
+        (px; nan for events that are dropped), the signed ``det dx'/dx`` and ``div v`` (1/s) per event,
+        for event arrays ``x, y`` (px) and ``dt = t - t_ref`` (s).
+    flow : callable
+        ``flow(theta, xt, yt, *, focal, duration) -> (vx, vy)``: the instantaneous flow (px/s) at the
+        centred coordinates ``xt = x - c_x, yt = y - c_y`` (px).
+    needs_focal : bool
+        ``focal = (f_x, f_y)`` is required (px).
+    needs_duration : bool
+        The window duration ``T > 0`` (s) is required.
+    """
+
+    name: str
+    n_params: int
+    warp: Callable
+    flow: Callable
+    needs_focal: bool = False
+    needs_duration: bool = False
+
+
+#: name -> reference warp (the built-ins, then whatever tests register)
+REFERENCE_WARPS: dict[str, ReferenceWarp] = {}
+
+
+def register_reference_warp(ref: ReferenceWarp, *, replace: bool = False) -> ReferenceWarp:
+    """Add a NumPy twin to the oracle's registry (``replace=True`` to overwrite a name)."""
+    if not isinstance(ref, ReferenceWarp):
+        raise TypeError(f"expected a ReferenceWarp, got {type(ref).__name__}")
+    if ref.name in REFERENCE_WARPS and not replace:
+        raise ValueError(f"a reference warp named {ref.name!r} is already registered")
+    REFERENCE_WARPS[ref.name] = ref
+    return ref
+
+
+def unregister_reference_warp(name: str) -> ReferenceWarp:
+    """Remove the reference warp called ``name`` and return it (KeyError if absent)."""
+    if name not in REFERENCE_WARPS:
+        raise KeyError(f"no reference warp named {name!r}")
+    return REFERENCE_WARPS.pop(name)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -106,6 +171,130 @@ def _exp_series(z: np.ndarray) -> np.ndarray:
     return np.where(small, series, exact)
 
 
+# --- the six built-ins (docs/FORMULAS.md, "Warp models") -----------------------------------------
+def _zoom1_warp(theta, x, y, dt, *, center, focal, duration):
+    (hz,) = theta
+    cx, cy = center
+    scale = 1.0 - dt * hz
+    return cx + scale * (x - cx), cy + scale * (y - cy), scale**2, 2.0 * hz * np.ones_like(x)
+
+
+def _zoom1_flow(theta, xt, yt, *, focal, duration):
+    (hz,) = theta
+    return hz * xt, hz * yt
+
+
+def _translation2_warp(theta, x, y, dt, *, center, focal, duration):
+    vx, vy = theta
+    return x - dt * vx, y - dt * vy, np.ones_like(x), np.zeros_like(x)
+
+
+def _translation2_flow(theta, xt, yt, *, focal, duration):
+    vx, vy = theta
+    return vx + 0.0 * xt, vy + 0.0 * yt
+
+
+def _rotation3_warp(theta, x, y, dt, *, center, focal, duration):
+    cx, cy = center
+    fx, fy = focal
+    ones = np.ones_like(x)
+    rays = np.stack([(x - cx) / fx, (y - cy) / fy, ones], axis=-1)  # (N, 3) calibrated rays X
+    rot = _rotation_matrices(theta, dt)
+    rotated = np.einsum("nij,nj->ni", rot, rays)  # X' = Rot X
+    zr = rotated[:, 2]  # X'_z = r_3 . X
+    keep = zr > Z_MIN
+    z_safe = np.where(keep, zr, 1.0)
+    xw = np.where(keep, cx + fx * rotated[:, 0] / z_safe, np.nan)
+    yw = np.where(keep, cy + fy * rotated[:, 1] / z_safe, np.nan)
+    with np.errstate(divide="ignore"):
+        det = 1.0 / zr**3
+    wx, wy, _ = theta
+    div = -3.0 * (wy * rays[:, 0] - wx * rays[:, 1])
+    return xw, yw, det, div
+
+
+def _rotation3_flow(theta, xt, yt, *, focal, duration):
+    fx, fy = focal
+    wx, wy, wz = theta
+    X = xt / fx
+    Y = yt / fy
+    vx = -fx * (wy * (1.0 + X * X) - wx * X * Y - wz * Y)
+    vy = -fy * (-wx * (1.0 + Y * Y) + wy * X * Y + wz * X)
+    return vx, vy
+
+
+def _sim2_exact(vx, vy, w, s, x, y, dt, center):
+    cx, cy = center
+    z = -dt * (s + 1j * w)
+    u = -dt * (vx + 1j * vy)
+    pos = np.exp(z) * ((x - cx) + 1j * (y - cy)) + _exp_series(z) * u
+    det = np.exp(-2.0 * dt * s)
+    return cx + pos.real, cy + pos.imag, det, 2.0 * s * np.ones_like(x)
+
+
+def _se2_warp(theta, x, y, dt, *, center, focal, duration):
+    vx, vy, w = theta
+    return _sim2_exact(vx, vy, w, 0.0, x, y, dt, center)
+
+
+def _se2_flow(theta, xt, yt, *, focal, duration):
+    vx, vy, w = theta
+    return -w * yt + vx, w * xt + vy
+
+
+def _sim2_warp(theta, x, y, dt, *, center, focal, duration):
+    vx, vy, w, s = theta
+    return _sim2_exact(vx, vy, w, s, x, y, dt, center)
+
+
+def _sim2_flow(theta, xt, yt, *, focal, duration):
+    vx, vy, w, s = theta
+    return s * xt - w * yt + vx, w * xt + s * yt + vy
+
+
+def _mitrokhin4_matrix(theta, T):
+    """``(a11, a21)`` of ``A = (h_z T + 1) R(theta T) = [[a11, -a21], [a21, a11]]``."""
+    _, _, hz, th = theta
+    amp = hz * T + 1.0
+    return amp * math.cos(th * T), amp * math.sin(th * T)
+
+
+def _mitrokhin4_warp(theta, x, y, dt, *, center, focal, duration):
+    hx, hy = theta[0], theta[1]
+    cx, cy = center
+    xt, yt = x - cx, y - cy
+    T = duration
+    sigma = dt / T
+    a11, a21 = _mitrokhin4_matrix(theta, T)
+    # x' = x - dt h - sigma (A - I) x~
+    xw = x - dt * hx - sigma * ((a11 - 1.0) * xt - a21 * yt)
+    yw = y - dt * hy - sigma * (a21 * xt + (a11 - 1.0) * yt)
+    det = (1.0 + sigma - sigma * a11) ** 2 + (sigma * a21) ** 2
+    div = 2.0 * (a11 - 1.0) / T * np.ones_like(x)
+    return xw, yw, det, div
+
+
+def _mitrokhin4_flow(theta, xt, yt, *, focal, duration):
+    hx, hy = theta[0], theta[1]
+    T = duration
+    a11, a21 = _mitrokhin4_matrix(theta, T)
+    return hx + ((a11 - 1.0) * xt - a21 * yt) / T, hy + (a21 * xt + (a11 - 1.0) * yt) / T
+
+
+register_reference_warp(ReferenceWarp("zoom1", 1, _zoom1_warp, _zoom1_flow))
+register_reference_warp(ReferenceWarp("translation2", 2, _translation2_warp, _translation2_flow))
+register_reference_warp(ReferenceWarp("rotation3", 3, _rotation3_warp, _rotation3_flow, needs_focal=True))
+register_reference_warp(ReferenceWarp("se2", 3, _se2_warp, _se2_flow))
+register_reference_warp(ReferenceWarp("sim2", 4, _sim2_warp, _sim2_flow))
+register_reference_warp(
+    ReferenceWarp("mitrokhin4", 4, _mitrokhin4_warp, _mitrokhin4_flow, needs_duration=True)
+)
+
+#: the built-in warps and their parameter counts
+WARP_NAMES = tuple(REFERENCE_WARPS)
+N_PARAMS = {name: REFERENCE_WARPS[name].n_params for name in WARP_NAMES}
+
+
 def warp_events(
     warp: str,
     x,
@@ -122,12 +311,12 @@ def warp_events(
     Parameters
     ----------
     warp : str
-        One of :data:`WARP_NAMES`.
+        A registered reference warp (:data:`WARP_NAMES` and those of :func:`register_reference_warp`).
     x, y : array_like, shape (N,)
         Event positions (px), pixel centres at integers.
     dt : array_like, shape (N,)
         ``t_k - t_ref`` (s).
-    theta : array_like, shape (N_PARAMS[warp],)
+    theta : array_like, shape (n_params,)
         Warp parameters in physical units (px/s, 1/s, rad/s; see FORMULAS.md).
     center : tuple of float
         ``(c_x, c_y)`` (px), the origin of ``x~ = x - c``.
@@ -151,109 +340,11 @@ def warp_events(
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     dt = np.broadcast_to(np.asarray(dt, dtype=np.float64), x.shape)
-    cx, cy = (float(v) for v in center)
-    xt = x - cx
-    yt = y - cy
-    ones = np.ones_like(x)
-
-    if warp == "zoom1":
-        (hz,) = theta
-        scale = 1.0 - dt * hz
-        xw = cx + scale * xt
-        yw = cy + scale * yt
-        det = scale**2
-        div = 2.0 * hz * ones
-
-    elif warp == "translation2":
-        vx, vy = theta
-        xw = x - dt * vx
-        yw = y - dt * vy
-        det = ones.copy()
-        div = np.zeros_like(x)
-
-    elif warp == "rotation3":
-        fx, fy = _check_focal(warp, focal)
-        rays = np.stack([xt / fx, yt / fy, ones], axis=-1)  # (N, 3) calibrated rays X
-        rot = _rotation_matrices(theta, dt)
-        rotated = np.einsum("nij,nj->ni", rot, rays)  # X' = Rot X
-        zr = rotated[:, 2]  # X'_z = r_3 . X
-        keep = zr > Z_MIN
-        z_safe = np.where(keep, zr, 1.0)
-        xw = np.where(keep, cx + fx * rotated[:, 0] / z_safe, np.nan)
-        yw = np.where(keep, cy + fy * rotated[:, 1] / z_safe, np.nan)
-        with np.errstate(divide="ignore"):
-            det = 1.0 / zr**3
-        wx, wy, _ = theta
-        div = -3.0 * (wy * rays[:, 0] - wx * rays[:, 1])
-
-    elif warp in ("se2", "sim2"):
-        if warp == "se2":
-            vx, vy, w = theta
-            s = 0.0
-        else:
-            vx, vy, w, s = theta
-        z = -dt * (s + 1j * w)
-        u = -dt * (vx + 1j * vy)
-        pos = np.exp(z) * (xt + 1j * yt) + _exp_series(z) * u
-        xw = cx + pos.real
-        yw = cy + pos.imag
-        det = np.exp(-2.0 * dt * s)
-        div = 2.0 * s * ones
-
-    elif warp == "mitrokhin4":
-        hx, hy, hz, th = theta
-        T = _check_duration(warp, duration)
-        sigma = dt / T
-        amp = hz * T + 1.0
-        a11 = amp * math.cos(th * T)
-        a21 = amp * math.sin(th * T)
-        # A = amp R(theta T) = [[a11, -a21], [a21, a11]]; x' = x - dt h - sigma (A - I) x~
-        xw = x - dt * hx - sigma * ((a11 - 1.0) * xt - a21 * yt)
-        yw = y - dt * hy - sigma * (a21 * xt + (a11 - 1.0) * yt)
-        det = (1.0 + sigma - sigma * a11) ** 2 + (sigma * a21) ** 2
-        div = 2.0 * (a11 - 1.0) / T * ones
-
-    else:  # pragma: no cover - guarded by _check_theta
-        raise ValueError(f"unknown warp {warp!r}")
-
-    return (
-        np.asarray(xw, dtype=np.float64),
-        np.asarray(yw, dtype=np.float64),
-        np.asarray(det, dtype=np.float64),
-        np.asarray(div, dtype=np.float64),
-    )
-
-
-def _flow_at(warp, theta, xt, yt, *, focal, duration) -> tuple[np.ndarray, np.ndarray]:
-    """Closed-form flow ``v`` (px/s) at centred coordinates ``x~ = (xt, yt)`` (px)."""
-    if warp == "zoom1":
-        (hz,) = theta
-        return hz * xt, hz * yt
-    if warp == "translation2":
-        vx, vy = theta
-        return vx + 0.0 * xt, vy + 0.0 * yt
-    if warp == "se2":
-        vx, vy, w = theta
-        return -w * yt + vx, w * xt + vy
-    if warp == "sim2":
-        vx, vy, w, s = theta
-        return s * xt - w * yt + vx, w * xt + s * yt + vy
-    if warp == "mitrokhin4":
-        hx, hy, hz, th = theta
-        T = _check_duration(warp, duration)
-        amp = hz * T + 1.0
-        a11 = amp * math.cos(th * T)
-        a21 = amp * math.sin(th * T)
-        return hx + ((a11 - 1.0) * xt - a21 * yt) / T, hy + (a21 * xt + (a11 - 1.0) * yt) / T
-    if warp == "rotation3":
-        fx, fy = _check_focal(warp, focal)
-        wx, wy, wz = theta
-        X = xt / fx
-        Y = yt / fy
-        vx = -fx * (wy * (1.0 + X * X) - wx * X * Y - wz * Y)
-        vy = -fy * (-wx * (1.0 + Y * Y) + wy * X * Y + wz * X)
-        return vx, vy
-    raise ValueError(f"unknown warp {warp!r}")  # pragma: no cover
+    center = tuple(float(v) for v in center)
+    context = _context(warp, focal, duration)
+    xw, yw, det, div = REFERENCE_WARPS[warp].warp(theta, x, y, dt, center=center, **context)
+    shape = x.shape
+    return tuple(np.broadcast_to(np.asarray(a, dtype=np.float64), shape).copy() for a in (xw, yw, det, div))
 
 
 def flow_field(
@@ -271,7 +362,7 @@ def flow_field(
     Parameters
     ----------
     warp : str
-        One of :data:`WARP_NAMES`.
+        A registered reference warp.
     theta : array_like
         Warp parameters (physical units).
     width, height : int
@@ -290,13 +381,15 @@ def flow_field(
     """
     theta = _check_theta(warp, theta)
     cx, cy = (float(v) for v in center)
+    context = _context(warp, focal, duration)
     ys, xs = np.meshgrid(
         np.arange(int(height), dtype=np.float64),
         np.arange(int(width), dtype=np.float64),
         indexing="ij",
     )
-    vx, vy = _flow_at(warp, theta, xs - cx, ys - cy, focal=focal, duration=duration)
-    return np.stack([np.asarray(vx, np.float64), np.asarray(vy, np.float64)], axis=0)
+    vx, vy = REFERENCE_WARPS[warp].flow(theta, xs - cx, ys - cy, **context)
+    shape = xs.shape
+    return np.stack([np.broadcast_to(np.asarray(v, np.float64), shape) for v in (vx, vy)], axis=0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -570,7 +663,7 @@ def evaluate(
     theta : array_like
         Warp parameters (physical units: px/s, 1/s, rad/s).
     warp : str
-        One of :data:`WARP_NAMES`.
+        A registered reference warp (:data:`WARP_NAMES` and those of :func:`register_reference_warp`).
     sensor_size : tuple of int
         ``(W, H)`` (px).
     center : tuple of float, optional
@@ -640,8 +733,7 @@ def evaluate(
     s_t = 1.0 if t0 <= float(np.mean(t)) else -1.0
     if center is None:
         center = ((width - 1) / 2.0, (height - 1) / 2.0)
-    if warp == "rotation3":
-        _check_focal(warp, focal)
+    _context(warp, focal, T)
 
     def positions_for_iwe(xw_, yw_):
         return whiten(xw_, yw_, x, y) if whitening else (xw_, yw_)

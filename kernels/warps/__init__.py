@@ -1,0 +1,32 @@
+"""Warp models as Taichi functions (docs/FORMULAS.md, "Warp models"): one module per model.
+
+Every model module provides the same ``@ti.func`` set, so that kernels are generic over the model:
+
+* ``warp(p, dt, th, ctx) -> vec2``  the event at pixel ``p`` (px) and time offset ``dt`` (s) moved to t_ref;
+* ``det(p, dt, th, ctx) -> scalar`` ``det dx'/dx`` (signed) at the event;
+* ``div(p, th, ctx) -> scalar``     divergence of the flow at ``p`` (1/s);
+* ``flow(p, th, ctx) -> vec2``      instantaneous flow ``v(p)`` (px/s), ``v = -dW/d(dt)`` at ``dt = 0``;
+* ``param_jac(p, dt, th, ctx) -> (jx, ddet, ddiv)``: closed-form derivatives in theta for the fused
+  pipeline's hand-written backward: ``jx`` (2 x P matrix) ``d x' / d theta`` of ``warp`` (px per
+  parameter unit), ``ddet`` (P-vector) ``d det / d theta`` of ``det``, ``ddiv`` (P-vector)
+  ``d div / d theta`` of ``div``. They differentiate exactly the expressions of ``warp``/``det``/``div``
+  (same series branches); the tests hold them against Taichi autodiff and finite differences. Their
+  trigonometric factors depend on theta only, so the compiler hoists them out of the serial event loop;
+
+and the constant ``CONSTANT_QUANTITIES``: which of the per-event quantities ``"div"`` (``div v``) and
+``"absdet"`` (``|det dx'/dx|``) do not depend on the event (their regularizer map is that one value on
+every pixel with votes, so the fused pipeline does not vote them).
+
+``th`` is the parameter vector (physical units). ``ctx`` is the 5-vector ``(cx, cy, fx, fy, T)``: the
+centre of the coordinates (principal point or image centre, px), the focal lengths (px, used by
+``rotation3`` only) and the window duration ``T`` (s, used by ``mitrokhin4`` only). The functions use no
+``floor`` and no dynamic loops, so they work in reverse and forward mode autodiff.
+
+Shared helpers (complex arithmetic, constants, finite-difference stand-ins, the dense-flow kernel) are
+in ``common.py``. The metadata of each model (names, units, capabilities) is registered in
+``cmax_taichi/models/warps.py``; docs/RECIPE_WARP.md says how to add a model.
+"""
+
+from .common import make_dense_flow_kernel, make_fd_det, make_fd_div
+
+__all__ = ["make_dense_flow_kernel", "make_fd_det", "make_fd_div"]
