@@ -52,6 +52,7 @@ __all__ = [
     "Plan",
     "quick_plan",
     "full_plan",
+    "gpu_plan",
     "run_benchmark",
     "make_window",
     "check_agreement",
@@ -422,6 +423,32 @@ def full_plan(precision: str = "f64") -> Plan:
     return Plan(cfgs, min_repeats=3, max_repeats=15, budget_s=1.5, segment=True, label="full", notes=notes)
 
 
+def gpu_plan(precision: str = "f32", max_events: int = 10_000_000) -> Plan:
+    """The GPU throughput sweep of ``benchmarks/gpu_check.sh``: N = 1e3 .. 1e7 (at most ``max_events``)
+    on 346x260 and 1280x720, three warps with and without both regularizers; the NumPy reference (the
+    value anchor of the agreement check) up to 1e5 events, PyTorch (on the CPU) and the generic chain on
+    346x260 up to 1e6 events; the window solve and the segmentation timing as in the full plan."""
+    cfgs = []
+    for n in (1_000, 10_000, 100_000, 1_000_000, 10_000_000):
+        if n > max_events:
+            continue
+        for sensor in ("346x260", "1280x720"):
+            for warp in THETAS:
+                for regs in REGS:
+                    impls = ["taichi"]
+                    if sensor == "346x260" and n <= 1_000_000:
+                        impls += ["taichi-chain", "torch"]
+                    if n <= 100_000:
+                        impls.append("numpy")
+                    cfgs.append(BenchConfig(n, sensor, warp, regs, precision, tuple(impls)))
+    notes = [
+        "GPU sweep: Taichi on the backend named above; PyTorch and NumPy run on the CPU (their times are "
+        "a CPU baseline, not a GPU comparison). NumPy reference: value only, N <= 1e5.",
+        "taichi-chain = the generic kernel chain differentiated by Taichi autodiff: 346x260, N <= 1e6.",
+    ]
+    return Plan(cfgs, min_repeats=3, max_repeats=15, budget_s=1.0, segment=True, label="gpu", notes=notes)
+
+
 def _torch_available() -> bool:
     try:
         import torch  # noqa: F401
@@ -737,8 +764,10 @@ def run_benchmark(
     out_dir: str | Path,
     *,
     log: Callable[[str], None] = print,
+    arch: str | None = None,
 ) -> dict:
-    """Run ``plan``; write results.csv, results.md and results.png into ``out_dir``.
+    """Run ``plan`` on ``arch`` (default: ``CMAX_TAICHI_ARCH``, else the CPU); write results.csv,
+    results.md and results.png into ``out_dir``.
 
     Returns
     -------
@@ -753,7 +782,7 @@ def run_benchmark(
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     precision = plan.configs[0].precision if plan.configs else "f64"
-    backend.init(precision=precision)
+    backend.init(arch=arch, precision=precision)
     machine = machine_info()
     log(f"cmax-taichi bench ({plan.label}): {machine['cpu']}, {machine['cores']} cores, {machine['date']}")
     rows: list[Row] = []
