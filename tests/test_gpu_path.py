@@ -53,8 +53,8 @@ def _start_gpu() -> backend.BackendInfo:
     if info.arch == "cpu":
         said = "; ".join(str(w.message) for w in caught if issubclass(w.category, RuntimeWarning))
         message = (
-            f"{backend.ARCH_ENV}={REQUESTED} was requested but Taichi fell back to the CPU ({said or 'no '}"
-            "warning); the GPU path was NOT tested"
+            f"{backend.ARCH_ENV}={REQUESTED} was requested but Taichi fell back to the CPU "
+            f"({said or 'no warning'}); the GPU path was NOT tested"
         )
         if os.environ.get(REQUIRE_ENV, "") not in ("", "0"):
             pytest.fail(message, pytrace=False)
