@@ -165,3 +165,32 @@ def test_stage_profiler_prints_every_task(tmp_path):
         timeout=120,
     )
     assert bad.returncode == 2 and "--sensor must be one of" in bad.stderr
+
+
+def test_cli_refuses_a_gpu_arch_that_falls_back_to_the_cpu(tmp_path, capsys):
+    """`cmax-taichi bench --arch cuda` without CUDA: one error, no CPU timing sold as a GPU one."""
+    import cmax_taichi as cm
+    from cmax_taichi.cli import main as cli_main
+
+    out = tmp_path / "bench"
+    try:
+        rc = cli_main(["bench", "--arch", "cuda", "--gpu-sweep", "--max-events", "1000", "--out", str(out)])
+        if cm.backend_info().arch == "cuda":
+            pytest.skip("a CUDA device is present: no fallback to refuse")
+        assert rc == 2
+        assert "arch 'cuda' is not available" in capsys.readouterr().err
+        assert not out.exists()
+        assert cli_main(["bench", "--gpu-sweep", "--max-events", "999", "--out", str(out)]) == 2
+        assert "leaves no configuration" in capsys.readouterr().err
+        assert cli_main(["bench", "--arch", "vulkan", "--precision", "f64", "--out", str(out)]) == 2
+        assert "no f64 support" in capsys.readouterr().err
+    finally:
+        cm.init(arch="cpu", precision="f64")
+
+
+def test_gpu_plan_limits():
+    plan = bench.gpu_plan("f32", max_events=100_000)
+    assert plan.label == "gpu" and {c.n for c in plan.configs} == {1_000, 10_000, 100_000}
+    assert all(c.precision == "f32" for c in plan.configs)
+    assert all("numpy" in c.impls for c in plan.configs)  # the value anchor of the agreement check
+    assert {c.sensor_name for c in plan.configs} == {"346x260", "1280x720"}

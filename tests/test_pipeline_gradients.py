@@ -11,6 +11,7 @@ import pytest
 from conftest import CAMERA, SENSOR, THETAS, edge_events, use_precision
 
 import cmax_taichi as cm
+from cmax_taichi.pipeline.fused import FusedPipeline
 from cmax_taichi.testing import reference
 
 WARPS = list(THETAS)
@@ -53,23 +54,34 @@ def _ref_fd_grad(raw, theta, kwargs, rel_step=1e-6):
     return reference.central_difference_grad(*raw, theta, rel_step=rel_step, **kwargs)
 
 
-def check_against_reference(precision: str, options: dict, seed: int = 0) -> None:
+def check_against_reference(
+    precision: str, options: dict, seed: int = 0, *, fused: bool = True, n: int = 400
+) -> cm.ContrastMaximization:
+    """Value, gradient, penalties and G_raw of one problem against the float64 reference; ``fused=False``
+    builds it on the generic kernel chain (tests/test_gpu_path.py runs both paths on a GPU)."""
     use_precision(precision)
-    events, raw = _events(seed)
+    events, raw = _events(seed, n)
     kwargs = _ref_kwargs(options)
-    prob = cm.ContrastMaximization(
-        events,
-        warp=options["warp"],
-        objective=kwargs["objective"],
-        regularizers=options.get("regularizers"),
-        camera=options.get("camera"),
-        t_ref=kwargs["t_ref"],
-        blur_sigma=kwargs["blur_sigma"],
-        polarity=kwargs["polarity"],
-        weights=options.get("weights"),
-        normalize=kwargs["normalize"],
-        whitening=kwargs["whitening"],
-    )
+    saved = FusedPipeline.enabled
+    FusedPipeline.enabled = fused
+    try:
+        prob = cm.ContrastMaximization(
+            events,
+            warp=options["warp"],
+            objective=kwargs["objective"],
+            regularizers=options.get("regularizers"),
+            camera=options.get("camera"),
+            t_ref=kwargs["t_ref"],
+            blur_sigma=kwargs["blur_sigma"],
+            polarity=kwargs["polarity"],
+            weights=options.get("weights"),
+            normalize=kwargs["normalize"],
+            whitening=kwargs["whitening"],
+        )
+    finally:
+        FusedPipeline.enabled = saved
+    if not fused:
+        assert prob._fused is None, "the generic chain was asked for but the fused pipeline was built"
     theta = np.asarray(options["theta"] if "theta" in options else THETAS[options["warp"]], dtype=np.float64)
     value, grad = prob.value_and_grad(theta)
     ref = reference.evaluate(*raw, theta, **kwargs)
@@ -85,6 +97,7 @@ def check_against_reference(precision: str, options: dict, seed: int = 0) -> Non
     assert ev.R["divergence"] == pytest.approx(ref["R_div"], rel=tol["value"] * 10, abs=1e-9)
     assert ev.R["deformation"] == pytest.approx(ref["R_def"], rel=tol["value"] * 10, abs=1e-9)
     assert ev.G_raw == pytest.approx(ref["G_raw"], rel=tol["value"] * 10)
+    return prob
 
 
 COMBOS = list(itertools.product(WARPS, OBJECTIVES, REGS))

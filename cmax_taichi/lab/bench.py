@@ -67,6 +67,7 @@ __all__ = [
     "quick_plan",
     "full_plan",
     "run_config",
+    "gpu_plan",
     "run_benchmark",
     "make_window",
     "check_agreement",
@@ -218,6 +219,32 @@ def full_plan(precision: str = "f64") -> Plan:
     return Plan(cfgs, min_repeats=3, max_repeats=15, budget_s=1.5, segment=True, label="full", notes=notes)
 
 
+def gpu_plan(precision: str = "f32", max_events: int = 10_000_000) -> Plan:
+    """The GPU throughput sweep of ``benchmarks/gpu_check.sh``: N = 1e3 .. 1e7 (at most ``max_events``)
+    on 346x260 and 1280x720, three warps with and without both regularizers; the NumPy reference (the
+    value anchor of the agreement check) up to 1e5 events, PyTorch (on the CPU) and the generic chain on
+    346x260 up to 1e6 events; the window solve and the segmentation timing as in the full plan."""
+    cfgs = []
+    for n in (1_000, 10_000, 100_000, 1_000_000, 10_000_000):
+        if n > max_events:
+            continue
+        for sensor in ("346x260", "1280x720"):
+            for warp in THETAS:
+                for regs in REGS:
+                    impls = ["taichi"]
+                    if sensor == "346x260" and n <= 1_000_000:
+                        impls += ["taichi-chain", "torch"]
+                    if n <= 100_000:
+                        impls.append("numpy")
+                    cfgs.append(BenchConfig(n, sensor, warp, regs, precision, tuple(impls)))
+    notes = [
+        "GPU sweep: Taichi on the backend named above; PyTorch and NumPy run on the CPU (their times are "
+        "a CPU baseline, not a GPU comparison). NumPy reference: value only, N <= 1e5.",
+        "taichi-chain = the generic kernel chain differentiated by Taichi autodiff: 346x260, N <= 1e6.",
+    ]
+    return Plan(cfgs, min_repeats=3, max_repeats=15, budget_s=1.0, segment=True, label="gpu", notes=notes)
+
+
 def _torch_available() -> bool:
     try:
         import torch  # noqa: F401
@@ -363,8 +390,10 @@ def run_benchmark(
     out_dir: str | Path,
     *,
     log: Callable[[str], None] = print,
+    arch: str | None = None,
 ) -> dict:
-    """Run ``plan``; write results.csv, results.md and results.png into ``out_dir``.
+    """Run ``plan`` on ``arch`` (default: ``CMAX_TAICHI_ARCH``, else the CPU); write results.csv,
+    results.md and results.png into ``out_dir``.
 
     Returns
     -------
@@ -379,7 +408,7 @@ def run_benchmark(
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     precision = plan.configs[0].precision if plan.configs else "f64"
-    backend.init(precision=precision)
+    backend.init(arch=arch, precision=precision)
     machine = machine_info()
     log(f"cmax-taichi bench ({plan.label}): {machine['cpu']}, {machine['cores']} cores, {machine['date']}")
     rows: list[Row] = []
@@ -427,7 +456,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="a sub-two-minute subset (CI)")
     parser.add_argument("--out", default="bench-results", help="output folder (default: bench-results)")
     parser.add_argument(
-        "--precision", default="f64", choices=["f64", "f32"], help="Taichi and PyTorch precision"
+        "--precision",
+        default=None,
+        choices=["f64", "f32"],
+        help="Taichi and PyTorch precision (default: f64 on the CPU, f32 on a GPU arch)",
+    )
+    parser.add_argument(
+        "--arch",
+        default=None,
+        choices=list(backend.ARCHS),
+        help="Taichi backend (default: CMAX_TAICHI_ARCH, else cpu); a GPU arch that is not available is an "
+        "error here, not a fallback to the CPU",
+    )
+    parser.add_argument(
+        "--gpu-sweep",
+        action="store_true",
+        help="the GPU throughput sweep (N = 1e3 .. 1e7, two sensors, three warps) instead of the CPU plan",
+    )
+    parser.add_argument(
+        "--max-events",
+        type=int,
+        default=10_000_000,
+        help="largest N of --gpu-sweep (default 1e7; smaller for a software-Vulkan check)",
     )
     parser.add_argument("--no-solve", action="store_true", help="skip the window-solve timing")
     parser.add_argument(
@@ -435,15 +485,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def start_backend(arch: str | None, precision: str) -> str:
+    """Start the requested arch; a GPU arch that Taichi cannot start (it falls back to the CPU) is a
+    ValueError, so that no CPU timing is reported as a GPU one. Returns the arch name."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the fallback warning: said below instead
+        info = backend.init(arch=arch, precision=precision)
+    if info.requested_arch != "cpu" and info.arch == "cpu":
+        raise ValueError(
+            f"arch {info.requested_arch!r} is not available on this machine (Taichi fell back to the CPU); "
+            "no benchmark was run"
+        )
+    return info.requested_arch
+
+
 def run_from_args(args: argparse.Namespace) -> int:
     """Run the plan the options of :func:`add_arguments` describe and print the report; exit code 1
-    when an implementation disagrees with the others."""
-    plan = quick_plan(args.precision) if args.quick else full_plan(args.precision)
+    when an implementation disagrees with the others. Bad options raise ValueError."""
+    if args.max_events < 1:
+        raise ValueError(f"--max-events must be at least 1, got {args.max_events}")
+    requested = (args.arch or os.environ.get(backend.ARCH_ENV) or "cpu").strip().lower()
+    precision = args.precision or ("f64" if requested == "cpu" else "f32")
+    if requested in ("vulkan", "metal") and precision == "f64":
+        raise ValueError(f"arch {requested!r} has no f64 support; use --precision f32")
+    arch = start_backend(requested, precision)
+    if args.gpu_sweep:
+        plan = gpu_plan(precision, max_events=args.max_events)
+        if not plan.configs:
+            raise ValueError(
+                f"--max-events {args.max_events} leaves no configuration (the smallest N is 1000)"
+            )
+    elif args.quick:
+        plan = quick_plan(precision)
+    else:
+        plan = full_plan(precision)
     if args.no_solve:
         plan.solve = False
     if args.no_segment:
         plan.segment = False
-    result = run_benchmark(plan, args.out)
+    result = run_benchmark(plan, args.out, arch=arch)
     print()
     print(result["markdown"])
     bad = [r for r in result["rows"] if r.status.startswith("DISAGREES")]
