@@ -2,7 +2,8 @@
 
 The fused pipeline computes the same J and dJ/dtheta as the generic kernel chain of ``problem.py`` in
 one kernel launch per value-and-gradient, with no atomics on the CPU, no per-call fills and no
-per-call allocation. It serves the built-in objectives, regularizers and warp models (their
+per-call allocation. It serves the objectives that declare a fused path (``Objective.fused``), the
+built-in regularizers and warp models (their
 closed-form parameter Jacobians are in ``kernels/param_jac.py``), all polarity modes, weights and
 blur widths; the generic chain serves the rest (whitening, user warps, objectives or penalties).
 
@@ -20,22 +21,12 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
 from cmax_taichi.kernels import maps as kmaps
-from cmax_taichi.kernels import objectives as kobj
 from cmax_taichi.kernels import param_jac as kpj
 from cmax_taichi.models.regularizers import REGULARIZERS, _deformation_quantity, _divergence_quantity
 
 __all__ = ["FusedPipeline"]
 
 MAX_PARAMS = kfused.MAX_PARAMS
-
-#: objectives the fused pipeline implements, by their reduce-kernel factory (a user objective that
-#: brings its own factory takes the generic chain)
-_OBJECTIVES = {
-    kobj.make_variance_reduce: "variance",
-    kobj.make_mean_square_reduce: "mean_square",
-    kobj.make_gradient_magnitude_reduce: "gradient_magnitude",
-}
-
 
 #: per-event quantities of the built-in regularizers, as the hand-written backward names them
 _QUANTITY_KINDS = {_divergence_quantity: "div", _deformation_quantity: "absdet"}
@@ -64,7 +55,7 @@ class FusedPipeline:
         """The fused pipeline of ``problem`` (a ContrastMaximization being built), or None."""
         if not cls.enabled or problem.whitening or problem.model.n_params > MAX_PARAMS:
             return None
-        objective = _OBJECTIVES.get(problem.objective.make_reduce)
+        objective = problem.objective.fused  # the objective's declaration (models/objectives.py)
         if objective is None:
             return None
         regs = [REGULARIZERS.get(name) for name in problem.regularizer_weights]
@@ -77,14 +68,14 @@ class FusedPipeline:
             return None
         return cls(problem, objective, regs, vote_w)
 
-    def __init__(self, problem, objective: str, regs: list, vote_w: np.ndarray | None) -> None:
+    def __init__(self, problem, objective, regs: list, vote_w: np.ndarray | None) -> None:
         self.problem = problem
         model = problem.model
         C, W, H, P = problem.n_channels, problem.width, problem.height, model.n_params
         weighted = vote_w is not None
         split = problem.polarity == "split"
-        radius = problem._radius
-        gm = objective == "gradient_magnitude"
+        radius = problem.setup.radius
+        slots = problem.objective.slots_per_channel
         atomic = backend.info().arch != "cpu" or self.force_atomic
         slices = 1 if atomic else n_slices()
         shared = bool(regs) and not weighted and not split
@@ -108,7 +99,8 @@ class FusedPipeline:
             n_voted,
             P,
             radius,
-            gm,
+            slots,
+            objective.sobel,
             slices,
             shared,
         )
@@ -125,7 +117,8 @@ class FusedPipeline:
                 radius=radius,
                 n_slices=slices,
                 shared_count=shared,
-                gradient_magnitude=gm,
+                objective_slots=slots,
+                sobel=objective.sobel,
             )
             ws.kernels = {}
 
@@ -136,7 +129,8 @@ class FusedPipeline:
             model.name,
             id(model),
             tuple((r.name, id(r)) for r in regs),
-            objective,
+            problem.objective.name,
+            id(objective),
             weighted,
             split,
             atomic,
@@ -150,7 +144,11 @@ class FusedPipeline:
                 penalties,
                 tuple(kmaps.PENALTY_GRADS[pf] for pf in penalties),
                 tuple(bool(getattr(r, "one_sided", False)) for r in regs),
-                objective=objective,
+                pixel_fn=objective.pixel,
+                finalize_fn=objective.finalize,
+                adjoint_fn=objective.adjoint,
+                objective_slots=slots,
+                sobel=objective.sobel,
                 width=W,
                 height=H,
                 n_channels=C,
@@ -169,15 +167,10 @@ class FusedPipeline:
         self._run_k = self._ws.kernels[kkey]
 
         # constants, uploaded whenever another problem used the shared fields in between
-        ctx = [problem.center[0], problem.center[1], problem._focal[0], problem._focal[1], problem.duration]
-        self._ctx = ctx
-        self._taps = None
-        if radius > 0:
-            taps = np.exp(-(np.arange(-radius, radius + 1) ** 2) / (2 * problem.blur_sigma**2))
-            self._taps = (taps / taps.sum()).astype(backend.numpy_real())
-        self._lam = [problem.regularizer_weights[r.name] for r in regs] + [
-            r.scale(problem.duration, problem.orientation) for r in regs
-        ]
+        setup = problem.setup  # pipeline/setup.py: the same constants as the generic chain's
+        self._ctx = setup.ctx
+        self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
+        self._lam = setup.lam
         self._g0 = 1.0
 
         # the events as one ndarray of (x, y, dt[, w][, channel]) vectors
