@@ -25,12 +25,18 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import clusters as kcl
-from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel, get_warp
-from cmax_taichi.pipeline.problem import _cached
-from cmax_taichi.pipeline.setup import ProblemSetup, allocate_images, run_chain, run_chain_backward, upload
+from cmax_taichi.pipeline.setup import (
+    ProblemSetup,
+    allocate_images,
+    image_kernels,
+    run_chain,
+    run_chain_backward,
+    upload,
+)
+from cmax_taichi.pipeline.setup import cached_kernel as _cached
 
 __all__ = ["MultiClusterCMax"]
 
@@ -131,7 +137,6 @@ class MultiClusterCMax:
         self.offsets = tuple(int(v) for v in np.concatenate([[0], np.cumsum(self.n_params)[:-1]]))
         self.n_total = int(sum(self.n_params))
         self._memberships: np.ndarray | None = None
-        self._k_blur_x = self._k_blur_y = None
         self._active = np.ones(K, dtype=bool)
         self.G0 = np.ones(K)
         self._allocate()
@@ -265,12 +270,8 @@ class MultiClusterCMax:
             ("cl_lookup", model_key, W, H),
             lambda: kcl.make_cluster_lookup_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
         )
-        if self.blur_sigma > 0:
-            r = self.setup.radius
-            self._k_blur_x = _cached(("blur", r, 1, W, H, K), lambda: kiwe.make_blur_kernel(r, 1, W, H, K))
-            self._k_blur_y = _cached(("blur", r, 0, W, H, K), lambda: kiwe.make_blur_kernel(r, 0, W, H, K))
+        self._k_blur_x, self._k_blur_y, self._k_reduce = image_kernels(self.setup, K)
         obj = self.objective
-        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, K), lambda: obj.make_reduce(W, H, K))
         if regs:
             self._k_maps = _cached(
                 ("cl_maps", reg_key, K, W, H), lambda: kcl.make_cluster_maps_reduce(penalties, K, W, H)

@@ -34,23 +34,14 @@ from cmax_taichi.pipeline.setup import (
     POLARITY_MODES,
     ProblemSetup,
     allocate_images,
+    image_kernels,
     run_chain,
     run_chain_backward,
     upload,
 )
+from cmax_taichi.pipeline.setup import cached_kernel as _cached
 
 __all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
-
-# Compiled kernels, keyed by everything that is static in them; cleared when Taichi is reset.
-_KERNELS: dict = {}
-backend.on_reset(_KERNELS.clear)
-
-
-def _cached(key, factory):
-    kernel = _KERNELS.get(key)
-    if kernel is None:
-        kernel = _KERNELS[key] = factory()
-    return kernel
 
 
 @dataclass(frozen=True)
@@ -321,12 +312,8 @@ class ContrastMaximization:
         if self.whitening:
             self._k_wsplat = self._splat_kernel([], do_iwe=True, whiten=True)
             self._k_moments = _cached(("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp))
-        if self.blur_sigma > 0:
-            r = self.setup.radius
-            self._k_blur_x = _cached(("blur", r, 1, W, H, C), lambda: kiwe.make_blur_kernel(r, 1, W, H, C))
-            self._k_blur_y = _cached(("blur", r, 0, W, H, C), lambda: kiwe.make_blur_kernel(r, 0, W, H, C))
+        self._k_blur_x, self._k_blur_y, self._k_reduce = image_kernels(self.setup, C)
         obj = self.objective
-        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, C), lambda: obj.make_reduce(W, H, C))
         if regs:
             self._k_maps = _cached(("maps", reg_key, W, H), lambda: kmaps.make_maps_reduce(penalties, W, H))
         self._k_loss = _cached(

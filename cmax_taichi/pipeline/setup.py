@@ -20,13 +20,26 @@ import taichi as ti
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.models.objectives import OBJECTIVES, Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
 
-__all__ = ["POLARITY_MODES", "ProblemSetup", "run_chain", "run_chain_backward"]
+__all__ = ["POLARITY_MODES", "ProblemSetup", "cached_kernel", "run_chain", "run_chain_backward"]
 
 POLARITY_MODES = ("ignore", "signed", "split")
+
+# Compiled kernels, keyed by everything that is static in them; cleared when Taichi is reset.
+_KERNELS: dict = {}
+backend.on_reset(_KERNELS.clear)
+
+
+def cached_kernel(key, factory):
+    """The kernel compiled for ``key``, built by ``factory()`` on first use."""
+    kernel = _KERNELS.get(key)
+    if kernel is None:
+        kernel = _KERNELS[key] = factory()
+    return kernel
 
 
 def check_regularizers(regularizers) -> dict[str, float]:
@@ -272,6 +285,24 @@ def upload(ws, setup: ProblemSetup, per_event: Mapping[str, np.ndarray | None]) 
     if setup.taps is not None:
         ws.taps.from_numpy(setup.taps.astype(npr))
     ws.lam[None] = setup.lam or [0.0]
+
+
+def image_kernels(setup: ProblemSetup, n_images: int):
+    """``(blur_x, blur_y, reduce)``: the (cached) blur kernels of the ``(n_images, H, W)`` images (None
+    without blur) and the objective's reduce kernel over them."""
+    W, H, r, obj = setup.width, setup.height, setup.radius, setup.objective
+    blur_x = blur_y = None
+    if r > 0:
+        blur_x = cached_kernel(
+            ("blur", r, 1, W, H, n_images), lambda: kiwe.make_blur_kernel(r, 1, W, H, n_images)
+        )
+        blur_y = cached_kernel(
+            ("blur", r, 0, W, H, n_images), lambda: kiwe.make_blur_kernel(r, 0, W, H, n_images)
+        )
+    reduce = cached_kernel(
+        ("reduce", obj.name, id(obj), W, H, n_images), lambda: obj.make_reduce(W, H, n_images)
+    )
+    return blur_x, blur_y, reduce
 
 
 # --- the runner of a generic kernel chain ---------------------------------------------------------------
