@@ -220,6 +220,16 @@ def make_fused_kernels(
         return f.thv[None]
 
     @ti.func
+    def slice_events(s, n):
+        """The events ``[lo, hi)`` of thread slice ``s``."""
+        chunk = n // S
+        lo = s * chunk
+        hi = lo + chunk
+        if s == S - 1:
+            hi = n
+        return lo, hi
+
+    @ti.func
     def objective_slots_vec():
         return ti.Vector([red[j][None] for j in ti.static(range(SL * C))])
 
@@ -375,11 +385,7 @@ def make_fused_kernels(
                 splat_event(0, ev[i], theta_vec(), f.ctx[None])
         else:
             for s in range(S):
-                chunk = n // S
-                lo = s * chunk
-                hi = lo + chunk
-                if s == S - 1:
-                    hi = n
+                lo, hi = slice_events(s, n)
                 theta = theta_vec()
                 c = f.ctx[None]
                 for i in range(lo, hi):
@@ -559,11 +565,7 @@ def make_fused_kernels(
         else:
             for s in range(S):
                 if grad != 0:
-                    chunk = n // S
-                    lo = s * chunk
-                    hi = lo + chunk
-                    if s == S - 1:
-                        hi = n
+                    lo, hi = slice_events(s, n)
                     theta = theta_vec()
                     c = f.ctx[None]
                     gacc = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
