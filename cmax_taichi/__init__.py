@@ -7,7 +7,13 @@ Public names only; see README.md for a worked example and docs/FORMULAS.md for e
 from cmax_taichi.core.backend import BackendInfo, init
 from cmax_taichi.core.backend import info as backend_info
 from cmax_taichi.core.events import Camera, Events
-from cmax_taichi.models.objectives import OBJECTIVES, Objective, objective_names, register_objective
+from cmax_taichi.models.objectives import (
+    OBJECTIVES,
+    FusedObjective,
+    Objective,
+    objective_names,
+    register_objective,
+)
 from cmax_taichi.models.regularizers import (
     RECOMMENDED_LAMBDA,
     REGULARIZERS,
@@ -48,6 +54,7 @@ __all__ = [
     "Evaluation",
     "Events",
     "OBJECTIVES",
+    "FusedObjective",
     "Objective",
     "OptimizeResult",
     "POLARITY_MODES",

@@ -23,8 +23,7 @@ field is written after it is read. Formulas: docs/SEGMENTATION.md.
 
 import taichi as ti
 
-from .iwe import bilinear_footprint
-from .maps import SUPPORT_KAPPA
+from . import blocks as _b
 
 
 def make_cluster_splat_kernel(
@@ -80,21 +79,19 @@ def make_cluster_splat_kernel(
                 if b != 0.0:
                     theta = ti.Vector([thv[offsets[j] + a] for a in ti.static(range(n_params[j]))])
                     q = warp_fns[j](p, dt, theta, c)
-                    if q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H:
-                        ix, iy, ax, ay = bilinear_footprint(q)
+                    if _b.in_window(q, W, H):
+                        ix, iy, ax, ay = _b.bilinear_footprint(q)
                         for dy in ti.static(range(2)):
                             for dx in ti.static(range(2)):
-                                wx = ax if dx == 1 else 1.0 - ax
-                                wy = ay if dy == 1 else 1.0 - ay
-                                if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                                if _b.corner_in_image(ix, iy, dx, dy, W, H):
+                                    wx, wy = _b.corner_weights(ax, ay, dx, dy)
                                     vote[j, iy + dy, ix + dx] += b * wx * wy
                         for r in ti.static(range(n_r)):
                             val = quantity_fns[j][r](p, dt, theta, c)
                             for dy in ti.static(range(2)):
                                 for dx in ti.static(range(2)):
-                                    wx = ax if dx == 1 else 1.0 - ax
-                                    wy = ay if dy == 1 else 1.0 - ay
-                                    if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                                    if _b.corner_in_image(ix, iy, dx, dy, W, H):
+                                        wx, wy = _b.corner_weights(ax, ay, dx, dy)
                                         numer[j * n_r + r, iy + dy, ix + dx] += b * wx * wy * val
 
     return splat
@@ -113,7 +110,7 @@ def make_cluster_maps_reduce(penalty_fns: tuple, n_clusters: int, width: int, he
             for j in ti.static(range(K)):
                 cnt = count[j, y, x]
                 if cnt > 0.0:
-                    m = cnt / (cnt + SUPPORT_KAPPA)
+                    m = _b.support_weight(cnt)
                     macc[None][j * S] += m
                     for r in ti.static(range(n_r)):
                         macc[None][j * S + 1 + r] += m * penalty_fns[r](numer[j * n_r + r, y, x] / cnt)
@@ -133,6 +130,7 @@ def make_cluster_loss_kernel(finalize_fn, n_clusters: int, n_pixels: int, one_si
     K = n_clusters
     n_regs = len(one_sided)
     S = 1 + n_regs
+    augmented = _b.make_augmented(one_sided)
 
     @ti.kernel
     def loss_kernel(
@@ -145,21 +143,14 @@ def make_cluster_loss_kernel(finalize_fn, n_clusters: int, n_pixels: int, one_si
         diag: ti.template(),
     ):
         a = acc[None]
+        sums = macc[None]
         total = 0.0
         for j in ti.static(range(K)):
             g = finalize_fn(a, j, n_pixels)
-            term = g / g0[None][j]
+            term, rvals = augmented(g, g0[None][j], sums, j * S, lam[None])
             diag[None][j * S] = g
-            if ti.static(n_regs > 0):
-                msum = macc[None][j * S]
-                for r in ti.static(range(n_regs)):
-                    rr = 0.0
-                    if msum > 0.0:
-                        rr = lam[None][n_regs + r] * macc[None][j * S + 1 + r] / msum
-                    if ti.static(one_sided[r]):
-                        rr = ti.max(rr, 0.0)
-                    term -= lam[None][r] * rr
-                    diag[None][j * S + 1 + r] = rr
+            for r in ti.static(range(n_regs)):
+                diag[None][j * S + 1 + r] = rvals[r]
             total += cw[None][j] * term
         loss[None] = total
 
@@ -199,13 +190,12 @@ def make_cluster_lookup_kernel(warp_fns: tuple, offsets: tuple, n_params: tuple,
                 pos[i, j, 0] = q[0]
                 pos[i, j, 1] = q[1]
                 v = 0.0
-                if q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H:
-                    ix, iy, ax, ay = bilinear_footprint(q)
+                if _b.in_window(q, W, H):
+                    ix, iy, ax, ay = _b.bilinear_footprint(q)
                     for dy in ti.static(range(2)):
                         for dx in ti.static(range(2)):
-                            wx = ax if dx == 1 else 1.0 - ax
-                            wy = ay if dy == 1 else 1.0 - ay
-                            if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                            if _b.corner_in_image(ix, iy, dx, dy, W, H):
+                                wx, wy = _b.corner_weights(ax, ay, dx, dy)
                                 v += wx * wy * img[j, iy + dy, ix + dx]
                 out[i, j] = v
 

@@ -14,16 +14,17 @@ top-level loops of a kernel one after the other, each in parallel):
    slice takes atomic adds. Without weights and per-polarity channels the IWE votes equal the count
    votes, and one channel serves both;
 3. rows: sum the slices, blur along x, reduce the maps (``sum m``, ``sum m P_r``) into 0-D scalars;
-4. rows: blur along y into ``img``, reduce the objective (Sobel images first for the gradient
-   magnitude);
+4. rows: blur along y into ``img``, reduce the objective's per-pixel terms (in a Sobel pass for an
+   objective that reads the Sobel responses);
 5. serial: J;
-6. rows (``grad``): the pixel adjoint dJ/dI, transposed blurs (the Gaussian is symmetric, so its
+6. rows (``grad``): the pixel adjoint dJ/dI (affine in the image or in its transposed Sobel, as the
+   objective declares), transposed blurs (the Gaussian is symmetric, so its
    transpose with zero padding is the same correlation), and the map adjoints dJ/dC, dJ/dN_r, into
    ``adj`` (same channel layout as ``acc``);
 7. events (``grad``): dJ/dtheta as a *gather*:
    ``dJ/dtheta = sum_k sum_corners d/dtheta [beta_k (b_k adj_ch + |b_k| adj_C + |b_k| sum_r q_rk adj_r)]``
-   with ``adj`` held fixed, using the closed-form parameter Jacobians of ``param_jac.py`` (the
-   trigonometry depends on theta only and leaves the event loop);
+   with ``adj`` held fixed, using the closed-form parameter Jacobians each model declares
+   (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop);
 8. serial: ``out = (J, G_raw, dJ/dtheta)``.
 
 Each accumulation buffer is cleared by the pass that consumes it: no call launches a fill, and
@@ -31,19 +32,17 @@ nothing is allocated per call. Warps without closed-form parameter Jacobians (us
 generic chain of ``problem.py``: Taichi 1.7.4's compiler crashed on the reverse pass of an autodiff
 stand-in for step 7 inside this kernel layout.
 
+The formulas (bilinear weights, blur taps, support weight, objectives, loss) are the blocks of
+``blocks.py`` shared with the generic chain; nothing here branches on an objective's name.
 Formulas: docs/FORMULAS.md; derivatives of the map penalties: ``maps.py``.
 """
 
 import taichi as ti
 
-from . import maps as _maps
-from .iwe import bilinear_footprint
+from . import blocks as _b
 
 MAX_PARAMS = 8  # theta travels as 8 scalar kernel arguments (cheaper than one vector argument)
-OBJECTIVES = ("variance", "mean_square", "gradient_magnitude")
 QUANTITY_KINDS = ("div", "absdet")  # per-event quantities the hand-written backward differentiates
-_SOBEL_X = ((-1.0, 0.0, 1.0), (-2.0, 0.0, 2.0), (-1.0, 0.0, 1.0))  # [row dy][col dx], as objectives.py
-_KAPPA = _maps.SUPPORT_KAPPA
 
 
 def channel_layout(n_channels: int, n_regs: int, n_voted: int, shared_count: bool) -> tuple[int, int, int]:
@@ -70,8 +69,10 @@ class FusedFields:
         Accumulation slices of the splat (CPU threads; 1 with atomics).
     shared_count : bool
         The count ``C`` shares IWE channel 0 (unit weights, one channel).
-    gradient_magnitude : bool
-        Allocate the Sobel images of the gradient-magnitude objective.
+    objective_slots : int
+        Accumulator slots per channel of the objective.
+    sobel : bool
+        Allocate the Sobel images (objectives whose pixel terms read the Sobel responses).
     """
 
     def __init__(
@@ -87,7 +88,8 @@ class FusedFields:
         radius: int,
         n_slices: int,
         shared_count: bool,
-        gradient_magnitude: bool,
+        objective_slots: int,
+        sobel: bool,
     ) -> None:
         W, H, C = width, height, n_channels
         self.n_acc = channel_layout(C, n_regs, n_voted, shared_count)[2]
@@ -95,14 +97,14 @@ class FusedFields:
         self.tmp = ti.field(real, shape=(H, W, C))  # blur-x output; then the blur-y adjoint
         self.img = ti.field(real, shape=(H, W, C))  # the blurred IWE
         self.adj = ti.field(real, shape=(H, W, self.n_acc))  # adjoints of the acc channels
-        self.sobel = ti.field(real, shape=(H, W, 2 * C) if gradient_magnitude else (1, 1, 1))
-        self.ibar = ti.field(real, shape=(H, W, C) if gradient_magnitude else (1, 1, 1))
+        self.sobel = ti.field(real, shape=(H, W, 2 * C) if sobel else (1, 1, 1))
+        self.ibar = ti.field(real, shape=(H, W, C) if sobel else (1, 1, 1))
         self.taps = ti.field(real, shape=2 * radius + 1)
         self.ctx = ti.Vector.field(5, real, shape=())
         self.lam = ti.Vector.field(max(2 * n_regs, 1), real, shape=())  # lambda_r, then scales s_r
         self.g0 = ti.field(real, shape=())
         # 0-D scalars (Taichi accumulates them thread-locally): objective slots, sum m, sum m P_r
-        self.red = [ti.field(real, shape=()) for _ in range(2 * C + 1 + n_voted)]
+        self.red = [ti.field(real, shape=()) for _ in range(objective_slots * C + 1 + n_voted)]
         self.gsum = [ti.field(ti.f64, shape=()) for _ in range(n_params)]
         # theta as a 0-D vector: Taichi keeps its loads outside the event loop (not so for 0-D scalars,
         # whose loads it moves into the loop, where they block hoisting the trigonometry)
@@ -123,6 +125,22 @@ class FusedFields:
         return total
 
 
+@ti.func
+def _read_slice0(src: ti.template(), c, y, x):
+    """Pixel of slice 0 of the ``(S, H, W, K)`` vote field."""
+    return src[0, y, x, c]
+
+
+@ti.func
+def _read_gx(src: ti.template(), c, y, x):
+    return src[y, x, 2 * c]
+
+
+@ti.func
+def _read_gy(src: ti.template(), c, y, x):
+    return src[y, x, 2 * c + 1]
+
+
 def make_fused_kernels(
     fields: FusedFields,
     warp_fn,
@@ -131,7 +149,11 @@ def make_fused_kernels(
     penalty_grads: tuple,
     one_sided: tuple,
     *,
-    objective: str,
+    pixel_fn,
+    finalize_fn,
+    adjoint_fn,
+    objective_slots: int,
+    sobel: bool,
     width: int,
     height: int,
     n_channels: int,
@@ -150,15 +172,18 @@ def make_fused_kernels(
     """Build the kernel ``run`` closed over ``fields`` (see the module docstring).
 
     ``ev`` is an ndarray of per-event vectors ``(x, y, dt[, w][, channel])`` (px, px, s).
+    The objective comes as its blocks (``blocks.py``): ``pixel_fn(v, gx, gy)`` (``objective_slots``
+    terms per channel, Sobel responses where ``sobel``), ``finalize_fn(a, c, n_pixels)`` and
+    ``adjoint_fn(a, c, n_pixels) -> (scale, offset)`` with ``dG_c/dI = scale * L(I) + offset``
+    (``L``: identity, or the transposed Sobel of the Sobel images where ``sobel``).
     Regularizer ``r`` enters J as ``-lambda_r R_r`` with ``R_r = s_r sum m P_r / sum m``
     (``max(0, R_r)`` where ``one_sided[r]``); ``lam`` holds ``lambda_r`` then ``s_r``.
-    ``param_jac`` is the model's closed-form parameter Jacobian (``param_jac.py``) and
+    ``param_jac`` is the model's closed-form parameter Jacobian (``WarpModel.param_jac``, e.g. in
+    ``kernels/warps/zoom1.py``) and
     ``quantity_kinds`` names each quantity "div" or "absdet". ``constant[r]`` says quantity ``r``
     is the same for every event: its map is that value
     wherever ``C > 0``, so ``R_r = s_r P_r(q_r)`` (``sum m > 0``) and nothing is voted for it.
     """
-    if objective not in OBJECTIVES:
-        raise ValueError(f"the fused pipeline has no objective {objective!r}")
     if n_params > MAX_PARAMS:
         raise ValueError(f"the fused pipeline takes at most {MAX_PARAMS} parameters")
     if shared_count and (weighted or split_polarity or not quantity_fns):
@@ -176,24 +201,42 @@ def make_fused_kernels(
     RV = len(voted)
     f = fields
     W, H, C, P, S, r_ = width, height, n_channels, n_params, n_slices, radius
+    SL = objective_slots
     i_cnt, i_num, K = channel_layout(C, R, RV, shared_count)
     n_pix = float(W * H)
-    gm = objective == "gradient_magnitude"
     red, gsum = f.red, f.gsum
-    i_m = 2 * C  # red[i_m] = sum m, red[i_m + 1 + r] = sum m P_r
+    i_m = SL * C  # red[i_m] = sum m, red[i_m + 1 + r] = sum m P_r
     k_ev = 3 + (1 if weighted else 0) + (1 if split_polarity else 0)
     i_w, i_ch = 3, (4 if weighted else 3)
     ev_type = ti.types.ndarray(dtype=ti.types.vector(k_ev, real), ndim=1)
     out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
-    zero = ti.cast(0.0, real)
+    tap_x_votes = _b.make_tap_sum(_read_slice0, r_, 1, W, H)
+    tap_x = _b.make_tap_sum(_b.read_hwc, r_, 1, W, H)
+    tap_y = _b.make_tap_sum(_b.read_hwc, r_, 0, W, H)
+    sobel_fn = _b.make_sobel(_b.read_hwc, W, H)
+    sobel_t = _b.make_sobel_transpose(_read_gx, _read_gy, W, H)
 
     @ti.func
     def theta_vec():
         return f.thv[None]
 
     @ti.func
+    def slice_events(s, n):
+        """The events ``[lo, hi)`` of thread slice ``s``."""
+        chunk = n // S
+        lo = s * chunk
+        hi = lo + chunk
+        if s == S - 1:
+            hi = n
+        return lo, hi
+
+    @ti.func
+    def objective_slots_vec():
+        return ti.Vector([red[j][None] for j in ti.static(range(SL * C))])
+
+    @ti.func
     def event(e):
-        b = ti.cast(1.0, real)
+        b = 1.0
         if ti.static(weighted):
             b = e[i_w]
         ch = 0
@@ -202,13 +245,9 @@ def make_fused_kernels(
         return ti.Vector([e[0], e[1]]), e[2], b, ch
 
     @ti.func
-    def inside(q):
-        return q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H
-
-    @ti.func
     def quantities(p, dt, theta, c):
         """The voted quantities of one event."""
-        vals = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])
+        vals = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
         for v in ti.static(range(RV)):
             vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
         return vals
@@ -227,14 +266,13 @@ def make_fused_kernels(
         # the top of the event loop, or LLVM cannot hoist it out of the loop
         q = warp_fn(p, dt, theta, c)
         vals = quantities(p, dt, theta, c)
-        if inside(q):
-            ix, iy, ax, ay = bilinear_footprint(q)
+        if _b.in_window(q, W, H):
+            ix, iy, ax, ay = _b.bilinear_footprint(q)
             ab = ti.abs(b)
             for dy in ti.static(range(2)):
                 for dx in ti.static(range(2)):
-                    wx = ax if dx == 1 else 1.0 - ax
-                    wy = ay if dy == 1 else 1.0 - ay
-                    if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                    wx, wy = _b.corner_weights(ax, ay, dx, dy)
+                    if _b.corner_in_image(ix, iy, dx, dy, W, H):
                         w = wx * wy
                         vote(s, iy + dy, ix + dx, ch, b * w)
                         if ti.static(R > 0):
@@ -248,7 +286,7 @@ def make_fused_kernels(
         """The adjoint gathered at one pixel: (b adj_ch + |b| adj_C + |b| sum_r q_r adj_r, adj_r)."""
         ab = ti.abs(b)
         a = b * f.adj[iy, ix, ch]
-        nr = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])
+        nr = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
         if ti.static(R > 0):
             if ti.static(not shared_count):
                 a += ab * f.adj[iy, ix, i_cnt]
@@ -265,19 +303,18 @@ def make_fused_kernels(
         vals = quantities(p, dt, theta, c)
         jx, ddet, ddiv = param_jac(p, dt, theta, c)  # unconditionally: see splat_event
         g = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
-        if inside(q):
-            ix, iy, ax, ay = bilinear_footprint(q)
-            ga = zero  # dS/dax
-            gb = zero  # dS/day
-            gv = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])  # dS/dq_v
+        if _b.in_window(q, W, H):
+            ix, iy, ax, ay = _b.bilinear_footprint(q)
+            ga = 0.0  # dS/dax
+            gb = 0.0  # dS/day
+            gv = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])  # dS/dq_v
             for dy in ti.static(range(2)):
                 for dx in ti.static(range(2)):
-                    if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                    if _b.corner_in_image(ix, iy, dx, dy, W, H):
                         a, nr = corner_terms(iy + dy, ix + dx, ch, b, vals)
-                        wx = ax if dx == 1 else 1.0 - ax
-                        wy = ay if dy == 1 else 1.0 - ay
-                        ga += (1.0 if dx == 1 else -1.0) * wy * a
-                        gb += (1.0 if dy == 1 else -1.0) * wx * a
+                        wx, wy = _b.corner_weights(ax, ay, dx, dy)
+                        ga += ti.static(1.0 if dx == 1 else -1.0) * wy * a
+                        gb += ti.static(1.0 if dy == 1 else -1.0) * wx * a
                         if ti.static(RV > 0):
                             gv += wx * wy * nr
             for j in ti.static(range(P)):
@@ -291,25 +328,35 @@ def make_fused_kernels(
         return g
 
     @ti.func
-    def blur_x_row(src: ti.template(), s0: ti.template(), dst: ti.template(), y, c: ti.template(), scale):
-        """dst[y, x, c] = scale * sum_k taps_k src[(s0,) y, x + k, c], zero padding; no bounds
-        checks in the interior (unrolled taps)."""
+    def blur_x_row(src: ti.template(), votes: ti.template(), dst: ti.template(), y, c: ti.template()):
+        """dst[y, x, c] = sum_k taps_k src[(0,) y, x + k, c] (``votes``: slice 0 of the vote field),
+        zero padding; no bounds checks in the interior (unrolled taps)."""
         for x in range(W):
-            acc = zero
+            acc = 0.0
             if x >= r_ and x < W - r_:
-                for k in ti.static(range(-r_, r_ + 1)):
-                    if ti.static(s0 >= 0):
-                        acc += f.taps[k + r_] * src[s0, y, x + k, c]
-                    else:
-                        acc += f.taps[k + r_] * src[y, x + k, c]
+                if ti.static(votes):
+                    acc = tap_x_votes(src, f.taps, c, y, x, False)
+                else:
+                    acc = tap_x(src, f.taps, c, y, x, False)
             else:
-                for k in ti.static(range(-r_, r_ + 1)):
-                    if 0 <= x + k < W:
-                        if ti.static(s0 >= 0):
-                            acc += f.taps[k + r_] * src[s0, y, x + k, c]
-                        else:
-                            acc += f.taps[k + r_] * src[y, x + k, c]
-            dst[y, x, c] = scale * acc
+                if ti.static(votes):
+                    acc = tap_x_votes(src, f.taps, c, y, x, True)
+                else:
+                    acc = tap_x(src, f.taps, c, y, x, True)
+            dst[y, x, c] = acc
+
+    @ti.func
+    def blur_y_at(src: ti.template(), c: ti.template(), y, x, interior):
+        """sum_k taps_k src[y + k, x, c], zero padding (``interior``: no bounds checks needed)."""
+        acc = 0.0
+        if ti.static(r_ > 0):
+            if interior:
+                acc = tap_y(src, f.taps, c, y, x, False)
+            else:
+                acc = tap_y(src, f.taps, c, y, x, True)
+        else:
+            acc = src[y, x, c]
+        return acc
 
     @ti.kernel
     def run(
@@ -339,11 +386,7 @@ def make_fused_kernels(
                 splat_event(0, ev[i], theta_vec(), f.ctx[None])
         else:
             for s in range(S):
-                chunk = n // S
-                lo = s * chunk
-                hi = lo + chunk
-                if s == S - 1:
-                    hi = n
+                lo, hi = slice_events(s, n)
                 theta = theta_vec()
                 c = f.ctx[None]
                 for i in range(lo, hi):
@@ -360,17 +403,17 @@ def make_fused_kernels(
                         f.acc[0, y, x, k] = v
             for c in ti.static(range(C)):
                 if ti.static(r_ > 0):
-                    blur_x_row(f.acc, 0, f.tmp, y, c, 1.0)
+                    blur_x_row(f.acc, True, f.tmp, y, c)
                 else:
                     for x in range(W):
                         f.tmp[y, x, c] = f.acc[0, y, x, c]
-            msum = zero
-            psum = ti.Vector([zero for _ in ti.static(range(max(RV, 1)))])
+            msum = 0.0
+            psum = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
             for x in range(W):
                 if ti.static(R > 0):
                     cnt = f.acc[0, y, x, i_cnt]
                     if cnt > 0.0:
-                        m = cnt / (cnt + _KAPPA)
+                        m = _b.support_weight(cnt)
                         msum += m
                         for v in ti.static(range(RV)):
                             psum[v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
@@ -389,60 +432,38 @@ def make_fused_kernels(
                     red[i_m + 1 + v][None] += psum[v]
         # --- 4. rows: blur along y, reduce the objective --------------------------------------------------
         for y in range(H):
-            s0 = ti.Vector([zero for _ in ti.static(range(C))])
-            s1 = ti.Vector([zero for _ in ti.static(range(C))])
+            rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
             interior = y >= r_ and y < H - r_
             for x in range(W):
                 for c in ti.static(range(C)):
-                    acc = zero
-                    if ti.static(r_ > 0):
-                        if interior:
-                            for k in ti.static(range(-r_, r_ + 1)):
-                                acc += f.taps[k + r_] * f.tmp[y + k, x, c]
-                        else:
-                            for k in ti.static(range(-r_, r_ + 1)):
-                                if 0 <= y + k < H:
-                                    acc += f.taps[k + r_] * f.tmp[y + k, x, c]
-                    else:
-                        acc = f.tmp[y, x, c]
-                    f.img[y, x, c] = acc
-                    s0[c] += acc
-                    s1[c] += acc * acc
-            if ti.static(not gm):
-                for c in ti.static(range(C)):
-                    if ti.static(objective == "variance"):
-                        red[2 * c][None] += s0[c]
-                        red[2 * c + 1][None] += s1[c]
-                    else:
-                        red[2 * c][None] += s1[c]
-        if ti.static(gm):
-            # Sobel / 8 images (kept for the backward) and the mean of their squares
+                    v = blur_y_at(f.tmp, c, y, x, interior)
+                    f.img[y, x, c] = v
+                    if ti.static(not sobel):
+                        terms = pixel_fn(v, 0.0, 0.0)
+                        for k in ti.static(range(SL)):
+                            rsum[SL * c + k] += terms[k]
+            if ti.static(not sobel):
+                for k in ti.static(range(SL * C)):
+                    red[k][None] += rsum[k]
+        if ti.static(sobel):
+            # Sobel images (kept for the backward) and the pixel terms that read them
             for y in range(H):
-                sg = ti.Vector([zero for _ in ti.static(range(C))])
+                rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
                 for x in range(W):
                     for c in ti.static(range(C)):
-                        gx = zero
-                        gy = zero
-                        for dy in ti.static(range(-1, 2)):
-                            for dx in ti.static(range(-1, 2)):
-                                if ti.static(dx != 0 or dy != 0):  # noqa: SIM102 - compile-time if
-                                    if 0 <= y + dy < H and 0 <= x + dx < W:
-                                        v = f.img[y + dy, x + dx, c]
-                                        gx += ti.static(_SOBEL_X[dy + 1][dx + 1]) * v
-                                        gy += ti.static(_SOBEL_X[dx + 1][dy + 1]) * v
+                        gx, gy = sobel_fn(f.img, c, y, x)
                         f.sobel[y, x, 2 * c] = gx
                         f.sobel[y, x, 2 * c + 1] = gy
-                        sg[c] += (gx * gx + gy * gy) / 64.0
-                for c in ti.static(range(C)):
-                    red[2 * c][None] += sg[c]
+                        terms = pixel_fn(f.img[y, x, c], gx, gy)
+                        for k in ti.static(range(SL)):
+                            rsum[SL * c + k] += terms[k]
+                for k in ti.static(range(SL * C)):
+                    red[k][None] += rsum[k]
         # --- 5. serial: J -------------------------------------------------------------------------------
-        g = zero
+        slots = objective_slots_vec()
+        g = 0.0
         for c in ti.static(range(C)):
-            if ti.static(objective == "variance"):
-                mean = red[2 * c][None] / n_pix
-                g += red[2 * c + 1][None] / n_pix - mean * mean
-            else:
-                g += red[2 * c][None] / n_pix
+            g += finalize_fn(slots, c, n_pix)
         jval = g / f.g0[None]
         f.graw[None] = g
         if ti.static(R > 0):
@@ -451,86 +472,62 @@ def make_fused_kernels(
             c = f.ctx[None]
             centre = ti.Vector([c[0], c[1]])
             for r in ti.static(range(R)):
-                ratio = zero  # sum m P_r / sum m
-                qc = zero
+                ratio = 0.0  # sum m P_r / sum m
+                qc = 0.0
                 if ti.static(constant[r]):
-                    qc = quantity_fns[r](centre, zero, theta, c)
+                    qc = quantity_fns[r](centre, 0.0, theta, c)
                     if msum > 0.0:
                         ratio = penalty_fns[r](qc)
-                elif msum > 0.0:
-                    ratio = red[i_m + 1 + ti.static(vpos[r])][None] / msum
-                rr = f.lam[None][R + r] * ratio
-                wr = f.lam[None][r] * f.lam[None][R + r]
-                if ti.static(one_sided[r]):
-                    if rr <= 0.0:  # at the kink no gradient passes (as autodiff of ti.max)
-                        wr = 0.0
-                    rr = ti.max(rr, 0.0)
+                else:
+                    ratio = _b.support_ratio(red[i_m + 1 + ti.static(vpos[r])][None], msum)
+                s_r = f.lam[None][R + r]
+                rr = _b.scaled_penalty(ratio, s_r, ti.static(one_sided[r]))
+                wr = f.lam[None][r] * _b.scaled_penalty_slope(ratio, s_r, ti.static(one_sided[r]))
                 jval -= f.lam[None][r] * rr
                 f.rvals[r] = rr
                 f.rw[r] = wr
                 if ti.static(constant[r]):  # noqa: SIM102 - compile-time if
                     if grad != 0 and msum > 0.0:
                         # R_r = s_r P_r(q_r): dJ/dtheta = -w_r P_r'(q_r) dq_r/dtheta
-                        _, ddet, ddiv = param_jac(centre, zero, theta, c)
+                        _, ddet, ddiv = param_jac(centre, 0.0, theta, c)
                         dpen = penalty_grads[r](qc)
                         for j in ti.static(range(P)):
                             dq = ddiv[j] if ti.static(quantity_kinds[r] == "div") else ddet[j]
                             gsum[j][None] += ti.cast(-wr * dpen * dq, ti.f64)
         f.loss[None] = jval
         # --- 6. rows (grad): adjoint images ------------------------------------------------------------
-        if ti.static(gm):
-            # dJ/dI: transposed Sobel of the Sobel images
+        if ti.static(sobel):
+            # L(I): transposed Sobel of the Sobel images
             for y in range(H):
                 if grad != 0:
                     for x in range(W):
                         for c in ti.static(range(C)):
-                            a = zero
-                            for dy in ti.static(range(-1, 2)):
-                                for dx in ti.static(range(-1, 2)):
-                                    if ti.static(dx != 0 or dy != 0):  # noqa: SIM102 - compile-time if
-                                        if 0 <= y - dy < H and 0 <= x - dx < W:
-                                            sx = f.sobel[y - dy, x - dx, 2 * c]
-                                            sy = f.sobel[y - dy, x - dx, 2 * c + 1]
-                                            a += ti.static(_SOBEL_X[dy + 1][dx + 1]) * sx
-                                            a += ti.static(_SOBEL_X[dx + 1][dy + 1]) * sy
-                            f.ibar[y, x, c] = a * 2.0 / (64.0 * n_pix * f.g0[None])
+                            f.ibar[y, x, c] = sobel_t(f.sobel, c, y, x)
         for y in range(H):
             if grad != 0:
-                # transposed blur along y of dJ/dI into tmp row y. Variance: dJ/dI = c1 (I - mean), so
-                # the row is c1 (blur(I) - mean * sum of the in-image taps).
+                # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp row y: by
+                # linearity, (scale blur(L(I)) + offset * sum of the in-image taps) / G0
                 interior = y >= r_ and y < H - r_
-                tapsum = zero
+                tapsum = 0.0
                 for k in ti.static(range(-r_, r_ + 1)):
                     if 0 <= y + k < H:
                         tapsum += f.taps[k + r_] if ti.static(r_ > 0) else 1.0
+                slots = objective_slots_vec()
                 for c in ti.static(range(C)):
-                    c1 = 2.0 / (n_pix * f.g0[None])
-                    offset = zero
-                    if ti.static(objective == "variance"):
-                        offset = c1 * red[2 * c][None] / n_pix * tapsum
-                    if ti.static(gm):
-                        c1 = 1.0
+                    scale, offset = adjoint_fn(slots, c, n_pix)
+                    c1 = scale / f.g0[None]
+                    c0 = offset / f.g0[None] * tapsum
                     for x in range(W):
-                        acc = zero
-                        if ti.static(r_ > 0):
-                            if interior:
-                                for k in ti.static(range(-r_, r_ + 1)):
-                                    acc += f.taps[k + r_] * (
-                                        f.ibar[y + k, x, c] if ti.static(gm) else f.img[y + k, x, c]
-                                    )
-                            else:
-                                for k in ti.static(range(-r_, r_ + 1)):
-                                    if 0 <= y + k < H:
-                                        acc += f.taps[k + r_] * (
-                                            f.ibar[y + k, x, c] if ti.static(gm) else f.img[y + k, x, c]
-                                        )
+                        acc = 0.0
+                        if ti.static(sobel):
+                            acc = blur_y_at(f.ibar, c, y, x, interior)
                         else:
-                            acc = f.ibar[y, x, c] if ti.static(gm) else f.img[y, x, c]
-                        f.tmp[y, x, c] = c1 * acc - offset
+                            acc = blur_y_at(f.img, c, y, x, interior)
+                        f.tmp[y, x, c] = c1 * acc + c0
                 # transposed blur along x into adj; map adjoints; clear the maps
                 for c in ti.static(range(C)):
                     if ti.static(r_ > 0):
-                        blur_x_row(f.tmp, -1, f.adj, y, c, 1.0)
+                        blur_x_row(f.tmp, False, f.adj, y, c)
                     else:
                         for x in range(W):
                             f.adj[y, x, c] = f.tmp[y, x, c]
@@ -538,12 +535,12 @@ def make_fused_kernels(
                     msum = red[i_m][None]
                     for x in range(W):
                         cnt = f.acc[0, y, x, i_cnt]
-                        dc = zero
+                        dc = 0.0
                         for v in ti.static(range(RV)):
                             f.adj[y, x, i_num + v] = 0.0
                         if cnt > 0.0 and msum > 0.0:
-                            m = cnt / (cnt + _KAPPA)
-                            dm = _KAPPA / ((cnt + _KAPPA) * (cnt + _KAPPA))
+                            m = _b.support_weight(cnt)
+                            dm = _b.support_weight_grad(cnt)
                             for v in ti.static(range(RV)):
                                 wr = f.rw[voted[v]]
                                 avg = f.acc[0, y, x, i_num + v] / cnt
@@ -569,11 +566,7 @@ def make_fused_kernels(
         else:
             for s in range(S):
                 if grad != 0:
-                    chunk = n // S
-                    lo = s * chunk
-                    hi = lo + chunk
-                    if s == S - 1:
-                        hi = n
+                    lo, hi = slice_events(s, n)
                     theta = theta_vec()
                     c = f.ctx[None]
                     gacc = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)

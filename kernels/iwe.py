@@ -8,15 +8,8 @@ Formulas: docs/FORMULAS.md, "Image of warped events".
 
 import taichi as ti
 
+from . import blocks as _b
 from . import whitening as _whitening
-
-
-@ti.func
-def bilinear_footprint(q):
-    """Integer corner and fractional offsets of a warped position ``q`` (px)."""
-    x0 = ti.floor(q[0])
-    y0 = ti.floor(q[1])
-    return ti.cast(x0, ti.i32), ti.cast(y0, ti.i32), q[0] - x0, q[1] - y0
 
 
 def make_splat_kernel(
@@ -60,13 +53,12 @@ def make_splat_kernel(
 
     @ti.func
     def _vote(img: ti.template(), c, q, b):
-        if q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H:
-            ix, iy, ax, ay = bilinear_footprint(q)
+        if _b.in_window(q, W, H):
+            ix, iy, ax, ay = _b.bilinear_footprint(q)
             for dy in ti.static(range(2)):
                 for dx in ti.static(range(2)):
-                    wx = ax if dx == 1 else 1.0 - ax
-                    wy = ay if dy == 1 else 1.0 - ay
-                    if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                    if _b.corner_in_image(ix, iy, dx, dy, W, H):
+                        wx, wy = _b.corner_weights(ax, ay, dx, dy)
                         img[c, iy + dy, ix + dx] += b * wx * wy
 
     @ti.kernel
@@ -103,15 +95,14 @@ def make_splat_kernel(
                     _vote(vote, ch, q, b)
             if ti.static(n_q > 0):
                 ab = ti.abs(b)
-                if q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H:
-                    ix, iy, ax, ay = bilinear_footprint(q)
+                if _b.in_window(q, W, H):
+                    ix, iy, ax, ay = _b.bilinear_footprint(q)
                     for r in ti.static(range(n_q)):
                         val = quantity_fns[r](p, dt, theta, c)
                         for dy in ti.static(range(2)):
                             for dx in ti.static(range(2)):
-                                wx = ax if dx == 1 else 1.0 - ax
-                                wy = ay if dy == 1 else 1.0 - ay
-                                if 0 <= ix + dx < W and 0 <= iy + dy < H:
+                                wx, wy = _b.corner_weights(ax, ay, dx, dy)
+                                if _b.corner_in_image(ix, iy, dx, dy, W, H):
                                     if ti.static(r == 0):
                                         count[iy + dy, ix + dx] += ab * wx * wy
                                     numer[r, iy + dy, ix + dx] += ab * wx * wy * val
@@ -122,20 +113,13 @@ def make_splat_kernel(
 
 def make_blur_kernel(radius: int, axis: int, width: int, height: int, n_channels: int):
     """Correlate each channel with a 1-D kernel of ``2 radius + 1`` taps along ``axis`` (1 = x, 0 = y),
-    zero padding. ``g`` holds the taps; the footprint is unrolled at compile time."""
-    W, H = width, height
+    zero padding, adding into ``dst``. ``g`` holds the taps; the footprint is unrolled at compile time.
+    The taps are symmetric, so ``blur(dst.grad, src.grad, g)`` is the kernel's own adjoint."""
+    tap_sum = _b.make_tap_sum(_b.read_chw, radius, axis, width, height)
 
     @ti.kernel
     def blur(src: ti.template(), dst: ti.template(), g: ti.template()):
-        for c, y, x in ti.ndrange(n_channels, H, W):
-            acc = 0.0
-            for k in ti.static(range(-radius, radius + 1)):
-                if ti.static(axis == 1):
-                    if 0 <= x + k < W:
-                        acc += g[k + radius] * src[c, y, x + k]
-                else:
-                    if 0 <= y + k < H:
-                        acc += g[k + radius] * src[c, y + k, x]
-            dst[c, y, x] += acc
+        for c, y, x in ti.ndrange(n_channels, height, width):
+            dst[c, y, x] += tap_sum(src, g, c, y, x, True)
 
     return blur

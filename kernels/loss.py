@@ -9,9 +9,12 @@ Formulas: docs/FORMULAS.md, "Augmented objective".
 
 import taichi as ti
 
+from . import blocks as _b
+
 
 def make_loss_kernel(finalize_fn, n_channels: int, n_pixels: int, one_sided: tuple):
     n_regs = len(one_sided)
+    augmented = _b.make_augmented(one_sided)
 
     @ti.kernel
     def loss_kernel(
@@ -26,18 +29,10 @@ def make_loss_kernel(finalize_fn, n_channels: int, n_pixels: int, one_sided: tup
         g = 0.0
         for c in ti.static(range(n_channels)):
             g += finalize_fn(a, c, n_pixels)
-        j = g / g0
+        j, rvals = augmented(g, g0, macc[None], 0, lam[None])
         diag[None][0] = g
-        if ti.static(n_regs > 0):
-            msum = macc[None][0]
-            for r in ti.static(range(n_regs)):
-                rr = 0.0
-                if msum > 0.0:
-                    rr = lam[None][n_regs + r] * macc[None][1 + r] / msum
-                if ti.static(one_sided[r]):
-                    rr = ti.max(rr, 0.0)
-                j -= lam[None][r] * rr
-                diag[None][1 + r] = rr
+        for r in ti.static(range(n_regs)):
+            diag[None][1 + r] = rvals[r]
         loss[None] = j
 
     return loss_kernel

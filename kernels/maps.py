@@ -3,13 +3,14 @@
 The splat kernel (``iwe.py``) votes ``C(x) = sum |w| beta`` into ``count`` and
 ``N_r(x) = sum |w| beta q_r`` into ``numer[r]``. Here, per pixel with ``C > 0``, the map value is
 ``N_r / C``, its penalty ``P_r`` is given by the regularizer's pixel function, and
-``m = C / (C + kappa)`` weights it: ``macc[0] += m``, ``macc[1 + r] += m P_r``.
+``m = C / (C + kappa)`` (``blocks.support_weight``) weights it: ``macc[0] += m``, ``macc[1 + r] += m P_r``.
 Formulas: docs/FORMULAS.md, "Regularizer maps and penalties".
 """
 
 import taichi as ti
 
-SUPPORT_KAPPA = 0.05  # soft "pixel received events" weight m = C / (C + kappa)
+from . import blocks as _b
+
 DEF_FLOOR = 1e-3  # deformation guard: alpha stays finite at collapse (det -> 0)
 
 
@@ -50,6 +51,8 @@ PENALTY_GRADS = {
 
 
 def make_maps_reduce(penalty_fns: tuple, width: int, height: int):
+    """Kernel ``reduce(count, numer, macc)``: ``macc[0] += sum m``, ``macc[1 + r] += sum m P_r(N_r / C)``
+    over the pixels with ``C > 0``."""
     n_r = len(penalty_fns)
 
     @ti.kernel
@@ -57,7 +60,7 @@ def make_maps_reduce(penalty_fns: tuple, width: int, height: int):
         for y, x in ti.ndrange(height, width):
             cnt = count[y, x]
             if cnt > 0.0:
-                m = cnt / (cnt + SUPPORT_KAPPA)
+                m = _b.support_weight(cnt)
                 macc[None][0] += m
                 for r in ti.static(range(n_r)):
                     macc[None][1 + r] += m * penalty_fns[r](numer[r, y, x] / cnt)

@@ -1,81 +1,32 @@
 """Objectives (maximised) as reductions of the blurred IWE into a 0-D accumulator vector.
 
-Each objective is a pair: ``make_<name>_reduce(W, H, C)`` builds a kernel ``reduce(img, acc)`` that
-atomically adds per-pixel terms into ``acc[None]`` (a 0-D field: Taichi accumulates thread-locally), and
-``<name>_finalize(acc, c, n_pixels)`` turns channel ``c``'s slots into its objective value.
+An objective is a per-pixel term ``pixel(v, gx, gy)`` (a vector of its slots, ``blocks.py``) summed
+over the image, and ``finalize(acc, c, n_pixels)`` turning channel ``c``'s slots into its value.
+:func:`make_pixel_reduce` builds the generic chain's reduce kernel ``reduce(img, acc)`` of any such
+objective; it atomically adds into ``acc[None]`` (a 0-D field: Taichi accumulates thread-locally).
 Formulas: docs/FORMULAS.md, "Objectives".
 """
 
 import taichi as ti
 
-# --- variance: slots per channel (sum I, sum I^2) ------------------------------------------------
-VARIANCE_SLOTS = 2
+from . import blocks as _b
 
 
-def make_variance_reduce(width: int, height: int, n_channels: int):
+def make_pixel_reduce(pixel_fn, slots: int, sobel: bool, width: int, height: int, n_channels: int):
+    """Kernel ``reduce(img, acc)``: ``acc[None][slots c + s] += sum_x pixel(I_c(x), gx, gy)[s]`` over
+    the ``(C, H, W)`` image, with the Sobel responses ``gx, gy`` of ``I_c`` where ``sobel`` (else 0)."""
+    sobel_fn = _b.make_sobel(_b.read_chw, width, height)
+
     @ti.kernel
     def reduce(img: ti.template(), acc: ti.template()):
         for y, x in ti.ndrange(height, width):
-            for c in ti.static(range(n_channels)):
-                v = img[c, y, x]
-                acc[None][2 * c] += v
-                acc[None][2 * c + 1] += v * v
-
-    return reduce
-
-
-@ti.func
-def variance_finalize(a, c: ti.template(), n_pixels):
-    mean = a[2 * c] / n_pixels
-    return a[2 * c + 1] / n_pixels - mean * mean
-
-
-# --- mean square: slots per channel (sum I^2) -----------------------------------------------------
-MEAN_SQUARE_SLOTS = 1
-
-
-def make_mean_square_reduce(width: int, height: int, n_channels: int):
-    @ti.kernel
-    def reduce(img: ti.template(), acc: ti.template()):
-        for y, x in ti.ndrange(height, width):
-            for c in ti.static(range(n_channels)):
-                v = img[c, y, x]
-                acc[None][c] += v * v
-
-    return reduce
-
-
-@ti.func
-def mean_square_finalize(a, c: ti.template(), n_pixels):
-    return a[c] / n_pixels
-
-
-# --- gradient magnitude: slots per channel (sum |Sobel I / 8|^2) -----------------------------------
-GRADIENT_MAGNITUDE_SLOTS = 1
-_SOBEL_X = ((-1.0, 0.0, 1.0), (-2.0, 0.0, 2.0), (-1.0, 0.0, 1.0))  # [row dy][col dx]
-
-
-def make_gradient_magnitude_reduce(width: int, height: int, n_channels: int):
-    W, H = width, height
-
-    @ti.kernel
-    def reduce(img: ti.template(), acc: ti.template()):
-        for y, x in ti.ndrange(H, W):
             for c in ti.static(range(n_channels)):
                 gx = 0.0
                 gy = 0.0
-                for dy in ti.static(range(-1, 2)):
-                    for dx in ti.static(range(-1, 2)):
-                        if ti.static(dx != 0 or dy != 0):  # noqa: SIM102 - compile-time if
-                            if 0 <= y + dy < H and 0 <= x + dx < W:
-                                v = img[c, y + dy, x + dx]
-                                gx += ti.static(_SOBEL_X[dy + 1][dx + 1]) * v
-                                gy += ti.static(_SOBEL_X[dx + 1][dy + 1]) * v
-                acc[None][c] += (gx * gx + gy * gy) / 64.0
+                if ti.static(sobel):
+                    gx, gy = sobel_fn(img, c, y, x)
+                terms = pixel_fn(img[c, y, x], gx, gy)
+                for s in ti.static(range(slots)):
+                    acc[None][slots * c + s] += terms[s]
 
     return reduce
-
-
-@ti.func
-def gradient_magnitude_finalize(a, c: ti.template(), n_pixels):
-    return a[c] / n_pixels

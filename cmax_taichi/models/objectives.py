@@ -1,18 +1,48 @@
 """Objectives (focus measures, maximised) and their registry.
 
-An :class:`Objective` pairs a reduce-kernel factory and a finalize function of
-``kernels/objectives.py``. Built-ins are registered explicitly by :func:`register_builtin_objectives`.
+An :class:`Objective` is a per-pixel reduce kernel and a finalize function; the built-ins are written
+with the blocks of ``kernels/blocks.py`` and declare what the fused pipeline needs to compute them
+itself (:class:`FusedObjective`). Built-ins are registered explicitly by
+:func:`register_builtin_objectives`. Adding one: docs/RECIPE_OBJECTIVE.md.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from cmax_taichi.core.registry import Registry
+from cmax_taichi.kernels import blocks as kb
 from cmax_taichi.kernels import objectives as ko
 
-__all__ = ["Objective", "OBJECTIVES", "register_objective", "objective_names"]
+__all__ = ["FusedObjective", "Objective", "OBJECTIVES", "register_objective", "objective_names"]
+
+
+@dataclass(frozen=True)
+class FusedObjective:
+    """What the fused pipeline (``kernels/fused.py``) needs to compute an objective and its gradient.
+
+    Parameters
+    ----------
+    pixel : ti.func
+        ``pixel(v, gx, gy) -> ti.Vector`` of the ``slots_per_channel`` terms one pixel adds: ``v`` is the
+        blurred IWE there, ``gx, gy`` its Sobel responses (unnormalised; 0 unless ``sobel``).
+    finalize : ti.func
+        ``finalize(acc_vector, channel, n_pixels) -> G_channel``; must be the objective's own finalize.
+    adjoint : ti.func
+        ``adjoint(acc_vector, channel, n_pixels) -> (scale, offset)`` such that the pixel adjoint is
+        ``dG_c/dI(x) = scale * L(I_c)(x) + offset``, where ``L`` is the identity, or with ``sobel``
+        ``Sobel_x^T Sobel_x + Sobel_y^T Sobel_y``. An objective whose adjoint is not of this form
+        declares no fused path and takes the generic chain (Taichi autodiff).
+    sobel : bool
+        The pixel terms read the Sobel responses (the fused kernel then keeps the Sobel images).
+    """
+
+    pixel: Callable
+    finalize: Callable
+    adjoint: Callable
+    sobel: bool = False
 
 
 @dataclass(frozen=True)
@@ -25,19 +55,42 @@ class Objective:
         Registry name.
     slots_per_channel : int
         Accumulator slots each IWE channel uses.
-    make_reduce : callable
-        ``make_reduce(width, height, n_channels) -> kernel(img, acc)`` adding per-pixel terms.
+    make_reduce : callable or None
+        ``make_reduce(width, height, n_channels) -> kernel(img, acc)`` adding per-pixel terms into the
+        0-D accumulator vector (channel c at ``acc[slots_per_channel * c + s]``). None: built from
+        ``fused.pixel`` (``kernels/objectives.make_pixel_reduce``).
     finalize : ti.func
         ``finalize(acc_vector, channel, n_pixels) -> G_channel``.
     description : str
         One line for listings.
+    fused : FusedObjective, optional
+        The declaration that lets the fused pipeline compute this objective; without it every problem
+        with this objective takes the generic kernel chain.
     """
 
     name: str
     slots_per_channel: int
-    make_reduce: Callable
+    make_reduce: Callable | None
     finalize: Callable
     description: str = ""
+    fused: FusedObjective | None = None
+
+    def __post_init__(self) -> None:
+        if self.fused is not None:
+            if not isinstance(self.fused, FusedObjective):
+                raise TypeError(f"fused must be a FusedObjective, got {type(self.fused).__name__}")
+            if self.fused.finalize is not self.finalize:
+                raise ValueError(
+                    f"objective {self.name!r}: the fused declaration's finalize is not the objective's "
+                    "finalize (declare fused=None to use the generic chain, or declare it with this finalize)"
+                )
+        if self.make_reduce is None:
+            if self.fused is None:
+                raise ValueError(f"objective {self.name!r} needs make_reduce or a fused declaration")
+            reduce = functools.partial(
+                ko.make_pixel_reduce, self.fused.pixel, self.slots_per_channel, self.fused.sobel
+            )
+            object.__setattr__(self, "make_reduce", reduce)
 
 
 OBJECTIVES: Registry[Objective] = Registry("objective")
@@ -55,34 +108,51 @@ def objective_names() -> list[str]:
     return OBJECTIVES.names()
 
 
+def _builtin(name: str, slots: int, pixel, finalize, adjoint, sobel: bool, description: str) -> Objective:
+    return Objective(
+        name,
+        slots,
+        None,
+        finalize,
+        description,
+        fused=FusedObjective(pixel=pixel, finalize=finalize, adjoint=adjoint, sobel=sobel),
+    )
+
+
 def register_builtin_objectives(registry: Registry[Objective]) -> None:
     registry.register(
         "variance",
-        Objective(
+        _builtin(
             "variance",
-            ko.VARIANCE_SLOTS,
-            ko.make_variance_reduce,
-            ko.variance_finalize,
+            kb.VARIANCE_SLOTS,
+            kb.variance_pixel,
+            kb.variance_finalize,
+            kb.variance_adjoint,
+            False,
             "image variance (Gallego et al. CVPR 2018)",
         ),
     )
     registry.register(
         "gradient_magnitude",
-        Objective(
+        _builtin(
             "gradient_magnitude",
-            ko.GRADIENT_MAGNITUDE_SLOTS,
-            ko.make_gradient_magnitude_reduce,
-            ko.gradient_magnitude_finalize,
+            kb.GRADIENT_MAGNITUDE_SLOTS,
+            kb.gradient_magnitude_pixel,
+            kb.gradient_magnitude_finalize,
+            kb.gradient_magnitude_adjoint,
+            True,
             "mean squared Sobel/8 gradient (Gallego et al. CVPR 2019)",
         ),
     )
     registry.register(
         "mean_square",
-        Objective(
+        _builtin(
             "mean_square",
-            ko.MEAN_SQUARE_SLOTS,
-            ko.make_mean_square_reduce,
-            ko.mean_square_finalize,
+            kb.MEAN_SQUARE_SLOTS,
+            kb.mean_square_pixel,
+            kb.mean_square_finalize,
+            kb.mean_square_adjoint,
+            False,
             "mean of the squared IWE (Gallego et al. CVPR 2019)",
         ),
     )

@@ -17,7 +17,6 @@ reverse pass of the kernels of ``kernels/clusters.py``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -26,11 +25,18 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import clusters as kcl
-from cmax_taichi.kernels import iwe as kiwe
-from cmax_taichi.models.objectives import OBJECTIVES, Objective
+from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel, get_warp
-from cmax_taichi.pipeline.problem import ContrastMaximization, _cached
+from cmax_taichi.pipeline.setup import (
+    ProblemSetup,
+    allocate_images,
+    image_kernels,
+    run_chain,
+    run_chain_backward,
+    upload,
+)
+from cmax_taichi.pipeline.setup import cached_kernel as _cached
 
 __all__ = ["MultiClusterCMax"]
 
@@ -107,57 +113,33 @@ class MultiClusterCMax:
             raise ValueError(f"n_clusters must be at least 1, got {K}")
         self.n_clusters = K
         self.models = _resolve_warps(warp, K)
-        self.objective: Objective = OBJECTIVES.get(objective)
-        if camera is not None and not isinstance(camera, Camera):
-            raise TypeError(f"camera must be cmax_taichi.Camera, got {type(camera).__name__}")
-        for m in self.models:
-            if m.needs_camera and camera is None:
-                raise ValueError(f"warp {m.name!r} needs a camera (intrinsics): pass camera=")
+        setup = ProblemSetup.build(
+            events, self.models, objective, regularizers, camera, t_ref, blur_sigma, normalize
+        )
+        if setup.n_events < K:
+            raise ValueError(f"n_clusters = {K} is more than the {setup.n_events} events of the window")
+        self.setup = setup
+        self.objective: Objective = setup.objective
         self.camera = camera
-        self.regularizer_weights = ContrastMaximization._check_regularizers(regularizers)
-        blur_sigma = float(blur_sigma)
-        if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
-            raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
-        self.blur_sigma = blur_sigma
-        self.normalize = bool(normalize)
-
-        if len(events) < 2:
-            raise ValueError(f"a CMax window needs at least 2 events, got {len(events)}")
-        self.kept = np.ones(len(events), dtype=bool)
-        if camera is not None and camera.has_distortion and not events.undistorted:
-            xu, yu = camera.undistort_points(events.x, events.y)
-            W, H = events.sensor_size
-            inside = np.isfinite(xu) & np.isfinite(yu)
-            inside &= (xu >= 0) & (xu <= W - 1) & (yu >= 0) & (yu <= H - 1)
-            self.kept = inside
-            events = events.undistort(camera)
-            if len(events) < 2:
-                raise ValueError("fewer than 2 events remain inside the sensor after undistortion")
-        self.events = events
-        self.duration = events.duration
-        if not self.duration > 0:
-            raise ValueError("the events span zero time: a CMax window needs a positive duration")
-        if len(events) < K:
-            raise ValueError(f"n_clusters = {K} is more than the {len(events)} events of the window")
-        self.t_ref = ContrastMaximization._resolve_t_ref(t_ref, events)
-        self.orientation = 1.0 if self.t_ref <= float(np.mean(events.t)) else -1.0
-        self.width, self.height = events.sensor_size
-        if camera is not None:
-            self.center = (camera.cx, camera.cy)
-            focal = (camera.fx, camera.fy)
-        else:
-            self.center = ((self.width - 1) / 2.0, (self.height - 1) / 2.0)
-            focal = (1.0, 1.0)
+        self.regularizer_weights = setup.regularizer_weights
+        self.blur_sigma = setup.blur_sigma
+        self.normalize = setup.normalize
+        self.kept = setup.kept
+        self.events = events = setup.events
+        self.duration = setup.duration
+        self.t_ref = setup.t_ref
+        self.orientation = setup.orientation
+        self.width, self.height = setup.width, setup.height
+        self.center = setup.center
         self.n_events = len(events)
         self.capacity = workspace.capacity_for(max(self.n_events, int(capacity)))
         self.n_params = tuple(m.n_params for m in self.models)
         self.offsets = tuple(int(v) for v in np.concatenate([[0], np.cumsum(self.n_params)[:-1]]))
         self.n_total = int(sum(self.n_params))
         self._memberships: np.ndarray | None = None
-        self._k_blur_x = self._k_blur_y = None
         self._active = np.ones(K, dtype=bool)
         self.G0 = np.ones(K)
-        self._allocate(focal)
+        self._allocate()
         self._build_kernels()
 
     # --- parameters ------------------------------------------------------------------------------
@@ -197,11 +179,9 @@ class MultiClusterCMax:
         return [flat[o : o + n].copy() for o, n in zip(self.offsets, self.n_params, strict=True)]
 
     # --- fields and kernels ----------------------------------------------------------------------
-    def _allocate(self, focal) -> None:
+    def _allocate(self) -> None:
         K, W, H = self.n_clusters, self.width, self.height
         self._reg_names = list(self.regularizer_weights)
-        n_r = len(self._reg_names)
-        self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
         key = (
             "clusters",
             self._backend.generation,
@@ -210,8 +190,8 @@ class MultiClusterCMax:
             H,
             K,
             self.n_total,
-            n_r,
-            self._radius,
+            len(self._reg_names),
+            self.setup.radius,
             self.objective.slots_per_channel,
         )
         self._ws = workspace.acquire(key, self._build_fields)
@@ -219,21 +199,11 @@ class MultiClusterCMax:
         # Events are uploaded in pixel (row-major) order: neighbouring threads then vote into nearby
         # pixels, which makes the atomic adds of the splat and its adjoint ~1.5x cheaper than time order.
         self._order = np.argsort(np.floor(ev.y) * W + np.floor(ev.x), kind="stable")
-        self._host = {
+        self._per_event = {
             "ex": ev.x[self._order],
             "ey": ev.y[self._order],
             "edt": (ev.t - self.t_ref)[self._order],
-            "ctx": [self.center[0], self.center[1], focal[0], focal[1], self.duration],
         }
-        if self.blur_sigma > 0:
-            r = self._radius
-            taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * self.blur_sigma**2))
-            self._host["taps"] = taps / taps.sum()
-        # weights lambda_r, then the scales s_r (the loss kernel takes one-sided hinges of s_r R_r)
-        regs = [REGULARIZERS.get(name) for name in self._reg_names]
-        self._host["lam"] = [self.regularizer_weights[r.name] for r in regs] + [
-            r.scale(self.duration, self.orientation) for r in regs
-        ] or [0.0]
 
     def _build_fields(self, ws) -> None:
         """Allocate a workspace's fields (once per shape)."""
@@ -246,14 +216,7 @@ class MultiClusterCMax:
         ws.pw = ti.field(real, shape=(cap, K))
         ws.th = ti.Vector.field(self.n_total, real, shape=(), needs_grad=True)
         ws.ctx = ti.Vector.field(5, real, shape=())
-        ws.vote = ti.field(real, shape=(K, H, W), needs_grad=True)
-        if self.blur_sigma > 0:
-            ws.taps = ti.field(real, shape=2 * self._radius + 1)
-            ws.tmp = ti.field(real, shape=(K, H, W), needs_grad=True)
-            ws.img = ti.field(real, shape=(K, H, W), needs_grad=True)
-        else:
-            ws.taps = workspace.dummy(real)
-            ws.tmp = ws.img = ws.vote
+        allocate_images(ws, self.setup, K)
         # memberships are >= 0, so the map count C_j = sum |P_ij| beta is the unblurred vote image itself
         ws.count = ws.vote
         if n_r:
@@ -276,17 +239,7 @@ class MultiClusterCMax:
         ws = self._ws
         if ws.owned_by(self):
             return
-        npr = backend.numpy_real()
-        n = self.n_events
-        for name in ("ex", "ey", "edt"):
-            f = getattr(ws, name)
-            buf = np.zeros(f.shape[0], dtype=npr)
-            buf[:n] = self._host[name]
-            f.from_numpy(buf)
-        ws.ctx[None] = self._host["ctx"]
-        if "taps" in self._host:
-            ws.taps.from_numpy(self._host["taps"].astype(npr))
-        ws.lam[None] = self._host["lam"]
+        upload(ws, self.setup, self._per_event)
         ws.take(self)
         if self._memberships is not None:
             self._upload_memberships()
@@ -317,12 +270,8 @@ class MultiClusterCMax:
             ("cl_lookup", model_key, W, H),
             lambda: kcl.make_cluster_lookup_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
         )
-        if self.blur_sigma > 0:
-            r = self._radius
-            self._k_blur_x = _cached(("blur", r, 1, W, H, K), lambda: kiwe.make_blur_kernel(r, 1, W, H, K))
-            self._k_blur_y = _cached(("blur", r, 0, W, H, K), lambda: kiwe.make_blur_kernel(r, 0, W, H, K))
+        self._k_blur_x, self._k_blur_y, self._k_reduce = image_kernels(self.setup, K)
         obj = self.objective
-        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, K), lambda: obj.make_reduce(W, H, K))
         if regs:
             self._k_maps = _cached(
                 ("cl_maps", reg_key, K, W, H), lambda: kcl.make_cluster_maps_reduce(penalties, K, W, H)
@@ -334,7 +283,7 @@ class MultiClusterCMax:
             ("cl_zero", K, len(regs), blur, W, H, sizes),
             lambda: kcl.make_cluster_zero_kernel(K, len(regs), blur, W, H, sizes),
         )
-        one_sided = tuple(bool(getattr(r, "one_sided", False)) for r in regs)
+        one_sided = self.setup.one_sided()
         self._k_loss = _cached(
             ("cl_loss", obj.name, id(obj), K, W * H, one_sided),
             lambda: kcl.make_cluster_loss_kernel(obj.finalize, K, W * H, one_sided),
@@ -436,8 +385,7 @@ class MultiClusterCMax:
         chain = self._kernel_chain()
         if images_only:  # the splat and the blur: the cluster images, no objective
             chain = chain[: 3 if self.blur_sigma > 0 else 1]
-        for kernel, args in chain:
-            kernel(*args)
+        run_chain(chain)
         return float("nan") if images_only else float(self._ws.loss[None])
 
     def _backward(self) -> np.ndarray:
@@ -445,14 +393,8 @@ class MultiClusterCMax:
         self._k_zero(*self._zero_args(True))
         ws.th.grad.fill(0)
         ws.loss.grad[None] = 1.0
-        for kernel, args in reversed(self._kernel_chain()):
-            if kernel is self._k_blur_x or kernel is self._k_blur_y:
-                # The taps are symmetric, so the adjoint of a zero-padded correlation is the same
-                # correlation of the output's gradient: ~8x cheaper than Taichi's scatter-add adjoint.
-                src, dst, taps = args
-                kernel(dst.grad, src.grad, taps)
-            else:
-                kernel.grad(*args)
+        blurs = (self._k_blur_x, self._k_blur_y) if self.blur_sigma > 0 else ()
+        run_chain_backward(self._kernel_chain(), blurs)
         return ws.th.grad.to_numpy().astype(np.float64).reshape(-1)
 
     def _diag_vector(self) -> np.ndarray:
@@ -486,7 +428,7 @@ class MultiClusterCMax:
         self._require_memberships()
         value = self._forward(self.flatten(thetas))
         d = self._diag_vector()
-        lam = np.asarray(self._host["lam"][: len(self._reg_names)])
+        lam = np.asarray(self.setup.lam[: len(self._reg_names)])
         G = d[:, 0] / self.G0
         Jk = G - (d[:, 1:] @ lam if self._reg_names else 0.0)  # diag holds R with scale and hinge
         return {

@@ -10,7 +10,7 @@ per-call allocation. It serves every problem whose parts declare what its hand-w
   ``constant_quantities`` and ``positive_det``;
 * each regularizer: its quantity kind (``Regularizer.kind``, "div" or "absdet") and
   ``Regularizer.penalty_grad``;
-* the objective: one of the fused objectives;
+* the objective: its fused declaration ``Objective.fused`` (a :class:`FusedObjective`);
 * no whitening.
 
 The choice reads these declarations only (never the identity of a function). Where one is missing,
@@ -31,21 +31,12 @@ import taichi as ti
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
-from cmax_taichi.kernels import objectives as kobj
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
 
 __all__ = ["ChainPathWarning", "FusedPipeline", "PathChoice"]
 
 MAX_PARAMS = kfused.MAX_PARAMS
-
-#: objectives the fused pipeline implements, by their reduce-kernel factory (a user objective that
-#: brings its own factory takes the generic chain)
-_OBJECTIVES = {
-    kobj.make_variance_reduce: "variance",
-    kobj.make_mean_square_reduce: "mean_square",
-    kobj.make_gradient_magnitude_reduce: "gradient_magnitude",
-}
 
 
 class ChainPathWarning(UserWarning):
@@ -159,20 +150,20 @@ class FusedPipeline:
             gap = regularizer_gap(reg)
             if gap:
                 return PathChoice(None, gap, undeclared=True)
-        objective = _OBJECTIVES.get(problem.objective.make_reduce)
+        objective = problem.objective.fused  # the objective's declaration (models/objectives.py)
         if objective is None:
             reason = f"objective {problem.objective.name!r} has no fused implementation"
             return PathChoice(None, reason, undeclared=True)
         return PathChoice(cls(problem, objective, regs, vote_w))
 
-    def __init__(self, problem, objective: str, regs: list, vote_w: np.ndarray | None) -> None:
+    def __init__(self, problem, objective, regs: list, vote_w: np.ndarray | None) -> None:
         self.problem = problem
         model = problem.model
         C, W, H, P = problem.n_channels, problem.width, problem.height, model.n_params
         weighted = vote_w is not None
         split = problem.polarity == "split"
-        radius = problem._radius
-        gm = objective == "gradient_magnitude"
+        radius = problem.setup.radius
+        slots = problem.objective.slots_per_channel
         atomic = backend.info().arch != "cpu" or self.force_atomic
         slices = 1 if atomic else n_slices()
         shared = bool(regs) and not weighted and not split
@@ -197,7 +188,8 @@ class FusedPipeline:
             n_voted,
             P,
             radius,
-            gm,
+            slots,
+            objective.sobel,
             slices,
             shared,
         )
@@ -214,7 +206,8 @@ class FusedPipeline:
                 radius=radius,
                 n_slices=slices,
                 shared_count=shared,
-                gradient_magnitude=gm,
+                objective_slots=slots,
+                sobel=objective.sobel,
             )
             ws.kernels = {}
 
@@ -225,7 +218,8 @@ class FusedPipeline:
             model.name,
             id(model),
             tuple((r.name, id(r)) for r in regs),
-            objective,
+            problem.objective.name,
+            id(objective),
             weighted,
             split,
             atomic,
@@ -239,7 +233,11 @@ class FusedPipeline:
                 penalties,
                 tuple(r.penalty_grad for r in regs),
                 tuple(bool(getattr(r, "one_sided", False)) for r in regs),
-                objective=objective,
+                pixel_fn=objective.pixel,
+                finalize_fn=objective.finalize,
+                adjoint_fn=objective.adjoint,
+                objective_slots=slots,
+                sobel=objective.sobel,
                 width=W,
                 height=H,
                 n_channels=C,
@@ -258,15 +256,10 @@ class FusedPipeline:
         self._run_k = self._ws.kernels[kkey]
 
         # constants, uploaded whenever another problem used the shared fields in between
-        ctx = [problem.center[0], problem.center[1], problem._focal[0], problem._focal[1], problem.duration]
-        self._ctx = ctx
-        self._taps = None
-        if radius > 0:
-            taps = np.exp(-(np.arange(-radius, radius + 1) ** 2) / (2 * problem.blur_sigma**2))
-            self._taps = (taps / taps.sum()).astype(backend.numpy_real())
-        self._lam = [problem.regularizer_weights[r.name] for r in regs] + [
-            r.scale(problem.duration, problem.orientation) for r in regs
-        ]
+        setup = problem.setup  # pipeline/setup.py: the same constants as the generic chain's
+        self._ctx = setup.ctx
+        self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
+        self._lam = setup.lam
         self._g0 = 1.0
 
         # the events as one ndarray of (x, y, dt[, w][, channel]) vectors

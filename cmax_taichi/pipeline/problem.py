@@ -21,15 +21,26 @@ import taichi as ti
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.kernels import blocks as kblocks
 from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.kernels import loss as kloss
 from cmax_taichi.kernels import maps as kmaps
 from cmax_taichi.kernels import warps as kwarps
 from cmax_taichi.kernels import whitening as kwhite
-from cmax_taichi.models.objectives import OBJECTIVES, Objective
+from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
 from cmax_taichi.models.warps import WarpModel, get_warp
 from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline
+from cmax_taichi.pipeline.setup import (
+    POLARITY_MODES,
+    ProblemSetup,
+    allocate_images,
+    image_kernels,
+    run_chain,
+    run_chain_backward,
+    upload,
+)
+from cmax_taichi.pipeline.setup import cached_kernel as _cached
 
 __all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
 
@@ -41,20 +52,6 @@ def _warn_chain_path(reason: str) -> None:
     if reason not in _WARNED_REASONS:
         _WARNED_REASONS.add(reason)
         warnings.warn(reason, ChainPathWarning, stacklevel=3)
-
-
-POLARITY_MODES = ("ignore", "signed", "split")
-
-# Compiled kernels, keyed by everything that is static in them; cleared when Taichi is reset.
-_KERNELS: dict = {}
-backend.on_reset(_KERNELS.clear)
-
-
-def _cached(key, factory):
-    kernel = _KERNELS.get(key)
-    if kernel is None:
-        kernel = _KERNELS[key] = factory()
-    return kernel
 
 
 @dataclass(frozen=True)
@@ -157,73 +154,43 @@ class ContrastMaximization:
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
         self.model: WarpModel = get_warp(warp)
-        self.objective: Objective = OBJECTIVES.get(objective)
-        if camera is not None and not isinstance(camera, Camera):
-            raise TypeError(f"camera must be cmax_taichi.Camera, got {type(camera).__name__}")
-        if self.model.needs_camera and camera is None:
-            raise ValueError(f"warp {self.model.name!r} needs a camera (intrinsics): pass camera=")
+        setup = ProblemSetup.build(
+            events,
+            [self.model],
+            objective,
+            regularizers,
+            camera,
+            t_ref,
+            blur_sigma,
+            normalize,
+            polarity,
+            weights,
+        )
+        self.setup = setup
+        self.objective: Objective = setup.objective
         self.camera = camera
-        self.regularizer_weights = self._check_regularizers(regularizers)
-        if polarity not in POLARITY_MODES:
-            raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
+        self.regularizer_weights = setup.regularizer_weights
         self.polarity = polarity
-        blur_sigma = float(blur_sigma)
-        if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
-            raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
-        self.blur_sigma = blur_sigma
-        self.normalize = bool(normalize)
+        self.blur_sigma = setup.blur_sigma
+        self.normalize = setup.normalize
         self.whitening = bool(whitening)
-
-        # --- events (NumPy, float64) ---------------------------------------------------------------
-        if len(events) < 2:
-            raise ValueError(f"a CMax problem needs at least 2 events, got {len(events)}")
-        user_weights = None
-        if weights is not None:
-            user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
-            if user_weights.size != len(events):
-                raise ValueError(f"weights has {user_weights.size} values for {len(events)} events")
-            if not np.all(np.isfinite(user_weights)):
-                raise ValueError("weights has non-finite values")
-        if camera is not None and camera.has_distortion and not events.undistorted:
-            events, kept = events.undistort(camera, return_mask=True)
-            if user_weights is not None:
-                user_weights = user_weights[kept]
-            if len(events) < 2:
-                raise ValueError("fewer than 2 events remain inside the sensor after undistortion")
-        self.events = events
-        duration = events.duration
-        if not duration > 0:
-            raise ValueError("the events span zero time: a CMax window needs a positive duration")
-        self.duration = duration
-        self.t_ref = self._resolve_t_ref(t_ref, events)
-        self.orientation = 1.0 if self.t_ref <= float(np.mean(events.t)) else -1.0
-        self.width, self.height = events.sensor_size
-        if camera is not None:
-            self.center = (camera.cx, camera.cy)
-            focal = (camera.fx, camera.fy)
-        else:
-            self.center = ((self.width - 1) / 2.0, (self.height - 1) / 2.0)
-            focal = (1.0, 1.0)
-        self.n_events = len(events)
-        self.n_channels = 2 if polarity == "split" else 1
-
-        self._weighted = polarity == "signed" or user_weights is not None
-        vote_w = None  # per-event vote weights, only where they are not all 1
-        if self._weighted:
-            vote_w = np.ones(self.n_events) if user_weights is None else user_weights
-            if polarity == "signed":
-                vote_w = vote_w * events.p
-        self._focal = focal
-        self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
+        self.events = setup.events
+        self.duration = setup.duration
+        self.t_ref = setup.t_ref
+        self.orientation = setup.orientation
+        self.width, self.height = setup.width, setup.height
+        self.center = setup.center
+        self.n_events = setup.n_events
+        self.n_channels = setup.n_channels
+        self._weighted = setup.vote_weights is not None
         # The fused kernels (cmax_taichi/fused.py) serve value and gradient where they apply; the
         # generic chain's fields are then allocated only if maps(), evaluate() or jacobians need them.
-        choice = FusedPipeline.for_problem(self, vote_w)
+        choice = FusedPipeline.for_problem(self, setup.vote_weights)
         self._fused = choice.pipeline
         self.path = "fused" if self._fused is not None else "chain"
         self.path_reason = choice.reason
         if choice.undeclared:
             _warn_chain_path(choice.reason)
-        self._generic_args = (vote_w, focal)
         self._generic_ready = False
         if self._fused is None:
             self._ensure_generic()
@@ -239,69 +206,29 @@ class ContrastMaximization:
         if self._fused is not None:
             self._fused.set_g0(self.G0)
 
-    # --- validation helpers --------------------------------------------------------------------
-    @staticmethod
-    def _check_regularizers(regularizers) -> dict[str, float]:
-        if regularizers is None:
-            return {}
-        if not isinstance(regularizers, Mapping):
-            raise TypeError("regularizers must be a mapping name -> weight, e.g. {'divergence': 1.0}")
-        out = {}
-        for name, weight in regularizers.items():
-            REGULARIZERS.get(name)
-            try:
-                w = float(weight)
-            except (TypeError, ValueError):
-                raise TypeError(f"weight of regularizer {name!r} must be a number") from None
-            if not (math.isfinite(w) and w >= 0):
-                raise ValueError(f"weight of regularizer {name!r} must be finite and >= 0, got {w}")
-            out[name] = w
-        return out
-
-    @staticmethod
-    def _resolve_t_ref(t_ref, events: Events) -> float:
-        if isinstance(t_ref, str):
-            choices = {
-                "first": events.t[0],
-                "middle": 0.5 * (events.t[0] + events.t[-1]),
-                "last": events.t[-1],
-            }
-            if t_ref not in choices:
-                raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
-            return float(choices[t_ref])
-        try:
-            value = float(t_ref)
-        except (TypeError, ValueError):
-            raise TypeError(f"t_ref must be a string or a number, got {t_ref!r}") from None
-        if not math.isfinite(value):
-            raise ValueError(f"t_ref must be finite, got {value}")
-        return value
-
     # --- fields and kernels ----------------------------------------------------------------------
     def _ensure_generic(self) -> None:
         """Allocate and load the generic kernel chain's fields and kernels (once)."""
         if self._generic_ready:
             return
         self._generic_ready = True
-        self._allocate(*self._generic_args)
+        self._allocate()
         self._build_kernels()
 
-    def _allocate(self, vote_w: np.ndarray | None, focal) -> None:
+    def _allocate(self) -> None:
         """Take the pooled fields of this problem's shape and load this problem into them."""
-        C, W, H = self.n_channels, self.width, self.height
+        setup = self.setup
         self._reg_names = list(self.regularizer_weights)
-        n_r = len(self._reg_names)
-        self._radius = int(math.ceil(3 * self.blur_sigma)) if self.blur_sigma > 0 else 0
         key = (
             "problem",
             self._backend.generation,
             workspace.capacity_for(self.n_events),
-            W,
-            H,
-            C,
+            self.width,
+            self.height,
+            self.n_channels,
             self.model.n_params,
-            n_r,
-            self._radius,
+            len(self._reg_names),
+            setup.radius,
             self.objective.slots_per_channel,
             self._weighted,
             self.polarity == "split",
@@ -309,24 +236,13 @@ class ContrastMaximization:
         )
         self._ws = workspace.acquire(key, self._build_fields)
         ev = self.events
-        self._host = {
+        self._per_event = {
             "ex": ev.x,
             "ey": ev.y,
             "edt": ev.t - self.t_ref,
-            "ew": vote_w if self._weighted else None,
+            "ew": setup.vote_weights,
             "ech": (ev.p < 0).astype(np.int8) if self.polarity == "split" else None,
-            "ctx": [self.center[0], self.center[1], focal[0], focal[1], self.duration],
         }
-        if self.blur_sigma > 0:
-            r = self._radius
-            taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * self.blur_sigma**2))
-            self._host["taps"] = taps / taps.sum()
-        if n_r:
-            # weights lambda_r, then the scales s_r (the loss kernel applies one-sided hinges to s_r R_r)
-            regs = [REGULARIZERS.get(name) for name in self._reg_names]
-            self._host["lam"] = [self.regularizer_weights[r.name] for r in regs] + [
-                r.scale(self.duration, self.orientation) for r in regs
-            ]
         if self.whitening:
             mu0 = np.array([ev.x.mean(), ev.y.mean()])
             S0 = np.cov(np.stack([ev.x, ev.y]), bias=True)
@@ -369,14 +285,7 @@ class ContrastMaximization:
         ws.ech = ti.field(ti.i8, shape=cap) if self.polarity == "split" else workspace.dummy(ti.i8)
         ws.th = ti.Vector.field(self.model.n_params, real, shape=(), needs_grad=True)
         ws.ctx = ti.Vector.field(5, real, shape=())
-        ws.vote = ti.field(real, shape=(C, H, W), needs_grad=True)
-        if self.blur_sigma > 0:
-            ws.taps = ti.field(real, shape=2 * self._radius + 1)
-            ws.tmp = ti.field(real, shape=(C, H, W), needs_grad=True)
-            ws.img = ti.field(real, shape=(C, H, W), needs_grad=True)
-        else:
-            ws.taps = workspace.dummy(real)
-            ws.tmp = ws.img = ws.vote
+        allocate_images(ws, self.setup, C)
         if n_r:
             ws.count = ti.field(real, shape=(H, W), needs_grad=True)
             ws.numer = ti.field(real, shape=(n_r, H, W), needs_grad=True)
@@ -398,55 +307,38 @@ class ContrastMaximization:
         ws = self._ws
         if ws.owned_by(self):
             return
-        npr = backend.numpy_real()
-        n = self.n_events
-        for name in ("ex", "ey", "edt", "ew", "ech"):
-            values = self._host[name]
-            if values is None:
-                continue
-            f = getattr(ws, name)
-            buf = np.zeros(f.shape[0], dtype=np.int8 if name == "ech" else npr)
-            buf[:n] = values
-            f.from_numpy(buf)
-        ws.ctx[None] = self._host["ctx"]
-        if "taps" in self._host:
-            ws.taps.from_numpy(self._host["taps"].astype(npr))
-        if "lam" in self._host:
-            ws.lam[None] = self._host["lam"]
+        upload(ws, self.setup, self._per_event)
         ws.take(self)
+
+    def _splat_kernel(self, regs: list[Regularizer], *, do_iwe: bool, whiten: bool = False):
+        """The (cached) splat kernel voting the IWE (``do_iwe``) and the maps of ``regs``."""
+        m = self.model
+        flags = dict(
+            width=self.width,
+            height=self.height,
+            n_channels=self.n_channels,
+            split_polarity=self.polarity == "split",
+            weighted=self._weighted,
+            do_iwe=do_iwe,
+            whiten=whiten,
+        )
+        reg_key = tuple((r.name, id(r)) for r in regs)
+        return _cached(
+            ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
+            lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity_fn(m) for r in regs), **flags),
+        )
 
     def _build_kernels(self) -> None:
         m, W, H, C = self.model, self.width, self.height, self.n_channels
         regs: list[Regularizer] = [REGULARIZERS.get(n) for n in self._reg_names]
-        quantities = tuple(r.quantity_fn(m) for r in regs)
         penalties = tuple(r.penalty for r in regs)
         reg_key = tuple((r.name, id(r)) for r in regs)
-        flags = dict(
-            width=W,
-            height=H,
-            n_channels=C,
-            split_polarity=self.polarity == "split",
-            weighted=self._weighted,
-            do_iwe=not self.whitening,
-            whiten=False,
-        )
-        self._k_splat = _cached(
-            ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
-            lambda: kiwe.make_splat_kernel(m.warp, quantities, **flags),
-        )
+        self._k_splat = self._splat_kernel(regs, do_iwe=not self.whitening)
         if self.whitening:
-            wflags = dict(flags, do_iwe=True, whiten=True)
-            self._k_wsplat = _cached(
-                ("splat", m.name, id(m), (), tuple(sorted(wflags.items()))),
-                lambda: kiwe.make_splat_kernel(m.warp, (), **wflags),
-            )
+            self._k_wsplat = self._splat_kernel([], do_iwe=True, whiten=True)
             self._k_moments = _cached(("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp))
-        if self.blur_sigma > 0:
-            r = self._radius
-            self._k_blur_x = _cached(("blur", r, 1, W, H, C), lambda: kiwe.make_blur_kernel(r, 1, W, H, C))
-            self._k_blur_y = _cached(("blur", r, 0, W, H, C), lambda: kiwe.make_blur_kernel(r, 0, W, H, C))
+        self._k_blur_x, self._k_blur_y, self._k_reduce = image_kernels(self.setup, C)
         obj = self.objective
-        self._k_reduce = _cached(("reduce", obj.name, id(obj), W, H, C), lambda: obj.make_reduce(W, H, C))
         if regs:
             self._k_maps = _cached(("maps", reg_key, W, H), lambda: kmaps.make_maps_reduce(penalties, W, H))
         self._k_loss = _cached(
@@ -461,7 +353,8 @@ class ContrastMaximization:
                 "this problem was built before cmax_taichi.init() reset the backend; build it again"
             )
 
-    def _args_splat(self, vote):
+    def _args_splat(self, count=None, numer=None):
+        """Arguments of a splat kernel; ``count``, ``numer``: other map fields than the chain's."""
         return (
             self.n_events,
             self._ex,
@@ -472,9 +365,9 @@ class ContrastMaximization:
             self._th,
             self._ctx,
             self._wmom,
-            vote,
-            self._count,
-            self._numer,
+            self._vote,
+            self._count if count is None else count,
+            self._numer if numer is None else numer,
         )
 
     def _kernel_chain(self):
@@ -487,8 +380,8 @@ class ContrastMaximization:
                     (self.n_events, self._ex, self._ey, self._edt, self._th, self._ctx, self._wmom),
                 )
             )
-            chain.append((self._k_wsplat, self._args_splat(self._vote)))
-        chain.append((self._k_splat, self._args_splat(self._vote)))
+            chain.append((self._k_wsplat, self._args_splat()))
+        chain.append((self._k_splat, self._args_splat()))
         if self.blur_sigma > 0:
             chain.append((self._k_blur_x, (self._vote, self._tmp, self._taps)))
             chain.append((self._k_blur_y, (self._tmp, self._img, self._taps)))
@@ -521,16 +414,15 @@ class ContrastMaximization:
             buf.fill(0)
         if self.whitening:
             self._wmom[None] = [0.0] * 5 + self._wconst
-        for kernel, args in self._kernel_chain():
-            kernel(*args)
+        run_chain(self._kernel_chain())
         return float(self._loss[None]), float(self._diag[None][0])
 
     def _backward(self) -> np.ndarray:
         for buf in self._buffers() + [self._th, self._wmom]:
             buf.grad.fill(0)
         self._loss.grad[None] = 1.0
-        for kernel, args in reversed(self._kernel_chain()):
-            kernel.grad(*args)
+        blurs = (self._k_blur_x, self._k_blur_y) if self.blur_sigma > 0 else ()
+        run_chain_backward(self._kernel_chain(), blurs)
         return self._th.grad.to_numpy().astype(np.float64).reshape(-1)
 
     def value(self, theta) -> float:
@@ -575,7 +467,7 @@ class ContrastMaximization:
         self._ensure_generic()
         names = REGULARIZERS.names()
         regs = [REGULARIZERS.get(n) for n in names]
-        m, W, H = self.model, self.width, self.height
+        W, H = self.width, self.height
         key = tuple(names)
         if key not in self._ws.maps:
             real = backend.real()
@@ -587,19 +479,7 @@ class ContrastMaximization:
         count, numer, out = self._ws.maps[key]
         self._load()
         reg_key = tuple((r.name, id(r)) for r in regs)
-        flags = dict(
-            width=W,
-            height=H,
-            n_channels=self.n_channels,
-            split_polarity=self.polarity == "split",
-            weighted=self._weighted,
-            do_iwe=False,
-            whiten=False,
-        )
-        splat = _cached(
-            ("splat", m.name, id(m), reg_key, tuple(sorted(flags.items()))),
-            lambda: kiwe.make_splat_kernel(m.warp, tuple(r.quantity_fn(m) for r in regs), **flags),
-        )
+        splat = self._splat_kernel(regs, do_iwe=False)
         images = _cached(
             ("map_images", reg_key, W, H),
             lambda: kmaps.make_maps_image_kernel(tuple(r.penalty for r in regs), W, H),
@@ -607,27 +487,14 @@ class ContrastMaximization:
         self._th[None] = theta.tolist()
         count.fill(0)
         numer.fill(0)
-        splat(
-            self.n_events,
-            self._ex,
-            self._ey,
-            self._edt,
-            self._ew,
-            self._ech,
-            self._th,
-            self._ctx,
-            self._wmom,
-            self._vote,
-            count,
-            numer,
-        )
+        splat(*self._args_splat(count, numer))
         images(count, numer, out)
         return names, count.to_numpy().astype(np.float64), out.to_numpy().astype(np.float64)
 
     def _penalties_of(self, names: list[str], count: np.ndarray, out: np.ndarray) -> dict[str, float]:
         """R of every named regularizer from its pixel penalties: the support-weighted mean
         (``m = C / (C + kappa)``), scaled (and hinged) as in J."""
-        support = count / (count + kmaps.SUPPORT_KAPPA)
+        support = count / (count + kblocks.SUPPORT_KAPPA)
         total = support.sum()
         result = {}
         for r, name in enumerate(names):

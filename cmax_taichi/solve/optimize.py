@@ -307,13 +307,48 @@ class _Recorder:
 
 
 # --- local methods ---------------------------------------------------------------------------------
+class AdamStepper:
+    """The Adam direction of gradient *ascent* (Kingma & Ba 2015): exponential moments of the gradient
+    and of its square, bias-corrected.
+
+    Parameters
+    ----------
+    n : int
+        Number of parameters.
+    beta1, beta2 : float
+        Decay of the first and second moments.
+    eps : float
+        Guard of the denominator (in the units of the gradient).
+    """
+
+    def __init__(self, n: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-12) -> None:
+        self.beta1, self.beta2, self.eps = beta1, beta2, eps
+        self.m = np.zeros(n)
+        self.v = np.zeros(n)
+        self.k = 0
+
+    def reset(self) -> None:
+        """Forget the moments (restart)."""
+        self.m = np.zeros_like(self.m)
+        self.v = np.zeros_like(self.v)
+        self.k = 0
+
+    def direction(self, g: np.ndarray) -> np.ndarray:
+        """Take the gradient ``g`` into the moments; return ``mhat / (sqrt(vhat) + eps)`` (each entry
+        about +-1: multiply by the step length)."""
+        self.k += 1
+        self.m = self.beta1 * self.m + (1 - self.beta1) * g
+        self.v = self.beta2 * self.v + (1 - self.beta2) * g * g
+        mhat = self.m / (1 - self.beta1**self.k)
+        vhat = self.v / (1 - self.beta2**self.k)
+        return mhat / (np.sqrt(vhat) + self.eps)
+
+
 def _adam(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, patience, rec) -> _Run:
-    beta1, beta2, eps = 0.9, 0.999, 1e-12
     u = np.clip(np.array(u0, dtype=np.float64), lo, hi)
-    m = np.zeros_like(u)
-    v = np.zeros_like(u)
+    adam = AdamStepper(u.size)
     best_u, best_val = u.copy(), -math.inf
-    stall, k_adam = 0, 0
+    stall = 0
     step = float(lr)
     converged, message = False, f"reached max_iter={max_iter}"
     for k in range(max_iter + 1):
@@ -337,14 +372,10 @@ def _adam(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, patience, rec) -> _Run:
             if step < xtol:
                 converged, message = True, f"step {step:.3g} px < xtol={xtol:g} px"
                 break
-            u, m, v, k_adam, stall = best_u.copy(), np.zeros_like(u), np.zeros_like(u), 0, 0
+            u, stall = best_u.copy(), 0
+            adam.reset()
             val, g = obj.value_and_grad(u)
-        k_adam += 1
-        m = beta1 * m + (1 - beta1) * g
-        v = beta2 * v + (1 - beta2) * g * g
-        mhat = m / (1 - beta1**k_adam)
-        vhat = v / (1 - beta2**k_adam)
-        u = np.clip(u + step * mhat / (np.sqrt(vhat) + eps), lo, hi)
+        u = np.clip(u + step * adam.direction(g), lo, hi)
     return _Run(best_u, best_val, rec.us, rec.values, rec.gnorms, converged, message)
 
 

@@ -29,6 +29,7 @@ from cmax_taichi.core import backend
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.models.warps import WarpModel
 from cmax_taichi.pipeline.clusters import MultiClusterCMax
+from cmax_taichi.solve.optimize import AdamStepper
 
 __all__ = ["SegmentationResult", "segment"]
 
@@ -476,8 +477,7 @@ def segment(
         # (a) parameters: Adam ascent in pixel-scaled coordinates, keeping the best point seen
         lr = learning_rate * max(0.5**it, 0.1)
         n_steps = steps if it == 0 else max(1, (3 * steps) // 8)
-        m1 = np.zeros_like(theta)
-        m2 = np.zeros_like(theta)
+        adam = AdamStepper(theta.size)
         best_value, best_theta = -np.inf, theta.copy()
         for s in range(n_steps + 1):
             value, grad = prob.value_and_grad(theta)
@@ -485,12 +485,7 @@ def segment(
                 best_value, best_theta = value, theta.copy()
             if s == n_steps:
                 break
-            g = grad * scale
-            m1 = 0.9 * m1 + 0.1 * g
-            m2 = 0.999 * m2 + 0.001 * g * g
-            mh = m1 / (1 - 0.9 ** (s + 1))
-            vh = m2 / (1 - 0.999 ** (s + 1))
-            theta = theta + lr * scale * mh / (np.sqrt(vh) + 1e-12)
+            theta = theta + lr * scale * adam.direction(grad * scale)
         theta = best_theta
         value = best_value
 

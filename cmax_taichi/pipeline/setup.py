@@ -1,0 +1,325 @@
+"""What a CMax problem is made of, validated once, and the runner of a generic kernel chain.
+
+:class:`ProblemSetup` turns the user's arguments (events, warp models, objective, regularizers, camera,
+reference time, blur, polarity, weights) into checked, derived values: the undistorted events and
+which input events they are, ``t_ref`` and the orientation of the window, its duration, the centre
+and focal lengths of the warps, the IWE channels and per-event vote weights, the blur radius and
+normalised taps, and the regularizers' weights and scales. :class:`~cmax_taichi.ContrastMaximization`
+and :class:`~cmax_taichi.pipeline.clusters.MultiClusterCMax` both build one; their kernel chains run
+through :func:`run_chain` and :func:`run_chain_backward`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from cmax_taichi.core import backend, workspace
+from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.kernels import iwe as kiwe
+from cmax_taichi.models.objectives import OBJECTIVES, Objective
+from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
+from cmax_taichi.models.warps import WarpModel
+
+__all__ = ["POLARITY_MODES", "ProblemSetup", "cached_kernel", "run_chain", "run_chain_backward"]
+
+POLARITY_MODES = ("ignore", "signed", "split")
+
+# Compiled kernels, keyed by everything that is static in them; cleared when Taichi is reset.
+_KERNELS: dict = {}
+backend.on_reset(_KERNELS.clear)
+
+
+def cached_kernel(key, factory):
+    """The kernel compiled for ``key``, built by ``factory()`` on first use."""
+    kernel = _KERNELS.get(key)
+    if kernel is None:
+        kernel = _KERNELS[key] = factory()
+    return kernel
+
+
+def check_regularizers(regularizers) -> dict[str, float]:
+    """The regularizer weights as ``{name: lambda}`` (registered names, finite weights >= 0)."""
+    if regularizers is None:
+        return {}
+    if not isinstance(regularizers, Mapping):
+        raise TypeError("regularizers must be a mapping name -> weight, e.g. {'divergence': 1.0}")
+    out = {}
+    for name, weight in regularizers.items():
+        REGULARIZERS.get(name)
+        try:
+            w = float(weight)
+        except (TypeError, ValueError):
+            raise TypeError(f"weight of regularizer {name!r} must be a number") from None
+        if not (math.isfinite(w) and w >= 0):
+            raise ValueError(f"weight of regularizer {name!r} must be finite and >= 0, got {w}")
+        out[name] = w
+    return out
+
+
+def resolve_t_ref(t_ref, events: Events) -> float:
+    """The reference time in seconds on the events' clock from ``"first"``, ``"middle"``, ``"last"``
+    or a number."""
+    if isinstance(t_ref, str):
+        choices = {
+            "first": events.t[0],
+            "middle": 0.5 * (events.t[0] + events.t[-1]),
+            "last": events.t[-1],
+        }
+        if t_ref not in choices:
+            raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
+        return float(choices[t_ref])
+    try:
+        value = float(t_ref)
+    except (TypeError, ValueError):
+        raise TypeError(f"t_ref must be a string or a number, got {t_ref!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"t_ref must be finite, got {value}")
+    return value
+
+
+def gaussian_taps(blur_sigma: float) -> tuple[int, np.ndarray | None]:
+    """``(radius, taps)``: the footprint radius ``ceil(3 sigma)`` (px) and the normalised Gaussian taps
+    (None without blur)."""
+    if blur_sigma <= 0:
+        return 0, None
+    r = int(math.ceil(3 * blur_sigma))
+    taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * blur_sigma**2))
+    return r, taps / taps.sum()
+
+
+@dataclass(frozen=True)
+class ProblemSetup:
+    """The checked and derived inputs of one CMax window (see the module docstring).
+
+    Attributes
+    ----------
+    events : Events
+        The window, undistorted where the camera has distortion.
+    kept : ndarray of bool
+        Which input events are in ``events``.
+    camera : Camera or None
+    objective : Objective
+    regularizer_weights : dict
+        ``{name: lambda}`` in the user's order.
+    regularizers : tuple of Regularizer
+        The registry entries, same order.
+    t_ref, duration : float
+        Reference time and window duration, s.
+    orientation : float
+        +1 when ``t_ref`` is before the mean event time, else -1 (sign of the divergence scale).
+    width, height : int
+        Sensor size, px.
+    center, focal : tuple of float
+        Centre (px) and focal lengths (px) of the warps: the camera's, else the image centre and 1.
+    blur_sigma : float
+        px; ``radius`` its footprint and ``taps`` the normalised taps (None without blur).
+    normalize : bool
+    polarity : str
+        One of :data:`POLARITY_MODES`; ``n_channels`` IWE channels (2 for ``"split"``).
+    vote_weights : ndarray or None
+        Per-event vote weights (signed polarity and/or user weights); None where all are 1.
+    """
+
+    events: Events
+    kept: np.ndarray
+    camera: Camera | None
+    objective: Objective
+    regularizer_weights: dict
+    regularizers: tuple
+    t_ref: float
+    duration: float
+    orientation: float
+    width: int
+    height: int
+    center: tuple
+    focal: tuple
+    blur_sigma: float
+    radius: int
+    taps: np.ndarray | None
+    normalize: bool
+    polarity: str
+    n_channels: int
+    vote_weights: np.ndarray | None
+
+    @classmethod
+    def build(
+        cls,
+        events: Events,
+        models: Sequence[WarpModel],
+        objective: str,
+        regularizers: Mapping[str, float] | None,
+        camera: Camera | None,
+        t_ref: str | float,
+        blur_sigma: float,
+        normalize: bool,
+        polarity: str = "ignore",
+        weights: Sequence[float] | np.ndarray | None = None,
+    ) -> ProblemSetup:
+        """Check the arguments (one clear error each) and derive the window's values.
+
+        ``models`` are the already resolved warp models (one per cluster); ``events`` must be checked
+        to be :class:`Events` by the caller before resolving them.
+        """
+        objective_entry: Objective = OBJECTIVES.get(objective)
+        if camera is not None and not isinstance(camera, Camera):
+            raise TypeError(f"camera must be cmax_taichi.Camera, got {type(camera).__name__}")
+        for m in models:
+            if m.needs_camera and camera is None:
+                raise ValueError(f"warp {m.name!r} needs a camera (intrinsics): pass camera=")
+        reg_weights = check_regularizers(regularizers)
+        if polarity not in POLARITY_MODES:
+            raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
+        blur_sigma = float(blur_sigma)
+        if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
+            raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
+
+        if len(events) < 2:
+            raise ValueError(f"a CMax problem needs at least 2 events, got {len(events)}")
+        user_weights = None
+        if weights is not None:
+            user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+            if user_weights.size != len(events):
+                raise ValueError(f"weights has {user_weights.size} values for {len(events)} events")
+            if not np.all(np.isfinite(user_weights)):
+                raise ValueError("weights has non-finite values")
+        kept = np.ones(len(events), dtype=bool)
+        if camera is not None and camera.has_distortion and not events.undistorted:
+            events, kept = events.undistort(camera, return_mask=True)
+            if user_weights is not None:
+                user_weights = user_weights[kept]
+            if len(events) < 2:
+                raise ValueError("fewer than 2 events remain inside the sensor after undistortion")
+        duration = events.duration
+        if not duration > 0:
+            raise ValueError("the events span zero time: a CMax window needs a positive duration")
+        t_ref_s = resolve_t_ref(t_ref, events)
+        width, height = events.sensor_size
+        if camera is not None:
+            center, focal = (camera.cx, camera.cy), (camera.fx, camera.fy)
+        else:
+            center, focal = ((width - 1) / 2.0, (height - 1) / 2.0), (1.0, 1.0)
+        vote_weights = None  # only where they are not all 1
+        if polarity == "signed" or user_weights is not None:
+            vote_weights = np.ones(len(events)) if user_weights is None else user_weights
+            if polarity == "signed":
+                vote_weights = vote_weights * events.p
+        radius, taps = gaussian_taps(blur_sigma)
+        return cls(
+            events=events,
+            kept=kept,
+            camera=camera,
+            objective=objective_entry,
+            regularizer_weights=reg_weights,
+            regularizers=tuple(REGULARIZERS.get(name) for name in reg_weights),
+            t_ref=t_ref_s,
+            duration=duration,
+            orientation=1.0 if t_ref_s <= float(np.mean(events.t)) else -1.0,
+            width=width,
+            height=height,
+            center=center,
+            focal=focal,
+            blur_sigma=blur_sigma,
+            radius=radius,
+            taps=taps,
+            normalize=bool(normalize),
+            polarity=polarity,
+            n_channels=2 if polarity == "split" else 1,
+            vote_weights=vote_weights,
+        )
+
+    # --- derived values --------------------------------------------------------------------------------
+    @property
+    def n_events(self) -> int:
+        return len(self.events)
+
+    @property
+    def ctx(self) -> list[float]:
+        """The warps' context vector ``(cx, cy, fx, fy, T)``."""
+        return [self.center[0], self.center[1], self.focal[0], self.focal[1], self.duration]
+
+    @property
+    def lam(self) -> list[float]:
+        """The weights ``lambda_r`` then the scales ``s_r`` of the regularizers, as the loss kernels read
+        them (they apply the one-sided hinges to ``s_r R_r``)."""
+        regs: Sequence[Regularizer] = self.regularizers
+        return [self.regularizer_weights[r.name] for r in regs] + [
+            r.scale(self.duration, self.orientation) for r in regs
+        ]
+
+    def one_sided(self) -> tuple[bool, ...]:
+        return tuple(bool(r.one_sided) for r in self.regularizers)
+
+
+# --- fields shared by the generic chains --------------------------------------------------------------
+def allocate_images(ws, setup: ProblemSetup, n_images: int) -> None:
+    """The ``(n_images, H, W)`` vote image and, with blur, the taps and the blur-x / blurred images
+    (all three the vote image itself without blur) on a workspace."""
+    real = backend.real()
+    ws.vote = ti.field(real, shape=(n_images, setup.height, setup.width), needs_grad=True)
+    if setup.radius > 0:
+        ws.taps = ti.field(real, shape=2 * setup.radius + 1)
+        ws.tmp = ti.field(real, shape=(n_images, setup.height, setup.width), needs_grad=True)
+        ws.img = ti.field(real, shape=(n_images, setup.height, setup.width), needs_grad=True)
+    else:
+        ws.taps = workspace.dummy(real)
+        ws.tmp = ws.img = ws.vote
+
+
+def upload(ws, setup: ProblemSetup, per_event: Mapping[str, np.ndarray | None]) -> None:
+    """Per-event arrays (padded to the fields' capacity; None: not used) and the constants (context,
+    taps, regularizer weights) of ``setup`` into a workspace's fields."""
+    npr = backend.numpy_real()
+    for name, values in per_event.items():
+        if values is None:
+            continue
+        f = getattr(ws, name)
+        buf = np.zeros(f.shape, dtype=values.dtype if values.dtype == np.int8 else npr)
+        buf[: len(values)] = values
+        f.from_numpy(buf)
+    ws.ctx[None] = setup.ctx
+    if setup.taps is not None:
+        ws.taps.from_numpy(setup.taps.astype(npr))
+    ws.lam[None] = setup.lam or [0.0]
+
+
+def image_kernels(setup: ProblemSetup, n_images: int):
+    """``(blur_x, blur_y, reduce)``: the (cached) blur kernels of the ``(n_images, H, W)`` images (None
+    without blur) and the objective's reduce kernel over them."""
+    W, H, r, obj = setup.width, setup.height, setup.radius, setup.objective
+    blur_x = blur_y = None
+    if r > 0:
+        blur_x = cached_kernel(
+            ("blur", r, 1, W, H, n_images), lambda: kiwe.make_blur_kernel(r, 1, W, H, n_images)
+        )
+        blur_y = cached_kernel(
+            ("blur", r, 0, W, H, n_images), lambda: kiwe.make_blur_kernel(r, 0, W, H, n_images)
+        )
+    reduce = cached_kernel(
+        ("reduce", obj.name, id(obj), W, H, n_images), lambda: obj.make_reduce(W, H, n_images)
+    )
+    return blur_x, blur_y, reduce
+
+
+# --- the runner of a generic kernel chain ---------------------------------------------------------------
+def run_chain(chain) -> None:
+    """Launch the kernels of ``chain`` (a list of ``(kernel, args)``) in order."""
+    for kernel, args in chain:
+        kernel(*args)
+
+
+def run_chain_backward(chain, blurs=()) -> None:
+    """Reverse pass of ``chain``: each kernel's ``.grad`` in reverse order, with the loss adjoint
+    seeded by the caller. The kernels in ``blurs`` (``blur(src, dst, taps)`` of ``kernels/iwe.py``)
+    correlate with symmetric taps, so their adjoint is the same correlation of ``dst.grad`` into
+    ``src.grad``: ~8x cheaper than Taichi's scatter-add adjoint."""
+    for kernel, args in reversed(chain):
+        if any(kernel is b for b in blurs):
+            src, dst, taps = args
+            kernel(dst.grad, src.grad, taps)
+        else:
+            kernel.grad(*args)
