@@ -255,3 +255,32 @@ def test_the_path_follows_the_regularizer_declarations(monkeypatch):
     finally:
         for reg in regs:
             cm.unregister_regularizer(reg.name)
+
+
+def test_event_buffers_are_pooled_not_made_per_problem():
+    """Issue 12: Taichi 1.7.4 never frees a vector ndarray, so one per problem grew the process by ~24
+    bytes per event per window. Problems of one capacity bucket now share one buffer."""
+    from cmax_taichi.core import workspace
+
+    def buffers():
+        return sum(1 for key in workspace._POOL if key[0] == "events")
+
+    rng = np.random.default_rng(3)
+    problems = []
+    for size in (1500, 1700, 2000, 1500):  # one capacity bucket (2048)
+        x, y = rng.uniform(0, 63, size), rng.uniform(0, 47, size)
+        t = np.sort(rng.uniform(0, 0.05, size))
+        problems.append(cm.ContrastMaximization(cm.Events(x, y, t, rng.integers(0, 2, size), (64, 48))))
+    before = buffers()
+    for _ in range(3):
+        for size in (1500, 1900):
+            x, y = rng.uniform(0, 63, size), rng.uniform(0, 47, size)
+            t = np.sort(rng.uniform(0, 0.05, size))
+            problems.append(cm.ContrastMaximization(cm.Events(x, y, t, rng.integers(0, 2, size), (64, 48))))
+    assert buffers() == before
+    # problems sharing a buffer still give their own values (their events are uploaded when they run)
+    theta = np.array([10.0, -5.0, 0.2, 0.1])
+    values = [p.value(theta) for p in problems]
+    again = [p.value(theta) for p in reversed(problems)][::-1]
+    np.testing.assert_allclose(values, again, rtol=1e-12)
+    assert len(set(np.round(values, 12))) > len(values) // 2

@@ -269,11 +269,14 @@ class FusedPipeline:
             cols.append(vote_w)
         if split:
             cols.append((ev.p < 0).astype(np.float64))
-        packed = np.stack(cols, axis=1).astype(backend.numpy_real())
-        self.events = ti.ndarray(ti.types.vector(len(cols), real), shape=self.n_events)
-        self.events.from_numpy(packed)
-        self.event_bytes = packed.nbytes
-        del packed
+        # a pooled buffer (workspace.event_buffer: vector ndarrays are never freed), padded to its
+        # capacity; the kernel reads the first n_events, and the upload happens when another problem
+        # used the buffer in between
+        self._event_buffer = workspace.event_buffer(real, len(cols), self.n_events)
+        self._packed = np.zeros((self._event_buffer.capacity, len(cols)), dtype=backend.numpy_real())
+        self._packed[: self.n_events] = np.stack(cols, axis=1)
+        self.events = self._event_buffer.array
+        self.event_bytes = self._packed.nbytes
         self._theta = np.zeros(MAX_PARAMS)
         self._out = np.zeros(2 + P)  # J, G_raw, dJ/dtheta
 
@@ -284,6 +287,7 @@ class FusedPipeline:
         self._ws._owner = None  # upload again at the next call
 
     def _load(self) -> None:
+        self._event_buffer.load(self, self._packed)
         ws = self._ws
         if ws.owned_by(self):
             return

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend
+from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import jacobian_ad as kad
 from cmax_taichi.pipeline.problem import ContrastMaximization, _cached, _check_theta
 
@@ -51,8 +51,15 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
     problem._load()
     problem._th[None] = theta.tolist()
     args = (n, problem._ex, problem._ey, problem._edt, problem._th, problem._ctx)
+    cap = workspace.capacity_for(n)
+
+    def build(ws):  # pooled by capacity: fields are never freed, so none is made per call
+        ws.out = ti.field(real, shape=cap)
+        ws.pos = [ti.field(real, shape=cap, needs_grad=True) for _ in range(4)]
+
+    fields = workspace.acquire(("event_jacobians", backend.info().generation, cap), build)
     if method == "closed":
-        out = ti.field(real, shape=n)
+        out = fields.out
         result = {}
         for name, fn in (("det", model.det_fn), ("div", model.quantity("div"))):
             k = _cached(
@@ -60,19 +67,18 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
                 lambda fn=fn: kad.make_quantity_kernel(fn),
             )
             k(*args, out)
-            result[name] = out.to_numpy().astype(np.float64)
+            result[name] = out.to_numpy()[:n].astype(np.float64)
         return result
 
     warp_k, flow_k = _cached(
         ("positions", model.name, id(model)),
         lambda: kad.make_position_kernels(model.warp, model.flow),
     )
-    px = ti.field(real, shape=n, needs_grad=True)
-    py = ti.field(real, shape=n, needs_grad=True)
-    ox = ti.field(real, shape=n, needs_grad=True)
-    oy = ti.field(real, shape=n, needs_grad=True)
-    px.from_numpy(problem.events.x.astype(backend.numpy_real()))
-    py.from_numpy(problem.events.y.astype(backend.numpy_real()))
+    px, py, ox, oy = fields.pos
+    for f, values in ((px, problem.events.x), (py, problem.events.y)):
+        padded = np.zeros(cap, dtype=backend.numpy_real())
+        padded[:n] = values
+        f.from_numpy(padded)
     rows = {}
     for label, kernel in (("warp", warp_k), ("flow", flow_k)):
         kargs = (n, px, py, problem._edt, problem._th, problem._ctx, ox, oy)
@@ -84,8 +90,8 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
             ox.grad.fill(sx)
             oy.grad.fill(sy)
             kernel.grad(*kargs)
-            jac[:, row, 0] = px.grad.to_numpy()
-            jac[:, row, 1] = py.grad.to_numpy()
+            jac[:, row, 0] = px.grad.to_numpy()[:n]
+            jac[:, row, 1] = py.grad.to_numpy()[:n]
         rows[label] = jac
     jw = rows["warp"]
     det = jw[:, 0, 0] * jw[:, 1, 1] - jw[:, 0, 1] * jw[:, 1, 0]
