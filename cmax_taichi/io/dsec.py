@@ -204,9 +204,9 @@ class DSECRecording(Recording):
     # --- events -----------------------------------------------------------------------------
     def _seconds(self, t_us, where: str = "") -> np.ndarray:
         t_us = _hdf5.finite(t_us, self.events_file, "events/t", where)
-        if t_us.dtype.kind == "f":  # keep fractions of a microsecond (the format stores integers)
-            return (t_us.astype(np.float64) + self.t_offset_us) / 1e6
         if t_us.size:
+            # the same range for float and integer times: beyond it, int64 arithmetic would wrap around
+            # and the time index (ms_to_idx) arithmetic would overflow
             largest = max(abs(int(t_us.min())), abs(int(t_us.max()))) + abs(self.t_offset_us)
             if largest >= _MAX_US:  # int64 arithmetic would wrap around without a word
                 rows = f", {where}" if where else ""
@@ -214,6 +214,8 @@ class DSECRecording(Recording):
                     f"{self.events_file}: dataset 'events/t'{rows}: times of {largest} us with t_offset "
                     "are out of range (2**62 us)"
                 )
+        if t_us.dtype.kind == "f":  # keep fractions of a microsecond (the format stores integers)
+            return (t_us.astype(np.float64) + self.t_offset_us) / 1e6
         return (t_us.astype(np.int64) + self.t_offset_us) / 1e6
 
     def _where(self, start: int, stop: int) -> str:
