@@ -11,43 +11,37 @@ their own fields (``px, py`` with ``needs_grad``), never the problem's event arr
 import taichi as ti
 
 
+def _per_event_vector_kernel(vector_fn):
+    """A kernel writing ``out_x[i], out_y[i] = vector_fn(p_i, dt_i, th, ctx)`` for the first ``n`` events."""
+
+    @ti.kernel
+    def per_event(
+        n: ti.i32,
+        px: ti.template(),
+        py: ti.template(),
+        pdt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        out_x: ti.template(),
+        out_y: ti.template(),
+    ):
+        for i in range(n):
+            v = vector_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
+            out_x[i] = v[0]
+            out_y[i] = v[1]
+
+    return per_event
+
+
 def make_position_kernels(warp_fn, flow_fn):
     """Return ``(warp_positions, flow_positions)`` kernels writing ``out_x, out_y`` for the first ``n``
     events."""
 
-    @ti.kernel
-    def warp_positions(
-        n: ti.i32,
-        px: ti.template(),
-        py: ti.template(),
-        pdt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        out_x: ti.template(),
-        out_y: ti.template(),
-    ):
-        for i in range(n):
-            q = warp_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
-            out_x[i] = q[0]
-            out_y[i] = q[1]
+    @ti.func
+    def flow_at(p, dt, th, ctx):  # the flow does not depend on the event time
+        return flow_fn(p, th, ctx)
 
-    @ti.kernel
-    def flow_positions(
-        n: ti.i32,
-        px: ti.template(),
-        py: ti.template(),
-        pdt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        out_x: ti.template(),
-        out_y: ti.template(),
-    ):
-        for i in range(n):
-            v = flow_fn(ti.Vector([px[i], py[i]]), th[None], ctx[None])
-            out_x[i] = v[0]
-            out_y[i] = v[1]
-
-    return warp_positions, flow_positions
+    return _per_event_vector_kernel(warp_fn), _per_event_vector_kernel(flow_at)
 
 
 def make_quantity_kernel(quantity_fn):

@@ -43,6 +43,13 @@ def moderate_theta(model: cm.WarpModel) -> list[float]:
 THETAS = {name: _CHOSEN_THETAS.get(name) or moderate_theta(cm.get_warp(name)) for name in cm.warp_names()}
 
 
+@pytest.fixture
+def cache_in_tmp(tmp_path_factory, monkeypatch):
+    """Point the reader cache (``CMAX_TAICHI_CACHE``) at a fresh folder (never the user's home); the I/O test
+    modules use it for every test through ``pytestmark = pytest.mark.usefixtures("cache_in_tmp")``."""
+    monkeypatch.setenv("CMAX_TAICHI_CACHE", str(tmp_path_factory.mktemp("cache")))
+
+
 def use_precision(precision: str) -> None:
     """Switch the backend to ``precision`` on the CPU if it is not already."""
     if cm.backend_info().precision != precision:

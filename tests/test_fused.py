@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import pytest
 import taichi as ti
+from cmax_taichi.kernels import jacobian_ad as kad
 from conftest import CAMERA, SENSOR, THETAS, edge_events
 
 import cmax_taichi as cm
@@ -83,7 +84,7 @@ def test_atomic_splat_equals_thread_slices(warp):
         np.testing.assert_allclose(g1, g2, rtol=1e-8, atol=1e-10 * np.max(np.abs(g2)))
 
 
-def _jacobian_kernels(warp_fn, det_fn, div_fn, pj_fn, n_params):
+def _closed_jacobian_kernel(pj_fn, n_params):
     @ti.kernel
     def closed(
         n: ti.i32,
@@ -104,29 +105,31 @@ def _jacobian_kernels(warp_fn, det_fn, div_fn, pj_fn, n_params):
                 jd[i, j] = b[j]
                 jv[i, j] = c[j]
 
-    @ti.kernel
-    def forward(
-        n: ti.i32,
-        px: ti.template(),
-        py: ti.template(),
-        pdt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        out: ti.template(),
-        sel: ti.template(),
-    ):
-        for i in range(n):
-            p = ti.Vector([px[i], py[i]])
-            q = warp_fn(p, pdt[i], th[None], ctx[None])
-            s = sel[None]
-            out[None] += (
-                s[0] * q[0]
-                + s[1] * q[1]
-                + s[2] * det_fn(p, pdt[i], th[None], ctx[None])
-                + s[3] * div_fn(p, th[None], ctx[None])
-            )
+    return closed
 
-    return closed, forward
+
+def _summed_autodiff_rows(model, events, th, ctx) -> list[np.ndarray]:
+    """d/d theta of the sums over events of x', y', det and div, each by one reverse pass of the
+    per-event kernels of ``kernels/jacobian_ad.py`` (with ``th`` as the field that needs a gradient)."""
+    n = events[0].shape[0]
+    out_x, out_y, out_q = (ti.field(ti.f64, shape=n, needs_grad=True) for _ in range(3))
+    warp_kernel, _ = kad.make_position_kernels(model.warp, model.flow)
+    passes = (
+        (warp_kernel, (out_x, out_y), (1.0, 0.0)),
+        (warp_kernel, (out_x, out_y), (0.0, 1.0)),
+        (kad.make_quantity_kernel(model.det), (out_q,), (1.0,)),
+        (kad.make_quantity_kernel(model.quantity("div")), (out_q,), (1.0,)),
+    )
+    rows = []
+    for kernel, outputs, seeds in passes:
+        args = (n, *events, th, ctx, *outputs)
+        kernel(*args)
+        for output, seed in zip(outputs, seeds, strict=True):
+            output.grad.fill(seed)
+        th.grad[None] = [0.0] * model.n_params
+        kernel.grad(*args)
+        rows.append(th.grad.to_numpy().reshape(-1))
+    return rows
 
 
 @pytest.mark.parametrize("warp", list(THETAS))
@@ -148,9 +151,7 @@ def test_param_jacobians_equal_autodiff(warp):
     jx = ti.field(ti.f64, shape=(n, 2, P))
     jd = ti.field(ti.f64, shape=(n, P))
     jv = ti.field(ti.f64, shape=(n, P))
-    out = ti.field(ti.f64, shape=(), needs_grad=True)
-    sel = ti.Vector.field(4, ti.f64, shape=())
-    closed, forward = _jacobian_kernels(model.warp, model.det, model.div, pj, P)
+    closed = _closed_jacobian_kernel(pj, P)
     rng = np.random.default_rng(1)
     for scale in (1e-6, 1.0, 3.0):
         theta = np.asarray(THETAS[warp]) * scale * rng.uniform(0.5, 1.5, P)
@@ -162,14 +163,9 @@ def test_param_jacobians_equal_autodiff(warp):
             jd.to_numpy().sum(0),
             jv.to_numpy().sum(0),
         ]
-        for k in range(4):
-            sel[None] = [1.0 if i == k else 0.0 for i in range(4)]
-            out[None] = 0.0
-            out.grad[None] = 1.0
-            th.grad[None] = [0.0] * P
-            forward.grad(n, f["x"], f["y"], f["dt"], th, ctx, out, sel)
-            ad = th.grad.to_numpy().reshape(-1)
-            np.testing.assert_allclose(sums[k], ad, rtol=1e-9, atol=1e-9 * max(1.0, np.max(np.abs(ad))))
+        autodiff = _summed_autodiff_rows(model, (f["x"], f["y"], f["dt"]), th, ctx)
+        for closed_sum, ad in zip(sums, autodiff, strict=True):
+            np.testing.assert_allclose(closed_sum, ad, rtol=1e-9, atol=1e-9 * max(1.0, np.max(np.abs(ad))))
 
 
 def test_no_allocation_per_call_and_fields_reused(monkeypatch):

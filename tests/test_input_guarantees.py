@@ -27,9 +27,7 @@ from cmax_taichi.solve import sequence
 SENSOR = (64, 48)
 
 
-@pytest.fixture(autouse=True)
-def _cache_in_tmp(tmp_path_factory, monkeypatch):
-    monkeypatch.setenv("CMAX_TAICHI_CACHE", str(tmp_path_factory.mktemp("cache")))
+pytestmark = pytest.mark.usefixtures("cache_in_tmp")
 
 
 def _random_events(n=300, seed=0, sensor=SENSOR, duration=0.05):

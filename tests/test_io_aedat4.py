@@ -10,10 +10,7 @@ from conftest import shared_data_dir
 
 from cmax_taichi.io import detect_format, open_recording
 
-
-@pytest.fixture(autouse=True)
-def _cache_in_tmp(tmp_path_factory, monkeypatch):
-    monkeypatch.setenv("CMAX_TAICHI_CACHE", str(tmp_path_factory.mktemp("cache")))
+pytestmark = pytest.mark.usefixtures("cache_in_tmp")
 
 
 def _aedat():

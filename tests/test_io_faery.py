@@ -18,9 +18,7 @@ from cmax_taichi.io.faery_formats import read_header
 SENSOR = (346, 260)  # (W, H) px, a DAVIS346-sized sensor: not a faery default
 
 
-@pytest.fixture(autouse=True)
-def _cache_in_tmp(tmp_path_factory, monkeypatch):
-    monkeypatch.setenv("CMAX_TAICHI_CACHE", str(tmp_path_factory.mktemp("cache")))
+pytestmark = pytest.mark.usefixtures("cache_in_tmp")
 
 
 def _faery():

@@ -19,10 +19,7 @@ from cmax_taichi.io._cache import cache_root
 ROTATIONS = ("shapes_rotation", "boxes_rotation", "dynamic_rotation", "poster_rotation")
 
 
-@pytest.fixture(autouse=True)
-def _cache_in_tmp(tmp_path_factory, monkeypatch):
-    """Every test caches into its own folder (never the user's home)."""
-    monkeypatch.setenv("CMAX_TAICHI_CACHE", str(tmp_path_factory.mktemp("cache")))
+pytestmark = pytest.mark.usefixtures("cache_in_tmp")
 
 
 def _listing(folder: Path) -> dict:

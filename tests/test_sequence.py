@@ -67,21 +67,9 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
     csv_path = result.to_csv(tmp_path / "r.csv")
     with csv_path.open() as fh:
         rows = list(csv.reader(fh))
-    assert rows[0] == [
-        "index",
-        "t_start [s]",
-        "t_end [s]",
-        "n_events",
-        "v_x [px/s]",
-        "v_y [px/s]",
-        "value",
-        "fwl",
-        "iterations",
-        "seconds",
-        "converged",
-        "evaluations",
-        "search",
-    ]
+    header = sequence.SequenceResult
+    assert rows[0] == [*header.WINDOW_COLUMNS, "v_x [px/s]", "v_y [px/s]", *header.DIAGNOSTIC_COLUMNS]
+    assert header.WINDOW_COLUMNS[:2] == ("index", "t_start [s]") and "converged" in header.DIAGNOSTIC_COLUMNS
     assert len(rows) == 4 and float(rows[1][4]) == pytest.approx(result.windows[0].theta[0])
     json_path = result.to_json(tmp_path / "r.json")
     data = json.loads(json_path.read_text())

@@ -36,7 +36,7 @@ from typing import BinaryIO
 import numpy as np
 
 from cmax_taichi.core.events import Camera
-from cmax_taichi.io._cache import cached_table
+from cmax_taichi.io._cache import CachedTableReads, cached_table
 from cmax_taichi.io.base import Recording
 
 PACKAGE = "faery"
@@ -277,7 +277,7 @@ def _decode(decoder, path: Path, what: str, out: BinaryIO) -> dict:
     return {"n": n, "t_start": t_first, "t_end": t_last, "sensor_size": list(decoder.dimensions())}
 
 
-class FaeryRecording(Recording):
+class FaeryRecording(CachedTableReads, Recording):
     """A Prophesee RAW or DAT file or an Event Stream file (see the module docstring); open one
     through :func:`~cmax_taichi.io.open_recording` or a subclass of one format.
 
@@ -342,28 +342,13 @@ class FaeryRecording(Recording):
             sensor_size=sensor_size or tuple(meta["sensor_size"]),
             camera=camera,
             undistorted=False,
-            n_events=meta["n"],
-            t_start=meta["t_start"] if meta["n"] else math.nan,
-            t_end=meta["t_end"] if meta["n"] else math.nan,
+            **self.table_span(meta),
         )
 
     def _decoder(self, path: Path, sensor_size, version: str | None):
         """(an iterable of event packets with ``dimensions()``, the encoding name)."""
         decoder = _faery_decoder(path, self._faery_type, sensor_size, version, self._what)
         return decoder, f"es {decoder.event_type}"
-
-    def _columns(self, start: int, stop: int):
-        rows = np.asarray(self._table[start:stop])
-        return rows[:, 1], rows[:, 2], rows[:, 0], rows[:, 3]
-
-    def _times(self, start: int, stop: int) -> np.ndarray:
-        return np.asarray(self._table[start:stop, 0])
-
-    def _search_time(self, t: float) -> int:
-        return int(np.searchsorted(self._table[:, 0], t, side="left"))
-
-    def _release(self) -> None:
-        self._table = None
 
 
 class RawRecording(FaeryRecording):

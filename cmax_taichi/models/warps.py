@@ -216,77 +216,67 @@ def warp_names() -> list[str]:
 
 def register_builtin_warps(registry: Registry[WarpModel]) -> None:
     """Register the six models of docs/FORMULAS.md: one module of ``kernels/warps/`` each."""
-
-    def builtin(model: WarpModel) -> None:
-        registry.register(model.name, model)
-
-    # Every built-in determinant is > 0 where an event is warped (squares, exponentials, and 1/z^3 with
-    # z clamped to MIN_RAY_Z > 0): positive_det=True.
-    builtin(
-        WarpModel.from_module(
+    # one row per model: (name, module, parameters, units, further metadata)
+    builtins = (
+        (
             "zoom1",
             zoom1,
             ("h_z",),
             ("1/s",),
-            positive_det=True,
-            collapse_enabled=True,
-            description="1-DOF zoom in/out about the centre (forward/backward camera motion)",
-        )
-    )
-    builtin(
-        WarpModel.from_module(
+            {
+                "collapse_enabled": True,
+                "description": "1-DOF zoom in/out about the centre (forward/backward camera motion)",
+            },
+        ),
+        (
             "translation2",
             translation2,
             ("v_x", "v_y"),
             ("px/s", "px/s"),
-            positive_det=True,
-            description="2-DOF constant feature flow",
-        )
-    )
-    builtin(
-        WarpModel.from_module(
+            {"description": "2-DOF constant feature flow"},
+        ),
+        (
             "rotation3",
             rotation3,
             ("w_x", "w_y", "w_z"),
             ("rad/s", "rad/s", "rad/s"),
-            positive_det=True,
-            scale_kinds=("focal", "focal", "rate"),  # w_x, w_y tilt the rays: f px per rad
-            needs_camera=True,
-            description="3-DOF camera rotation (SO(3), needs intrinsics)",
-        )
-    )
-    builtin(
-        WarpModel.from_module(
+            {
+                "scale_kinds": ("focal", "focal", "rate"),  # w_x, w_y tilt the rays: f px per rad
+                "needs_camera": True,
+                "description": "3-DOF camera rotation (SO(3), needs intrinsics)",
+            },
+        ),
+        (
             "se2",
             se2,
             ("v_x", "v_y", "w"),
             ("px/s", "px/s", "rad/s"),
-            positive_det=True,
-            description="3-DOF planar Euclidean motion (SE(2) exponential)",
-        )
-    )
-    builtin(
-        WarpModel.from_module(
+            {"description": "3-DOF planar Euclidean motion (SE(2) exponential)"},
+        ),
+        (
             "sim2",
             sim2,
             ("v_x", "v_y", "w", "s"),
             ("px/s", "px/s", "rad/s", "1/s"),
-            positive_det=True,
-            collapse_enabled=True,
-            description="4-DOF similarity (Sim(2) exponential)",
-        )
-    )
-    builtin(
-        WarpModel.from_module(
+            {"collapse_enabled": True, "description": "4-DOF similarity (Sim(2) exponential)"},
+        ),
+        (
             "mitrokhin4",
             mitrokhin4,
             ("h_x", "h_y", "h_z", "theta"),
             ("px/s", "px/s", "1/s", "rad/s"),
-            positive_det=True,
-            collapse_enabled=True,
-            description="4-DOF in-plane camera motion of Mitrokhin et al. (IROS 2018)",
-        )
+            {
+                "collapse_enabled": True,
+                "description": "4-DOF in-plane camera motion of Mitrokhin et al. (IROS 2018)",
+            },
+        ),
     )
+    # Every built-in determinant is > 0 where an event is warped (squares, exponentials, and 1/z^3 with
+    # z clamped to MIN_RAY_Z > 0): positive_det=True.
+    for name, module, params, units, metadata in builtins:
+        registry.register(
+            name, WarpModel.from_module(name, module, params, units, positive_det=True, **metadata)
+        )
 
 
 register_builtin_warps(WARPS)

@@ -379,14 +379,41 @@ def _adam(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, patience, rec) -> _Run:
     return _Run(best_u, best_val, rec.us, rec.values, rec.gnorms, converged, message)
 
 
-def _armijo(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
-    c1, max_backtracks = 1e-4, 40
+def _recorded_start(obj, u0, lo, hi, rec):
+    """``(u, value, gradient, gradient norm, stop)`` at the start point ``u0`` clipped to the bounds (px),
+    recorded in ``rec``; ``stop`` is True when the callback asked to stop."""
     u = np.clip(np.array(u0, dtype=np.float64), lo, hi)
     val, g = obj.value_and_grad(u)
     gnorm = float(np.linalg.norm(g))
+    return u, val, g, gnorm, rec.add(u, val, gnorm)
+
+
+def _backtrack(evaluate, u, val, g, direction, alpha, lo, hi, c1, xtol, max_backtracks):
+    """Backtracking line search for an ascent step from ``u`` along ``direction`` (Armijo condition).
+
+    Halves ``alpha`` from its given value until ``evaluate(u_new)[0] >= val + c1 * g . step`` with
+    ``u_new = clip(u + alpha * direction)`` and ``step = u_new - u`` (px). ``evaluate`` returns a tuple
+    whose first item is the objective value; the whole tuple is handed back. Returns
+    ``(u_new, step, alpha, evaluation)`` of the accepted step, or None when no step longer than
+    ``xtol`` px within ``max_backtracks`` halvings increases the objective enough.
+    """
+    for _ in range(max_backtracks):
+        u_new = np.clip(u + alpha * direction, lo, hi)
+        step = u_new - u
+        if float(np.max(np.abs(step))) < xtol:
+            return None
+        evaluation = evaluate(u_new)
+        if evaluation[0] >= val + c1 * float(g @ step):
+            return u_new, step, alpha, evaluation
+        alpha *= 0.5
+    return None
+
+
+def _armijo(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
+    c1, max_backtracks = 1e-4, 40
+    u, val, g, gnorm, stop = _recorded_start(obj, u0, lo, hi, rec)
     alpha = lr / max(gnorm, 1e-300)  # the first trial step moves lr px
     converged, message = False, f"reached max_iter={max_iter}"
-    stop = rec.add(u, val, gnorm)
     for _ in range(max_iter):
         if stop:
             converged, message = False, "stopped by callback"
@@ -394,20 +421,13 @@ def _armijo(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
         if gnorm < gtol:
             converged, message = True, f"gradient norm {gnorm:.3g} < gtol={gtol:g}"
             break
-        accepted = False
-        for _ in range(max_backtracks):
-            u_new = np.clip(u + alpha * g, lo, hi)
-            step = u_new - u
-            if float(np.max(np.abs(step))) < xtol:
-                break
-            val_new = obj.value(u_new)
-            if val_new >= val + c1 * float(g @ step):
-                accepted = True
-                break
-            alpha *= 0.5
-        if not accepted:
+        trial = _backtrack(
+            lambda u_trial: (obj.value(u_trial), None), u, val, g, g, alpha, lo, hi, c1, xtol, max_backtracks
+        )
+        if trial is None:
             converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
             break
+        u_new, step, alpha, (val_new, _) = trial
         gain = val_new - val
         u = u_new
         val, g = obj.value_and_grad(u)
@@ -470,13 +490,10 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
     """Quasi-Newton ascent: BFGS updates of the inverse Hessian of -J from exact gradients, a
     backtracking (Armijo) line search, projection onto the box. The first step moves ``lr`` px."""
     c1, max_backtracks = 1e-4, 30
-    u = np.clip(np.array(u0, dtype=np.float64), lo, hi)
-    val, g = obj.value_and_grad(u)
-    gnorm = float(np.linalg.norm(g))
+    u, val, g, gnorm, stop = _recorded_start(obj, u0, lo, hi, rec)
     n = u.size
     H = np.eye(n) * (lr / max(gnorm, 1e-300))  # inverse curvature guess: the first step moves lr px
     converged, message = False, f"reached max_iter={max_iter}"
-    stop = rec.add(u, val, gnorm)
     for _ in range(max_iter):
         if stop:
             converged, message = False, "stopped by callback"
@@ -491,20 +508,11 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
         if float(direction @ g) <= 0:  # lost positive definiteness: restart from a gradient step
             H = np.eye(n) * (lr / max(gnorm, 1e-300))
             direction = H @ g
-        alpha, accepted = 1.0, False
-        for _ in range(max_backtracks):
-            u_new = np.clip(u + alpha * direction, lo, hi)
-            step = u_new - u
-            if float(np.max(np.abs(step))) < xtol:
-                break
-            val_new, g_new = obj.value_and_grad(u_new)
-            if val_new >= val + c1 * float(g @ step):
-                accepted = True
-                break
-            alpha *= 0.5
-        if not accepted:
+        trial = _backtrack(obj.value_and_grad, u, val, g, direction, 1.0, lo, hi, c1, xtol, max_backtracks)
+        if trial is None:
             converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
             break
+        u_new, step, _, (val_new, g_new) = trial
         gain = val_new - val
         y = g - g_new  # gradient change of -J
         sy = float(step @ y)

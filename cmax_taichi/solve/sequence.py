@@ -131,18 +131,22 @@ class SequenceResult:
         data = sum(w.t_end - w.t_start for w in rows)
         return data / wall if rows and wall > 0 else math.nan
 
+    #: the CSV columns before the parameters (times, event count) and after them (the diagnostics)
+    WINDOW_COLUMNS = ("index", "t_start [s]", "t_end [s]", "n_events")
+    DIAGNOSTIC_COLUMNS = (
+        "value",
+        "fwl",
+        "iterations",
+        "seconds",
+        "converged",
+        "evaluations",
+        "search",
+    )
+
     def columns(self) -> list[str]:
-        """CSV header: times, event count, each parameter as ``name [unit]``, then the diagnostics."""
+        """CSV header :attr:`WINDOW_COLUMNS`, the parameters (``name [unit]``), :attr:`DIAGNOSTIC_COLUMNS`."""
         params = [f"{n} [{u}]" for n, u in zip(self.param_names, self.units, strict=True)]
-        return ["index", "t_start [s]", "t_end [s]", "n_events", *params] + [
-            "value",
-            "fwl",
-            "iterations",
-            "seconds",
-            "converged",
-            "evaluations",
-            "search",
-        ]
+        return [*self.WINDOW_COLUMNS, *params, *self.DIAGNOSTIC_COLUMNS]
 
     def to_csv(self, path: str | os.PathLike) -> Path:
         """Write one row per window (see :meth:`columns`); returns the path."""

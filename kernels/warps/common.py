@@ -25,6 +25,18 @@ def _zero_vec(n: ti.template(), like):
     return ti.Vector([0.0 * like for _ in ti.static(range(n))])
 
 
+@ti.func
+def _unit_det(p, dt, th, ctx):
+    """``det dx'/dx = 1`` of an area-preserving warp (written through ``th`` so its type follows theta's)."""
+    return 1.0 + 0.0 * th[0]
+
+
+@ti.func
+def _zero_div(p, th, ctx):
+    """``div v = 0`` (1/s) of a divergence-free flow."""
+    return 0.0 * th[0]
+
+
 # --- complex arithmetic on 2-vectors (re, im) ---------------------------------------------------------
 @ti.func
 def _cmul(a, b):

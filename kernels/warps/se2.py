@@ -3,7 +3,7 @@
 
 import taichi as ti
 
-from .common import _rel, _sim2_apply, _sim2_param_jac, _zero_vec
+from .common import _rel, _sim2_apply, _sim2_param_jac, _unit_det, _zero_div, _zero_vec
 
 #: per-event quantities that do not depend on the event (see ``__init__.py``)
 CONSTANT_QUANTITIES = ("div", "absdet")
@@ -14,14 +14,9 @@ def warp(p, dt, th, ctx):
     return _sim2_apply(p, dt, th[0], th[1], th[2], 0.0, ctx)
 
 
-@ti.func
-def det(p, dt, th, ctx):
-    return 1.0 + 0.0 * th[0]
-
-
-@ti.func
-def div(p, th, ctx):
-    return 0.0 * th[0]
+# a rigid motion preserves areas and its flow is divergence-free
+det = _unit_det
+div = _zero_div
 
 
 @ti.func
