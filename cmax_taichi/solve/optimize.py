@@ -52,6 +52,7 @@ import numpy as np
 
 from cmax_taichi.models.warps import WarpModel
 from cmax_taichi.pipeline.problem import ContrastMaximization
+from cmax_taichi.solve.search import distinct_top, grid_search, random_search, tpe_search
 
 __all__ = [
     "METHODS",
@@ -533,84 +534,6 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
     return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
 
 
-# --- global initialisation ---------------------------------------------------------------------------
-def _odd_points_per_dim(budget: int, n_dims: int) -> int:
-    n = max(3, int(math.floor(budget ** (1.0 / n_dims) + 1e-9)))
-    n = min(n, 101)
-    return n if n % 2 else n - 1
-
-
-def _distinct_top(points: list[tuple[float, np.ndarray]], k: int, min_dist: np.ndarray) -> list:
-    """The ``k`` best points, skipping any within ``min_dist`` (per dimension) of a better one."""
-    out: list[tuple[float, np.ndarray]] = []
-    for val, u in sorted(points, key=lambda p: -p[0]):
-        if not math.isfinite(val):
-            continue
-        if all(np.any(np.abs(u - w) > min_dist) for _, w in out):
-            out.append((val, u))
-            if len(out) == k:
-                break
-    return out
-
-
-def _grid_search(obj, lo, hi, *, budget, beam, min_spacing, extra) -> list[tuple[float, np.ndarray]]:
-    """Coarse grid over the box, then a beam of zooming 3^P grids (spacing halves) down to
-    ``min_spacing`` px. Returns every evaluated (value, u)."""
-    P = len(lo)
-    n = _odd_points_per_dim(budget, P)
-    axes = [np.linspace(lo[i], hi[i], n) for i in range(P)]
-    mesh = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, P)
-    seen: dict[tuple, float] = {}
-
-    def evaluate(u):
-        key = tuple(np.round(u, 9))
-        if key not in seen:
-            seen[key] = obj.value(u)
-        return seen[key]
-
-    for u in list(mesh) + list(extra):
-        evaluate(np.clip(u, lo, hi))
-    spacing = (hi - lo) / (n - 1)
-    offsets = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * P), indexing="ij"), -1).reshape(-1, P)
-    while np.max(spacing) > min_spacing:
-        spacing = spacing / 2.0
-        points = [(v, np.array(k)) for k, v in seen.items()]
-        for _, c in _distinct_top(points, beam, spacing):
-            for off in offsets:
-                evaluate(np.clip(c + off * spacing, lo, hi))
-    return [(v, np.array(k)) for k, v in seen.items()]
-
-
-def _random_search(obj, lo, hi, *, budget, rng, extra) -> list[tuple[float, np.ndarray]]:
-    samples = rng.uniform(lo, hi, size=(max(1, budget), len(lo)))
-    return [(obj.value(u), np.array(u)) for u in list(samples) + list(extra)]
-
-
-def _tpe_search(obj, lo, hi, *, budget, seed, extra) -> list[tuple[float, np.ndarray]]:
-    try:
-        import optuna
-    except ImportError:
-        raise ImportError(
-            "init='tpe' needs optuna: pip install optuna (or 'cmax-taichi[tpe]'), or use init='grid'"
-        ) from None
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=max(10, budget // 10))
-    study = optuna.create_study(direction="maximize", sampler=sampler)
-    names = [f"u{i}" for i in range(len(lo))]
-    for u in extra:
-        study.enqueue_trial({n: float(np.clip(x, a, b)) for n, x, a, b in zip(names, u, lo, hi, strict=True)})
-    out: list[tuple[float, np.ndarray]] = []
-
-    def objective(trial):
-        u = np.array([trial.suggest_float(n, a, b) for n, a, b in zip(names, lo, hi, strict=True)])
-        val = obj.value(u)
-        out.append((val, u))
-        return val if math.isfinite(val) else -1e30
-
-    study.optimize(objective, n_trials=max(1, budget) + len(extra))
-    return out
-
-
 # --- the driver --------------------------------------------------------------------------------------
 def maximize(
     prob: ContrastMaximization,
@@ -741,27 +664,27 @@ def maximize(
         raise ValueError("init='warm' refines a warm start: pass theta0")
     budget = int(n_init) if n_init is not None else _DEFAULT_N_INIT.get(init, 0)
     if init == "grid":
-        found = _grid_search(obj, lo, hi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=extra)
+        found = grid_search(obj, lo, hi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=extra)
     elif init == "local":
         centre = u0 if u0 is not None else np.zeros(P)
         half = 0.5 * np.abs(centre) + 5.0
         llo, lhi = np.maximum(lo, centre - half), np.minimum(hi, centre + half)
-        found = _grid_search(obj, llo, lhi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=[])
+        found = grid_search(obj, llo, lhi, budget=budget, beam=n_starts, min_spacing=min_spacing, extra=[])
         # the identity and theta0 may lie outside the local box: evaluate them where they are
         found += [(obj.value(u), np.array(u)) for u in extra]
     elif init == "warm":
         found = [(obj.value(u), np.array(u)) for u in extra]
         n_starts = 1
     elif init == "random":
-        found = _random_search(obj, lo, hi, budget=budget, rng=rng, extra=extra)
+        found = random_search(obj, lo, hi, budget=budget, rng=rng, extra=extra)
     elif init == "tpe":
-        found = _tpe_search(obj, lo, hi, budget=budget, seed=seed, extra=extra)
+        found = tpe_search(obj, lo, hi, budget=budget, seed=seed, extra=extra)
     else:  # "none"
         start = u0 if u0 is not None else np.zeros(P)
         found = [(obj.value(np.clip(start, lo, hi)), np.clip(start, lo, hi))]
     identity_value = next((v for v, u in found if not np.any(u)), None)
     min_dist = np.maximum(min_spacing, 1e-9 * (hi - lo))
-    starts = _distinct_top(found, int(n_starts), min_dist)
+    starts = distinct_top(found, int(n_starts), min_dist)
     if not starts:
         raise ValueError("the objective is not finite anywhere in the search box")
 
