@@ -27,6 +27,7 @@ from test_pipeline_gradients import OBJECTIVES, REGS, check_against_reference
 import cmax_taichi as cm
 from cmax_taichi.core import backend
 from cmax_taichi.lab import segment_eval as se
+from cmax_taichi.pipeline.fused import UNRELIABLE_REGULARIZED_ARCHS
 
 #: the archs that select this module (``gpu`` lets Taichi pick CUDA, Vulkan or Metal)
 GPU_ARCHS = ("vulkan", "cuda", "metal", "gpu")
@@ -84,22 +85,11 @@ def test_backend_is_the_requested_gpu(on_gpu):
 
 # every warp x objective x regularizer set, on the fused pipeline (atomic scatter on a GPU) and on the
 # generic kernel chain; 400 events on 64 x 48 pixels (compiling dominates: each case is its own kernel)
-# Known bug, found by this module (lavapipe, Taichi 1.7.4): with exactly ONE regularizer the fused
-# kernel launch overwrites the regularizer's scale s_r (``FusedFields.lam[None][1]``) with 0 on Vulkan,
-# so J and its gradient miss the penalty (``lam`` is correct before the launch; the CPU, also with the
-# atomic splat, and the generic chain are right). Which warps show it depends on the field layout
-# (warps whose penalty is 0 hide it). Not strict: a case that happens to pass is reported as XPASS.
-SINGLE_REGULARIZER_BUG = pytest.mark.xfail(
-    REQUESTED == "vulkan",
-    reason="Vulkan: the fused kernel zeroes the scale of a single regularizer (docs/GPU.md, known issues)",
-    strict=False,
-)
-COMBOS = [
-    pytest.param(
-        *combo, marks=SINGLE_REGULARIZER_BUG if combo[0] == "fused" and combo[3] in ("div", "def") else ()
-    )
-    for combo in itertools.product(("fused", "chain"), THETAS, OBJECTIVES, REGS)
-]
+# Known bug, found by this module (lavapipe, Taichi 1.7.4): with regularizers the fused kernel gave wrong
+# values on Vulkan in some cases (a single regularizer's scale zeroed; translation2 + gradient magnitude
+# with both regularizers off by 3%), varying with the field layout (docs/GPU.md). The library therefore
+# serves regularized problems on Vulkan with the generic chain: those "fused" cases check that guard.
+COMBOS = list(itertools.product(("fused", "chain"), THETAS, OBJECTIVES, REGS))
 
 
 @pytest.mark.parametrize("path,warp,objective,regs", COMBOS)
@@ -109,7 +99,10 @@ def test_value_and_gradient_against_f64_reference(path, warp, objective, regs):
         dict(warp=warp, objective=objective, regularizers=REGS[regs], camera=CAMERA),
         fused=path == "fused",
     )
-    assert (prob._fused is not None) == (path == "fused")
+    guarded = regs != "none" and cm.backend_info().arch in UNRELIABLE_REGULARIZED_ARCHS
+    assert (prob._fused is not None) == (path == "fused" and not guarded)
+    if path == "fused" and guarded:  # the known Vulkan bug: the library routes these to the chain
+        assert prob.path == "chain" and "known issues" in prob.path_reason
 
 
 @pytest.mark.parametrize("path", ["fused", "chain"])
@@ -129,7 +122,9 @@ def test_fused_and_chain_agree_along_a_path():
     from cmax_taichi.pipeline.fused import FusedPipeline
 
     events = moving_edges(n=3000, seed=4)
-    options = dict(warp="sim2", regularizers=REGS["both"], camera=CAMERA)
+    # regularized problems take the chain on the backends of the known bug (docs/GPU.md)
+    regs = {} if cm.backend_info().arch in UNRELIABLE_REGULARIZED_ARCHS else REGS["both"]
+    options = dict(warp="sim2", regularizers=regs, camera=CAMERA)
     fused = cm.ContrastMaximization(events, **options)
     FusedPipeline.enabled = False
     try:
