@@ -371,7 +371,7 @@ def run(args: argparse.Namespace) -> int:
     fig_dir = out / "figures"
     # per window, for the examples: the mean area scale of the warp at the estimate (a collapse
     # shrinks the events' neighbourhoods towards points: it drives the scale towards 0)
-    covered: list[tuple[float, float]] = []  # (estimate, truth)
+    area_scales: list[tuple[float, float]] = []  # (estimate, truth)
     with source as rec:
         n_events = len(rec) if example is not None else rec.n_events
         camera = camera if camera is not None else rec.camera
@@ -383,7 +383,7 @@ def run(args: argparse.Namespace) -> int:
 
         def on_window(row, prob, res):
             if example is not None:
-                covered.append((area_scale(prob, res.theta), area_scale(prob, example.truth)))
+                area_scales.append((area_scale(prob, res.theta), area_scale(prob, example.truth)))
             if figures_left[0] > 0:
                 fig_dir.mkdir(exist_ok=True)
                 _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
@@ -424,13 +424,13 @@ def run(args: argparse.Namespace) -> int:
     if fwls:
         print(f"  FWL: median {_median(fwls):.4f}")
     if example is not None:
-        written.append(_report_example(example, result, covered, regs, out / "truth.json"))
+        written.append(_report_example(example, result, area_scales, regs, out / "truth.json"))
     print("wrote: " + ", ".join(str(p) for p in written))
     sys.stdout.flush()
     return 0
 
 
-def _report_example(example, result, covered: list[tuple[float, float]], regs: dict, path: Path) -> Path:
+def _report_example(example, result, area_scales: list[tuple[float, float]], regs: dict, path: Path) -> Path:
     """Print the estimates of a simulated example against its truth; write them to ``path`` (JSON)."""
     import json
 
@@ -451,7 +451,7 @@ def _report_example(example, result, covered: list[tuple[float, float]], regs: d
             {"parameter": name, "unit": unit, "truth": float(truth[i]), "estimate": est, "error": err}
         )
         print(f"  {name + ' [' + unit + ']':<12}{truth[i]:>12.4g}{est:>20.4g}{err:>+12.3g}")
-    scales = np.array(covered, dtype=np.float64).reshape(-1, 2)
+    scales = np.array(area_scales, dtype=np.float64).reshape(-1, 2)
     collapsed = [bool(c < COLLAPSE_AREA_SCALE) for c in scales[:, 0]]
     print(
         "  mean area scale |det dx'/dx| of the warp over the events (median over windows): "

@@ -650,8 +650,6 @@ def maximize(
     max_iter = int(max_iter)
     rng = np.random.default_rng(seed)
 
-    if u0 is not None:
-        lo, hi = np.minimum(lo, 0.0), np.maximum(hi, 0.0)  # the identity is always a candidate
     extra = [np.zeros(P)] if np.all((lo <= 0) & (hi >= 0)) else []
     if u0 is not None:
         extra.append(u0)
