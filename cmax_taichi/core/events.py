@@ -5,6 +5,7 @@ Nothing here touches Taichi: events are plain NumPy until a problem copies them 
 
 from __future__ import annotations
 
+import functools
 import numbers
 import warnings
 from collections.abc import Iterator
@@ -234,8 +235,8 @@ class Events:
         """
         if self.undistorted:
             return (self, np.ones(len(self), dtype=bool)) if return_mask else self
-        xu, yu = camera.undistort_points(self.x, self.y)
         W, H = self.sensor_size
+        xu, yu = _undistort_pixels(camera, self.x, self.y, W, H)
         inverted = np.isfinite(xu) & np.isfinite(yu)
         with np.errstate(invalid="ignore"):
             inside = inverted & (xu >= 0) & (xu <= W - 1) & (yu >= 0) & (yu <= H - 1)
@@ -261,6 +262,35 @@ class Events:
         )
         result.n_dropped = n_out
         return (result, inside) if return_mask else result
+
+
+#: largest sensor (pixels) whose per-pixel undistortion table is kept (2 float64 per pixel: 64 MiB)
+UNDISTORTION_TABLE_MAX_PIXELS = 1 << 22
+
+
+@functools.lru_cache(maxsize=4)
+def _undistortion_table(camera: Camera, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Undistorted ``(x, y)`` of every pixel centre, shape (height, width) each (NaN where the model
+    does not invert): :meth:`Camera.undistort_points` on the pixel grid, computed once per camera and
+    sensor."""
+    ys, xs = np.mgrid[0:height, 0:width]
+    xu, yu = camera.undistort_points(xs.ravel(), ys.ravel())
+    xu, yu = xu.reshape(height, width), yu.reshape(height, width)
+    xu.flags.writeable = yu.flags.writeable = False
+    return xu, yu
+
+
+def _undistort_pixels(camera: Camera, x: np.ndarray, y: np.ndarray, width: int, height: int):
+    """``camera.undistort_points(x, y)``; events on whole pixels (as sensors record them) read a cached
+    per-pixel table instead (the same values: the same elementwise computation), which makes the
+    undistortion of a window a lookup."""
+    if width * height <= UNDISTORTION_TABLE_MAX_PIXELS and len(x) and camera.has_distortion:
+        xi, yi = x.astype(np.int64), y.astype(np.int64)
+        whole = np.array_equal(xi, x) and np.array_equal(yi, y)
+        if whole and xi.min() >= 0 and yi.min() >= 0 and xi.max() < width and yi.max() < height:
+            table_x, table_y = _undistortion_table(camera, int(width), int(height))
+            return table_x[yi, xi], table_y[yi, xi]
+    return camera.undistort_points(x, y)
 
 
 def _is_real(value) -> bool:

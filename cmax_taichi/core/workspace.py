@@ -45,6 +45,11 @@ class Workspace:
     def take(self, problem) -> None:
         self._owner = weakref.ref(problem)
 
+    def release(self) -> None:
+        """Forget the owner: the next user uploads its events and constants (a problem that took a
+        new window, or changed a constant)."""
+        self._owner = None
+
 
 def acquire(key: tuple, build: Callable[[Workspace], None]) -> Workspace:
     """The pooled workspace for ``key``, built by ``build(ws)`` on first use."""
@@ -70,6 +75,10 @@ class EventBuffer:
 
     def owned_by(self, problem) -> bool:
         return self._owner is not None and self._owner() is problem
+
+    def release(self) -> None:
+        """Forget the owner: the next :meth:`load` uploads (its problem took a new window)."""
+        self._owner = None
 
     def load(self, problem, padded) -> None:
         """Upload ``padded`` (``(capacity, n_columns)`` host array) for ``problem``, unless it holds them."""

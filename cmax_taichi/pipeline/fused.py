@@ -180,7 +180,6 @@ class FusedPipeline:
         shared = bool(regs) and not weighted and not split
         real = backend.real()
         self.n_params = P
-        self.n_events = problem.n_events
         # the declared capabilities (for_problem checked that they are there)
         kinds = tuple(r.kind for r in regs)
         param_jac = model.param_jac
@@ -266,36 +265,58 @@ class FusedPipeline:
             )
         self._run_k = self._ws.kernels[kkey]
 
+        self._weighted, self._split = weighted, split
+        self._sensor = (W, H)
+        self._theta = np.zeros(MAX_PARAMS)
+        self._out = np.zeros(2 + P)  # J, G_raw, dJ/dtheta
+        self._event_buffer = None
+        self.load_window(problem, vote_w)
+
+    def can_take(self, problem, vote_w: np.ndarray | None) -> bool:
+        """Whether :meth:`load_window` can serve ``problem``'s new window with these fields and kernels
+        (same options; the same sensor, event capacity bucket and use of vote weights)."""
+        return (
+            (problem.width, problem.height) == self._sensor
+            and (vote_w is not None) == self._weighted
+            and workspace.capacity_for(problem.n_events) == self._event_buffer.capacity
+        )
+
+    def load_window(self, problem, vote_w: np.ndarray | None) -> None:
+        """Take ``problem``'s current window: its constants and events (uploaded at the next run)."""
         # constants, uploaded whenever another problem used the shared fields in between
         setup = problem.setup  # pipeline/setup.py: the same constants as the generic chain's
         self._ctx = setup.ctx
         self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
         self._lam = setup.lam
         self._g0 = 1.0
+        self.n_events = problem.n_events
 
         # the events as one ndarray of (x, y, dt[, w][, channel]) vectors
         ev = problem.events
         cols = [ev.x, ev.y, ev.t - problem.t_ref]
-        if weighted:
+        if self._weighted:
             cols.append(vote_w)
-        if split:
+        if self._split:
             cols.append((ev.p < 0).astype(np.float64))
         # a pooled buffer (workspace.event_buffer: vector ndarrays are never freed), padded to its
         # capacity; the kernel reads the first n_events, and the upload happens when another problem
-        # used the buffer in between
-        self._event_buffer = workspace.event_buffer(real, len(cols), self.n_events)
-        self._packed = np.zeros((self._event_buffer.capacity, len(cols)), dtype=backend.numpy_real())
+        # (or another window of this one) used the buffer in between
+        if self._event_buffer is None or self._event_buffer.capacity != workspace.capacity_for(self.n_events):
+            self._event_buffer = workspace.event_buffer(backend.real(), len(cols), self.n_events)
+            self._packed = np.zeros((self._event_buffer.capacity, len(cols)), dtype=backend.numpy_real())
+        else:
+            self._packed[self.n_events :] = 0.0
         self._packed[: self.n_events] = np.stack(cols, axis=1)
         self.events = self._event_buffer.array
         self.event_bytes = self._packed.nbytes
-        self._theta = np.zeros(MAX_PARAMS)
-        self._out = np.zeros(2 + P)  # J, G_raw, dJ/dtheta
+        self._event_buffer.release()
+        self._ws.release()
 
     # --- state -----------------------------------------------------------------------------------
     def set_g0(self, g0: float) -> None:
         """Divide G by ``g0`` in J from now on."""
         self._g0 = float(g0)
-        self._ws._owner = None  # upload again at the next call
+        self._ws.release()  # upload again at the next call
 
     def _load(self) -> None:
         self._event_buffer.load(self, self._packed)

@@ -154,26 +154,75 @@ class ContrastMaximization:
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
         self.model: WarpModel = get_warp(warp)
-        setup = ProblemSetup.build(
+        # what set_events needs to check and derive the next window as this one
+        self._options = dict(
+            objective=objective,
+            regularizers=regularizers,
+            camera=camera,
+            t_ref=t_ref,
+            blur_sigma=blur_sigma,
+            normalize=normalize,
+            polarity=polarity,
+        )
+        self.whitening = bool(whitening)
+        self._fused = None
+        self._take_window(self._setup_for(events, weights))
+
+    def _setup_for(self, events: Events, weights) -> ProblemSetup:
+        o = self._options
+        return ProblemSetup.build(
             events,
             [self.model],
-            objective,
-            regularizers,
-            camera,
-            t_ref,
-            blur_sigma,
-            normalize,
-            polarity,
+            o["objective"],
+            o["regularizers"],
+            o["camera"],
+            o["t_ref"],
+            o["blur_sigma"],
+            o["normalize"],
+            o["polarity"],
             weights,
         )
+
+    def set_events(self, events: Events, weights: Sequence[float] | np.ndarray | None = None) -> None:
+        """Take another window of events in place, with this problem's warp, objective, regularizers,
+        camera and options (the next window of a recording).
+
+        Equivalent to building a new problem with the same arguments, but it keeps this object and its
+        pooled fields and compiled kernels: per window it only checks and uploads the events and
+        evaluates the identity warp (``G0``). :func:`cmax_taichi.solve.sequence.process` uses it.
+
+        Parameters
+        ----------
+        events : Events
+            The new window (at least 2 events spanning a positive time; any count and sensor).
+        weights : array_like, optional
+            Per-event vote weights of the new window (finite); default 1.
+
+        Raises
+        ------
+        TypeError, ValueError
+            As the constructor, for the new window; the problem then still holds its previous window.
+        """
+        self._check_alive()
+        if not isinstance(events, Events):
+            raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
+        setup = self._setup_for(events, weights)
+        previous = self.setup
+        try:
+            self._take_window(setup)
+        except ValueError:  # e.g. a flat identity image: keep serving the previous window
+            self._take_window(previous)
+            raise
+
+    def _take_window(self, setup: ProblemSetup) -> None:
+        """Adopt a checked window: its derived values, the pipeline that serves it, its ``G0``."""
         self.setup = setup
         self.objective: Objective = setup.objective
-        self.camera = camera
+        self.camera = setup.camera
         self.regularizer_weights = setup.regularizer_weights
-        self.polarity = polarity
+        self.polarity = setup.polarity
         self.blur_sigma = setup.blur_sigma
         self.normalize = setup.normalize
-        self.whitening = bool(whitening)
         self.events = setup.events
         self.duration = setup.duration
         self.t_ref = setup.t_ref
@@ -185,16 +234,23 @@ class ContrastMaximization:
         self._weighted = setup.vote_weights is not None
         # The fused kernels (cmax_taichi/fused.py) serve value and gradient where they apply; the
         # generic chain's fields are then allocated only if maps(), evaluate() or jacobians need them.
-        choice = FusedPipeline.for_problem(self, setup.vote_weights)
-        self._fused = choice.pipeline
-        self.path = "fused" if self._fused is not None else "chain"
-        self.path_reason = choice.reason
-        if choice.undeclared:
-            _warn_chain_path(choice.reason)
+        if self._fused is not None and self._fused.can_take(self, setup.vote_weights):
+            self._fused.load_window(self, setup.vote_weights)
+        else:
+            choice = FusedPipeline.for_problem(self, setup.vote_weights)
+            self._fused = choice.pipeline
+            self.path = "fused" if self._fused is not None else "chain"
+            self.path_reason = choice.reason
+            if choice.undeclared:
+                _warn_chain_path(choice.reason)
+        if getattr(self, "_generic_ready", False):
+            self._ws.release()  # the generic chain takes the new window at its next use
         self._generic_ready = False
         if self._fused is None:
             self._ensure_generic()
         self.G0 = 1.0
+        if self._fused is not None:
+            self._fused.set_g0(1.0)
         g0 = self._forward(np.zeros(self.model.n_params))[1]
         if not (math.isfinite(g0) and g0 > 0):
             raise ValueError(

@@ -128,6 +128,11 @@ class OptimizeResult:
     value_identity : float
         J at the identity warp (theta = 0), NaN when the search did not evaluate it (the identity
         outside a user-given box).
+    hess_inv : ndarray or None
+        ``method="bfgs"``: the final BFGS estimate of the inverse Hessian of ``-J`` in internal units
+        (px^2, shape (P, P)); hand it to the next window's ``maximize(..., hess_inv0=)`` so that its
+        first step is a quasi-Newton step (:func:`cmax_taichi.solve.sequence.process` does). None for
+        the other methods.
     """
 
     theta: np.ndarray
@@ -146,6 +151,7 @@ class OptimizeResult:
     param_names: tuple[str, ...] = field(default=())
     units: tuple[str, ...] = field(default=())
     value_identity: float = math.nan
+    hess_inv: np.ndarray | None = None
 
     def as_dict(self) -> dict:
         """A JSON-friendly summary (no history)."""
@@ -250,28 +256,49 @@ def search_bounds(prob: ContrastMaximization) -> tuple[np.ndarray, np.ndarray]:
 
 # --- the objective in internal units --------------------------------------------------------------
 class _Objective:
-    """J and dJ/du in internal units, counting evaluations; non-finite values read as -inf."""
+    """J and dJ/du in internal units, counting evaluations; non-finite values read as -inf.
+
+    The last few results are remembered by point, so that a start point whose value and gradient the
+    search already computed (a warm start) is not evaluated again.
+    """
+
+    _MEMO_SIZE = 8
 
     def __init__(self, prob: ContrastMaximization, scales: np.ndarray) -> None:
         self.prob = prob
         self.scales = scales
         self.n_evaluations = 0
+        self._memo: dict[bytes, tuple[float, np.ndarray | None]] = {}
 
     def theta(self, u: np.ndarray) -> np.ndarray:
         return np.asarray(u, dtype=np.float64) / self.scales
 
+    def _remember(self, u: np.ndarray, value: float, grad: np.ndarray | None) -> None:
+        if len(self._memo) >= self._MEMO_SIZE:
+            self._memo.pop(next(iter(self._memo)))
+        self._memo[np.asarray(u, dtype=np.float64).tobytes()] = (value, grad)
+
     def value(self, u: np.ndarray) -> float:
+        known = self._memo.get(np.asarray(u, dtype=np.float64).tobytes())
+        if known is not None:
+            return known[0]
         self.n_evaluations += 1
         v = self.prob.value(self.theta(u))
-        return v if math.isfinite(v) else -math.inf
+        v = v if math.isfinite(v) else -math.inf
+        self._remember(u, v, None)
+        return v
 
     def value_and_grad(self, u: np.ndarray) -> tuple[float, np.ndarray]:
+        known = self._memo.get(np.asarray(u, dtype=np.float64).tobytes())
+        if known is not None and known[1] is not None:
+            return known[0], known[1].copy()
         self.n_evaluations += 1
         v, g = self.prob.value_and_grad(self.theta(u))
         g = np.asarray(g, dtype=np.float64) / self.scales
         if not (math.isfinite(v) and np.all(np.isfinite(g))):
-            return -math.inf, np.zeros_like(g)
-        return v, g
+            v, g = -math.inf, np.zeros_like(g)
+        self._remember(u, v, g)
+        return v, g.copy()
 
 
 @dataclass
@@ -283,6 +310,7 @@ class _Run:
     gnorms: list
     converged: bool
     message: str
+    hess_inv: np.ndarray | None = None
 
     @property
     def n_iterations(self) -> int:
@@ -389,14 +417,17 @@ def _recorded_start(obj, u0, lo, hi, rec):
     return u, val, g, gnorm, rec.add(u, val, gnorm)
 
 
-def _backtrack(evaluate, u, val, g, direction, alpha, lo, hi, c1, xtol, max_backtracks):
+def _backtrack(evaluate, u, val, g, direction, alpha, lo, hi, c1, xtol, max_backtracks, interpolate=False):
     """Backtracking line search for an ascent step from ``u`` along ``direction`` (Armijo condition).
 
-    Halves ``alpha`` from its given value until ``evaluate(u_new)[0] >= val + c1 * g . step`` with
+    Shrinks ``alpha`` from its given value until ``evaluate(u_new)[0] >= val + c1 * g . step`` with
     ``u_new = clip(u + alpha * direction)`` and ``step = u_new - u`` (px). ``evaluate`` returns a tuple
-    whose first item is the objective value; the whole tuple is handed back. Returns
-    ``(u_new, step, alpha, evaluation)`` of the accepted step, or None when no step longer than
-    ``xtol`` px within ``max_backtracks`` halvings increases the objective enough.
+    whose first item is the objective value; the whole tuple is handed back. Each rejected trial halves
+    ``alpha``, or with ``interpolate`` moves it to the maximum of the parabola through ``val``, the
+    slope ``g . step`` and the trial value, kept within [0.1, 0.5] of the rejected ``alpha``
+    (Nocedal & Wright, Numerical Optimization, 2nd ed., sec. 3.5): one or two trials where halving
+    needs several. Returns ``(u_new, step, alpha, evaluation)`` of the accepted step, or None when no
+    step longer than ``xtol`` px within ``max_backtracks`` trials increases the objective enough.
     """
     for _ in range(max_backtracks):
         u_new = np.clip(u + alpha * direction, lo, hi)
@@ -404,9 +435,16 @@ def _backtrack(evaluate, u, val, g, direction, alpha, lo, hi, c1, xtol, max_back
         if float(np.max(np.abs(step))) < xtol:
             return None
         evaluation = evaluate(u_new)
-        if evaluation[0] >= val + c1 * float(g @ step):
+        slope = float(g @ step)
+        if evaluation[0] >= val + c1 * slope:
             return u_new, step, alpha, evaluation
-        alpha *= 0.5
+        shrink = 0.5
+        if interpolate and math.isfinite(evaluation[0]) and slope > 0:
+            # parabola q(s) = val + slope s + c s^2 on the step fraction s in [0, 1], q(1) = trial value
+            curvature = evaluation[0] - val - slope
+            if curvature < 0:
+                shrink = min(0.5, max(0.1, -slope / (2.0 * curvature)))
+        alpha *= shrink
     return None
 
 
@@ -487,13 +525,22 @@ def _lbfgs(obj, u0, lo, hi, *, max_iter, gtol, rtol, rec) -> _Run:
     return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
 
 
-def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
+def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=None) -> _Run:
     """Quasi-Newton ascent: BFGS updates of the inverse Hessian of -J from exact gradients, a
-    backtracking (Armijo) line search, projection onto the box. The first step moves ``lr`` px."""
+    backtracking line search with parabolic interpolation, projection onto the box.
+
+    The first step is a quasi-Newton step with ``hess_inv0`` (a previous window's estimate, px^2) when
+    it is given and positive definite, else a gradient step of ``lr`` px. The run stops, without
+    another evaluation, when the quasi-Newton step itself is shorter than ``xtol`` px (the estimate is
+    already resolved to that precision).
+    """
     c1, max_backtracks = 1e-4, 30
     u, val, g, gnorm, stop = _recorded_start(obj, u0, lo, hi, rec)
     n = u.size
-    H = np.eye(n) * (lr / max(gnorm, 1e-300))  # inverse curvature guess: the first step moves lr px
+    H = _positive_definite(hess_inv0, n)
+    warm_curvature = H is not None
+    if H is None:
+        H = np.eye(n) * (lr / max(gnorm, 1e-300))  # inverse curvature guess: the first step moves lr px
     converged, message = False, f"reached max_iter={max_iter}"
     for _ in range(max_iter):
         if stop:
@@ -509,7 +556,14 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
         if float(direction @ g) <= 0:  # lost positive definiteness: restart from a gradient step
             H = np.eye(n) * (lr / max(gnorm, 1e-300))
             direction = H @ g
-        trial = _backtrack(obj.value_and_grad, u, val, g, direction, 1.0, lo, hi, c1, xtol, max_backtracks)
+            warm_curvature = False
+        newton = float(np.max(np.abs(np.clip(u + direction, lo, hi) - u)))
+        if warm_curvature and newton < xtol:
+            converged, message = True, f"quasi-Newton step {newton:.3g} px < xtol={xtol:g} px"
+            break
+        trial = _backtrack(
+            obj.value_and_grad, u, val, g, direction, 1.0, lo, hi, c1, xtol, max_backtracks, interpolate=True
+        )
         if trial is None:
             converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
             break
@@ -518,9 +572,12 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
         y = g - g_new  # gradient change of -J
         sy = float(step @ y)
         if sy > 1e-12 * float(np.linalg.norm(step) * np.linalg.norm(y)):
+            if not warm_curvature:  # first curvature pair: rescale the guess (Nocedal & Wright 6.20)
+                H = np.eye(n) * (sy / float(y @ y))
             rho = 1.0 / sy
             V = np.eye(n) - rho * np.outer(step, y)
             H = V @ H @ V.T + rho * np.outer(step, step)
+            warm_curvature = True
         u, val, g = u_new, val_new, g_new
         gnorm = float(np.linalg.norm(g))
         stop = rec.add(u, val, gnorm)
@@ -531,7 +588,24 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
             converged, message = True, f"step {float(np.max(np.abs(step))):.3g} px < xtol={xtol:g} px"
             break
     best = int(np.argmax(rec.values))
-    return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
+    hess_inv = H.copy() if warm_curvature else None
+    return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message, hess_inv)
+
+
+def _positive_definite(matrix, n: int) -> np.ndarray | None:
+    """``matrix`` as an (n, n) float64 array when it is a finite, symmetric positive definite matrix
+    (a usable inverse Hessian), else None."""
+    if matrix is None:
+        return None
+    H = np.asarray(matrix, dtype=np.float64)
+    if H.shape != (n, n) or not np.all(np.isfinite(H)):
+        return None
+    H = 0.5 * (H + H.T)
+    try:
+        np.linalg.cholesky(H)
+    except np.linalg.LinAlgError:
+        return None
+    return H
 
 
 # --- the driver --------------------------------------------------------------------------------------
@@ -554,6 +628,7 @@ def maximize(
     candidates: Sequence[Sequence[float]] | None = None,
     seed: int = 0,
     callback: Callable[[int, np.ndarray, float], bool | None] | None = None,
+    hess_inv0: np.ndarray | None = None,
 ) -> OptimizeResult:
     """Maximize ``J`` of a CMax problem: a global search over a box, then local ascent from the best
     few candidates.
@@ -604,6 +679,10 @@ def maximize(
     callback : callable, optional
         ``callback(iteration, theta, value)`` after each iterate of each local run; return True to
         stop that run.
+    hess_inv0 : ndarray, optional
+        ``method="bfgs"``: the initial inverse Hessian of ``-J`` in internal units (px^2, symmetric
+        positive definite, shape (P, P)), typically the previous window's ``result.hess_inv``: the
+        first step is then a quasi-Newton step instead of a gradient step of ``lr`` px.
 
     Returns
     -------
@@ -625,6 +704,16 @@ def maximize(
         raise ValueError(f"n_starts must be at least 1, got {n_starts}")
     model = prob.model
     P = model.n_params
+    if hess_inv0 is not None:
+        if method != "bfgs":
+            raise ValueError(f"hess_inv0 is the initial inverse Hessian of method='bfgs', not {method!r}")
+        checked = _positive_definite(hess_inv0, P)
+        if checked is None:
+            raise ValueError(
+                f"hess_inv0 must be a finite symmetric positive definite {P}x{P} matrix (px^2), "
+                f"got {np.asarray(hess_inv0)!r}"
+            )
+        hess_inv0 = checked
     scales = parameter_scales(prob)
     obj = _Objective(prob, scales)
 
@@ -671,7 +760,8 @@ def maximize(
         # the identity and theta0 may lie outside the local box: evaluate them where they are
         found += [(obj.value(u), np.array(u)) for u in extra]
     elif init == "warm":
-        found = [(obj.value(u), np.array(u)) for u in extra]
+        # the warm start with its gradient: it usually starts the local run, which then reuses both
+        found = [(obj.value(u) if not np.any(u) else obj.value_and_grad(u)[0], np.array(u)) for u in extra]
         n_starts = 1
     elif init == "random":
         found = random_search(obj, lo, hi, budget=budget, rng=rng, extra=extra)
@@ -699,7 +789,17 @@ def maximize(
             )
         elif method == "bfgs":
             run = _bfgs(
-                obj, start, lo, hi, lr=lr, max_iter=max_iter, gtol=gtol, xtol=xtol, rtol=rtol, rec=rec
+                obj,
+                start,
+                lo,
+                hi,
+                lr=lr,
+                max_iter=max_iter,
+                gtol=gtol,
+                xtol=xtol,
+                rtol=rtol,
+                rec=rec,
+                hess_inv0=hess_inv0,
             )
         else:
             run = _lbfgs(obj, start, lo, hi, max_iter=max_iter, gtol=gtol, rtol=rtol, rec=rec)
@@ -734,4 +834,5 @@ def maximize(
         param_names=tuple(model.params),
         units=tuple(model.units),
         value_identity=math.nan if identity_value is None else float(identity_value),
+        hess_inv=best.hess_inv,
     )

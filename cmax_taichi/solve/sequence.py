@@ -453,7 +453,9 @@ def process(
         More keyword arguments of ``maximize`` (``init``, ``n_init``, ``lr``, ...). An ``init`` given
         here applies to every window (no warm-start search).
     on_window : callable, optional
-        ``on_window(row, prob, result)`` after each window (e.g. to save figures).
+        ``on_window(row, prob, result)`` after each window (e.g. to save figures). ``prob`` is one
+        problem for the whole sequence (:meth:`~cmax_taichi.ContrastMaximization.set_events` gives it
+        each next window): use it inside the callback; it holds the next window afterwards.
     format : str, optional
         Format name when ``source`` is a path.
     first_window : int
@@ -549,12 +551,14 @@ def process(
         bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
     previous = None if initial_theta is None else np.asarray(initial_theta, dtype=np.float64)
     previous_value = initial_value
+    previous_hess = None  # the previous warm refinement's inverse Hessian (BFGS), px^2
     fwl_is_value = (
         objective == "variance"
         and not any(float(w) for w in (regularizers or {}).values())
         and set(popts) <= _FWL_COMPATIBLE_OPTIONS
     )
     lossy = checks.UndistortionTally()
+    prob = fprob = None  # built on the first window, then given each next window (set_events)
     try:
         with warnings.catch_warnings():  # restores the filter that the tally adds
             for index, events in enumerate(_limited(windows, max_windows)):
@@ -563,26 +567,43 @@ def process(
                 t0 = time.perf_counter()
                 if len(events) < 2 or not events.duration > 0:
                     continue  # nothing to estimate (a window with all events at one time stamp)
-                prob = ContrastMaximization(
-                    events, warp=model, objective=objective, regularizers=regularizers, camera=camera, **popts
-                )
+                if prob is None:
+                    prob = ContrastMaximization(
+                        events,
+                        warp=model,
+                        objective=objective,
+                        regularizers=regularizers,
+                        camera=camera,
+                        **popts,
+                    )
+                else:  # the same problem takes the next window: its fields, kernels and buffers stay
+                    prob.set_events(events, weights=popts.get("weights"))
                 lossy.add(events, prob.events)
                 res, search = _solve_window(
-                    prob, previous if warm_start else None, previous_value, method, warm_method, oopts
+                    prob,
+                    previous if warm_start else None,
+                    previous_value,
+                    method,
+                    warm_method,
+                    oopts,
+                    previous_hess,
                 )
                 value_fwl = math.nan
                 if compute_fwl:
                     if fwl_is_value:
                         value_fwl = res.value  # the estimate's problem is the FWL problem
                     else:
-                        fprob = fwl_problem(
-                            prob.events,  # already undistorted: the same events as the estimate
-                            model,
-                            camera=camera,
-                            blur_sigma=prob.blur_sigma,
-                            t_ref=popts.get("t_ref", "first"),
-                            polarity=prob.polarity,
-                        )
+                        if fprob is None:
+                            fprob = fwl_problem(
+                                prob.events,  # already undistorted: the same events as the estimate
+                                model,
+                                camera=camera,
+                                blur_sigma=prob.blur_sigma,
+                                t_ref=popts.get("t_ref", "first"),
+                                polarity=prob.polarity,
+                            )
+                        else:
+                            fprob.set_events(prob.events)
                         value_fwl = fprob.value(res.theta)
                 row = WindowResult(
                     index=index,
@@ -601,7 +622,7 @@ def process(
                 result.windows.append(row)
                 if on_window is not None:
                     on_window(row, prob, res)
-                previous, previous_value = res.theta, row.value
+                previous, previous_value, previous_hess = res.theta, row.value, res.hess_inv
                 if bar is not None:
                     bar.update(f"J={res.value:.3f}")
     finally:
@@ -618,13 +639,21 @@ def _solve_window(
     method: str,
     warm_method: str,
     oopts: dict,
+    hess_inv: np.ndarray | None = None,
 ) -> tuple[OptimizeResult, str]:
-    """Solve one window: the global search, or the warm refinement with its tracking test."""
+    """Solve one window: the global search, or the warm refinement with its tracking test.
+
+    ``hess_inv`` (the previous window's BFGS inverse Hessian) starts a BFGS refinement with a
+    quasi-Newton step; consecutive windows of one motion have about the same curvature in the
+    per-window pixel units of :func:`~cmax_taichi.maximize`."""
     if previous is None:
         return maximize(prob, method=method, **oopts), "global"
     if "init" in oopts:  # the caller's init in every window, from the previous estimate
         return maximize(prob, theta0=previous, method=method, **oopts), oopts["init"]
-    res = maximize(prob, theta0=previous, method=warm_method, init="warm", **oopts)
+    warm_options = dict(oopts)
+    if warm_method == "bfgs" and hess_inv is not None and "hess_inv0" not in warm_options:
+        warm_options["hess_inv0"] = hess_inv
+    res = maximize(prob, theta0=previous, method=warm_method, init="warm", **warm_options)
     lost = (
         previous_value is not None
         and math.isfinite(previous_value)
