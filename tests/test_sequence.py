@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 
 import numpy as np
 import pytest
@@ -147,3 +148,31 @@ def test_bad_inputs(events, tmp_path):
     bad.write_text('{"warp": "zoom1"}')
     with pytest.raises(ValueError, match="not a cmax-taichi results file"):
         sequence.read_results(bad)
+
+
+def test_lost_track_runs_the_global_search_again(events, monkeypatch):
+    """When the tracking test says the track is lost, the global search runs after the refinement and
+    the better of both is kept ("warm+global"). The warm refinement itself is robust to a reversal of
+    the motion (the identity is one of its starts), so the test forces the loss with a ratio no window
+    can meet."""
+    monkeypatch.setattr(sequence, "TRACKING_LOSS_RATIO", 10.0)
+    result = sequence.process(events, "translation2", n_events=1000, max_windows=2, progress=False)
+    assert [w.search for w in result.windows] == ["global", "warm+global"]
+    assert result.windows[1].evaluations > 100  # the refinement's plus the global search's
+    assert abs(result.windows[1].theta[0] - V[0]) < 8.0 and abs(result.windows[1].theta[1] - V[1]) < 8.0
+
+
+def test_tracking_test_allows_for_shorter_windows():
+    """Windows of varying sizes: a shorter window of the same motion gains less over the identity (the
+    identity's motion blur is shorter); that is not a loss of track. A gain near 0 is."""
+    state = sequence.WarmState(theta=np.array(V), value=1.40, value_identity=1.0, duration=0.044)
+    assert not state.lost_track(1.075, 1.0, duration=0.016)  # the same motion, a window of 16 ms
+    assert state.lost_track(1.01, 1.0, duration=0.016)
+    assert state.lost_track(1.2, 1.0, duration=0.044)  # same duration, half the gain
+    assert not state.lost_track(1.35, 1.0, duration=0.060)  # longer window: unscaled
+    legacy = sequence.WarmState(theta=np.array(V), value=2.0)  # identity unknown: J alone
+    assert legacy.lost_track(1.5, math.nan, 0.01) and not legacy.lost_track(1.7, math.nan, 0.01)
+    back = sequence.WarmState.from_dict(json.loads(json.dumps(state.as_dict())))
+    assert back.value == state.value and back.duration == state.duration and back.hess_inv is None
+    with pytest.raises(TypeError, match="warm_state must be a sequence.WarmState"):
+        sequence.process(translating_edges(), "translation2", n_events=1000, warm_state=[1.0, 2.0])

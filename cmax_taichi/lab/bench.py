@@ -479,6 +479,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=10_000_000,
         help="largest N of --gpu-sweep (default 1e7; smaller for a software-Vulkan check)",
     )
+    parser.add_argument(
+        "--realtime",
+        action="store_true",
+        help="instead of the kernel plan: the real-time factor of whole recordings (sequence estimation "
+        "over the shared recordings in --data and a long simulated stream; realtime.md / realtime.csv)",
+    )
+    parser.add_argument(
+        "--data",
+        default="../shared/data",
+        help="folder of the shared recordings for --realtime (default ../shared/data)",
+    )
+    parser.add_argument(
+        "--sim-seconds",
+        type=float,
+        default=2.0,
+        help="length of the simulated stream of --realtime, s (default 2)",
+    )
     parser.add_argument("--no-solve", action="store_true", help="skip the window-solve timing")
     parser.add_argument(
         "--no-segment", action="store_true", help="skip the motion-segmentation timing (full run only)"
@@ -511,6 +528,13 @@ def run_from_args(args: argparse.Namespace) -> int:
     if requested in ("vulkan", "metal") and precision == "f64":
         raise ValueError(f"arch {requested!r} has no f64 support; use --precision f32")
     arch = start_backend(requested, precision)
+    if getattr(args, "realtime", False):
+        from cmax_taichi.lab.realtime import markdown, run_realtime
+
+        rows = run_realtime(args.data, args.out, sim_seconds=args.sim_seconds)
+        print()
+        print(markdown(rows))
+        return 0
     if args.gpu_sweep:
         plan = gpu_plan(precision, max_events=args.max_events)
         if not plan.configs:

@@ -41,7 +41,14 @@ from typing import Any, Protocol, TextIO
 import numpy as np
 
 from cmax_taichi.models.warps import get_warp
-from cmax_taichi.solve.sequence import ProgressBar, SequenceResult, WindowResult, process, read_results
+from cmax_taichi.solve.sequence import (
+    ProgressBar,
+    SequenceResult,
+    WarmState,
+    WindowResult,
+    process,
+    read_results,
+)
 
 __all__ = [
     "ENGINES",
@@ -221,9 +228,23 @@ def _jsonable(value: Any) -> Any:
     return repr(value)
 
 
-def _write_checkpoint(folder: Path, result: SequenceResult, key: dict, total: int | None, done: bool) -> None:
+def _write_checkpoint(
+    folder: Path,
+    result: SequenceResult,
+    key: dict,
+    total: int | None,
+    done: bool,
+    warm_state: WarmState | None = None,
+) -> None:
     data = result.as_dict()
-    data["checkpoint"] = {"version": CHECKPOINT_VERSION, "key": key, "total_windows": total, "complete": done}
+    data["checkpoint"] = {
+        "version": CHECKPOINT_VERSION,
+        "key": key,
+        "total_windows": total,
+        "complete": done,
+        # the last window's warm start for the next one: a resumed run continues exactly
+        "warm_state": None if warm_state is None else warm_state.as_dict(),
+    }
     _atomic_write_text(folder / CHECKPOINT_NAME, json.dumps(data, indent=1))
 
 
@@ -353,8 +374,14 @@ def estimate_recording(
         first = (done_rows[-1].index + 1) if done_rows else 0
         summary.resumed_from = first
         warm = options.get("warm_start", True)
-        initial = done_rows[-1].theta if (done_rows and warm) else None
-        initial_value = done_rows[-1].value if (done_rows and warm) else None
+        warm_state = None
+        if done_rows and warm:
+            saved = (previous[1] if previous else {}).get("warm_state")
+            warm_state = (
+                WarmState.from_dict(saved)
+                if saved
+                else WarmState(theta=done_rows[-1].theta, value=done_rows[-1].value)
+            )
         crash = _crash_hook(crash_hook, name)
         t0 = time.perf_counter()
         with io.open_recording(path, format=format) as rec:
@@ -374,7 +401,9 @@ def estimate_recording(
 
             def on_window(row: WindowResult, prob: Any, res: Any) -> None:
                 written.windows.append(row)
-                _write_checkpoint(folder, written, key, total, done=False)
+                _write_checkpoint(
+                    folder, written, key, total, done=False, warm_state=WarmState.after(row, res)
+                )
                 if hooks is not None:
                     hooks.window(folder, row, prob, res)
                 crash(row.index)
@@ -384,8 +413,7 @@ def estimate_recording(
                 **options,
                 progress=False,
                 first_window=first,
-                initial_theta=initial,
-                initial_value=initial_value,
+                warm_state=warm_state,
                 on_window=on_window,
             )
         result.windows = written.windows

@@ -1,9 +1,10 @@
 """Motion estimation over a whole recording, window by window.
 
 :func:`process` slides a window over the events (by event count, 30,000 by default as in the paper's
-MVSEC setup, or by duration), builds one :class:`~cmax_taichi.ContrastMaximization` per window (the
-core pools the Taichi fields per problem shape, so windows of the same size compile once), maximizes it
-warm-started from the previous window, and records one row per window. :class:`SequenceResult` writes
+MVSEC setup, or by duration), gives each window to one :class:`~cmax_taichi.ContrastMaximization`
+(:meth:`~cmax_taichi.ContrastMaximization.set_events`: its pooled Taichi fields, buffers and compiled
+kernels serve every window), maximizes it warm-started from the previous window (:class:`WarmState`),
+and records one row per window. :class:`SequenceResult` writes
 the rows as CSV and JSON.
 """
 
@@ -16,7 +17,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TextIO
@@ -33,6 +34,7 @@ from cmax_taichi.solve.optimize import OptimizeResult, maximize
 
 __all__ = [
     "TRACKING_LOSS_RATIO",
+    "WarmState",
     "WindowResult",
     "SequenceResult",
     "ProgressBar",
@@ -40,9 +42,11 @@ __all__ = [
     "read_results",
 ]
 
-#: a warm-started window whose refined J falls below this fraction of the previous window's J has lost
-#: track of the motion (a sudden change): the global search runs too. J is normalised by the identity's
-#: objective, so windows of one recording compare; small fluctuations of a weak J (a few %) are not a loss
+#: a warm-started window whose refined gain over the identity, J(theta) - J(0), falls below this fraction
+#: of the previous window's gain (scaled down by the squared ratio of window durations when this window
+#: is shorter: the gain grows with the motion blur of the identity, as its square for blurs of a few px)
+#: has lost track of the motion (a sudden change): the global search runs too. A lost track gives a gain
+#: near 0; windows of varying sizes or small fluctuations (a few %) are not a loss
 TRACKING_LOSS_RATIO = 0.8
 
 #: problem options under which the estimate's own problem measures the FWL (variance, normalised, no
@@ -94,6 +98,87 @@ class WindowResult:
     converged: bool
     evaluations: int = 0
     search: str = ""
+
+
+@dataclass(frozen=True)
+class WarmState:
+    """What the warm start of a window takes from the window before it (see :func:`process`).
+
+    Attributes
+    ----------
+    theta : ndarray
+        The previous estimate, physical units.
+    value : float
+        Its J.
+    value_identity : float
+        J of the identity warp on that window (NaN: unknown; then the tracking test compares J alone).
+    duration : float
+        That window's duration, s (NaN: unknown).
+    hess_inv : ndarray or None
+        The BFGS inverse Hessian of its refinement (internal units, px^2), or None.
+    """
+
+    theta: np.ndarray
+    value: float
+    value_identity: float = math.nan
+    duration: float = math.nan
+    hess_inv: np.ndarray | None = None
+
+    @classmethod
+    def after(cls, row: WindowResult, result: OptimizeResult) -> WarmState:
+        """The state a window leaves for the next one: its row and its optimizer result."""
+        return cls(
+            theta=np.asarray(row.theta, dtype=np.float64),
+            value=float(row.value),
+            value_identity=float(result.value_identity),
+            duration=float(row.t_end - row.t_start),
+            hess_inv=None if result.hess_inv is None else np.array(result.hess_inv, dtype=np.float64),
+        )
+
+    def as_dict(self) -> dict:
+        """JSON-friendly (NaN as None)."""
+
+        def number(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {
+            "theta": [float(v) for v in self.theta],
+            "value": number(self.value),
+            "value_identity": number(self.value_identity),
+            "duration": number(self.duration),
+            "hess_inv": None if self.hess_inv is None else np.asarray(self.hess_inv).tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> WarmState:
+        """The inverse of :meth:`as_dict`."""
+
+        def number(v) -> float:
+            return math.nan if v is None else float(v)
+
+        hess = data.get("hess_inv")
+        return cls(
+            theta=np.asarray(data["theta"], dtype=np.float64),
+            value=number(data.get("value")),
+            value_identity=number(data.get("value_identity")),
+            duration=number(data.get("duration")),
+            hess_inv=None if hess is None else np.asarray(hess, dtype=np.float64),
+        )
+
+    def lost_track(self, value: float, value_identity: float, duration: float) -> bool:
+        """Whether a refined window (``value``, its identity's J, its duration in s) lost track of the
+        motion this state describes (see :data:`TRACKING_LOSS_RATIO`)."""
+        if not math.isfinite(self.value):
+            return False
+        if math.isfinite(self.value_identity) and math.isfinite(value_identity):
+            gain_before = self.value - self.value_identity
+            if not gain_before > 0:
+                return False  # the previous window gained nothing over the identity: nothing to lose
+            scale = 1.0
+            if math.isfinite(self.duration) and self.duration > 0 and duration > 0:
+                scale = min(1.0, duration / self.duration) ** 2
+            return value - value_identity < TRACKING_LOSS_RATIO * gain_before * scale
+        return value < TRACKING_LOSS_RATIO * self.value
 
 
 @dataclass
@@ -408,8 +493,7 @@ def process(
     on_window: Callable[[WindowResult, ContrastMaximization, OptimizeResult], None] | None = None,
     format: str | None = None,
     first_window: int = 0,
-    initial_theta: Sequence[float] | np.ndarray | None = None,
-    initial_value: float | None = None,
+    warm_state: WarmState | None = None,
     warm_method: str = "bfgs",
 ) -> SequenceResult:
     """Estimate the motion of every window of a recording.
@@ -435,8 +519,8 @@ def process(
     warm_start : bool
         Refine the previous window's estimate (``maximize(init="warm", method=warm_method)``: the
         previous estimate and the identity are the candidates, a few quasi-Newton steps follow); the
-        first window gets the global search. When the refined J falls below
-        :data:`TRACKING_LOSS_RATIO` times the previous window's J, tracking is lost: the global
+        first window gets the global search. When the refined gain over the identity falls below
+        :data:`TRACKING_LOSS_RATIO` times the previous window's, tracking is lost: the global
         search runs too and the better result is kept. An ``init`` in ``optimize_options`` replaces
         this (that init in every window, from the previous estimate).
     compute_fwl : bool
@@ -460,11 +544,10 @@ def process(
         Format name when ``source`` is a path.
     first_window : int
         Skip (read but do not estimate) the windows before this index: resuming an interrupted run.
-    initial_theta : array_like, optional
-        Warm start of the first estimated window (physical units): the estimate of the window before
-        ``first_window``, so that a resumed run gives the same results as an uninterrupted one.
-    initial_value : float, optional
-        That window's J (the tracking reference of the next window), for the same reason.
+    warm_state : WarmState, optional
+        The warm start of the first estimated window: what the window before ``first_window`` left
+        (:meth:`WarmState.after`), so that a resumed run gives the same results as an uninterrupted
+        one (the batch runner keeps it in its checkpoints).
     warm_method : str
         Local optimizer of the warm-start refinement (default the quasi-Newton ``"bfgs"``).
 
@@ -516,8 +599,7 @@ def process(
                 optimize_options=optimize_options,
                 on_window=on_window,
                 first_window=first_window,
-                initial_theta=initial_theta,
-                initial_value=initial_value,
+                warm_state=warm_state,
                 warm_method=warm_method,
             )
     if first_window < 0:
@@ -549,9 +631,9 @@ def process(
     bar = None
     if progress:
         bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
-    previous = None if initial_theta is None else np.asarray(initial_theta, dtype=np.float64)
-    previous_value = initial_value
-    previous_hess = None  # the previous warm refinement's inverse Hessian (BFGS), px^2
+    if warm_state is not None and not isinstance(warm_state, WarmState):
+        raise TypeError(f"warm_state must be a sequence.WarmState, got {type(warm_state).__name__}")
+    state = warm_state  # what the previous window leaves for the next one's warm start
     fwl_is_value = (
         objective == "variance"
         and not any(float(w) for w in (regularizers or {}).values())
@@ -579,15 +661,7 @@ def process(
                 else:  # the same problem takes the next window: its fields, kernels and buffers stay
                     prob.set_events(events, weights=popts.get("weights"))
                 lossy.add(events, prob.events)
-                res, search = _solve_window(
-                    prob,
-                    previous if warm_start else None,
-                    previous_value,
-                    method,
-                    warm_method,
-                    oopts,
-                    previous_hess,
-                )
+                res, search = _solve_window(prob, state if warm_start else None, method, warm_method, oopts)
                 value_fwl = math.nan
                 if compute_fwl:
                     if fwl_is_value:
@@ -622,7 +696,7 @@ def process(
                 result.windows.append(row)
                 if on_window is not None:
                     on_window(row, prob, res)
-                previous, previous_value, previous_hess = res.theta, row.value, res.hess_inv
+                state = WarmState.after(row, res)
                 if bar is not None:
                     bar.update(f"J={res.value:.3f}")
     finally:
@@ -634,34 +708,27 @@ def process(
 
 def _solve_window(
     prob: ContrastMaximization,
-    previous: np.ndarray | None,
-    previous_value: float | None,
+    state: WarmState | None,
     method: str,
     warm_method: str,
     oopts: dict,
-    hess_inv: np.ndarray | None = None,
 ) -> tuple[OptimizeResult, str]:
     """Solve one window: the global search, or the warm refinement with its tracking test.
 
-    ``hess_inv`` (the previous window's BFGS inverse Hessian) starts a BFGS refinement with a
-    quasi-Newton step; consecutive windows of one motion have about the same curvature in the
-    per-window pixel units of :func:`~cmax_taichi.maximize`."""
-    if previous is None:
+    A BFGS refinement starts with the previous window's inverse Hessian (a quasi-Newton first step):
+    consecutive windows of one motion have about the same curvature in the per-window pixel units of
+    :func:`~cmax_taichi.maximize`."""
+    if state is None:
         return maximize(prob, method=method, **oopts), "global"
     if "init" in oopts:  # the caller's init in every window, from the previous estimate
-        return maximize(prob, theta0=previous, method=method, **oopts), oopts["init"]
+        return maximize(prob, theta0=state.theta, method=method, **oopts), oopts["init"]
     warm_options = dict(oopts)
-    if warm_method == "bfgs" and hess_inv is not None and "hess_inv0" not in warm_options:
-        warm_options["hess_inv0"] = hess_inv
-    res = maximize(prob, theta0=previous, method=warm_method, init="warm", **warm_options)
-    lost = (
-        previous_value is not None
-        and math.isfinite(previous_value)
-        and res.value < TRACKING_LOSS_RATIO * previous_value
-    )
-    if not lost:
+    if warm_method == "bfgs" and state.hess_inv is not None and "hess_inv0" not in warm_options:
+        warm_options["hess_inv0"] = state.hess_inv
+    res = maximize(prob, theta0=state.theta, method=warm_method, init="warm", **warm_options)
+    if not state.lost_track(res.value, res.value_identity, prob.duration):
         return res, "warm"
-    full = maximize(prob, method=method, candidates=[previous], **oopts)
+    full = maximize(prob, method=method, candidates=[state.theta], **oopts)
     best = full if full.value > res.value else res
     return (
         replace(
