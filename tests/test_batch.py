@@ -138,16 +138,26 @@ def test_rerun_after_interruption_skips_written_windows(recordings, serial, tmp_
         assert_same_windows(second.results(p.stem), serial[p.stem])
 
 
+class _StopAfterWindow1:
+    """A recording hook that interrupts the run after window 1 (its checkpoint is written)."""
+
+    def window(self, folder, row, prob, result) -> None:
+        if row.index == 1:
+            raise KeyboardInterrupt("interrupted after window 1")
+
+    def finished(self, folder, result):
+        return []
+
+
 def test_resume_in_process_equals_uninterrupted(recordings, serial, tmp_path):
-    """estimate_recording itself (no pool): a checkpoint cut after window 1 resumes to the same rows."""
+    """estimate_recording itself (no pool): a run interrupted after window 1 resumes to the same rows
+    (its checkpoint carries window 1's warm start: estimate, J, the identity's J, the BFGS curvature)."""
     folder = tmp_path / "rec2"
-    batch.estimate_recording(recordings[2], folder, OPTIONS)
+    with pytest.raises(KeyboardInterrupt):
+        batch.estimate_recording(recordings[2], folder, OPTIONS, hooks=_StopAfterWindow1())
     data = json.loads((folder / batch.CHECKPOINT_NAME).read_text())
-    data["windows"] = data["windows"][:2]
-    data["checkpoint"]["complete"] = False
-    (folder / batch.CHECKPOINT_NAME).write_text(json.dumps(data))
-    for name in ("results.csv", "results.json"):
-        (folder / name).unlink()
+    assert [w["index"] for w in data["windows"]] == [0, 1] and not data["checkpoint"]["complete"]
+    assert data["checkpoint"]["warm_state"]["index"] == 1
     summary = batch.estimate_recording(recordings[2], folder, OPTIONS)
     assert summary.status == "done" and (summary.resumed_from, summary.new_windows) == (2, 1)
     assert_same_windows(sequence.read_results(folder / "results.json"), serial["rec2"])

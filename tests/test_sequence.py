@@ -167,9 +167,11 @@ def test_tracking_test_allows_for_shorter_windows():
     identity's motion blur is shorter); that is not a loss of track. A gain near 0 is."""
     state = sequence.WarmState(theta=np.array(V), value=1.40, value_identity=1.0, duration=0.044)
     assert not state.lost_track(1.075, 1.0, duration=0.016)  # the same motion, a window of 16 ms
-    assert state.lost_track(1.01, 1.0, duration=0.016)
-    assert state.lost_track(1.2, 1.0, duration=0.044)  # same duration, half the gain
-    assert not state.lost_track(1.35, 1.0, duration=0.060)  # longer window: unscaled
+    assert state.lost_track(1.01, 1.0, duration=0.016)  # J and the gain both fell: lost
+    assert state.lost_track(1.1, 1.0, duration=0.044)  # same duration, a quarter of the gain
+    assert not state.lost_track(1.35, 1.0, duration=0.060)
+    weak = sequence.WarmState(theta=np.array(V), value=1.06, value_identity=1.0, duration=0.017)
+    assert not weak.lost_track(1.03, 1.0, duration=0.017)  # half the gain of a weak contrast, J 97%
     legacy = sequence.WarmState(theta=np.array(V), value=2.0)  # identity unknown: J alone
     assert legacy.lost_track(1.5, math.nan, 0.01) and not legacy.lost_track(1.7, math.nan, 0.01)
     back = sequence.WarmState.from_dict(json.loads(json.dumps(state.as_dict())))

@@ -242,8 +242,11 @@ def _write_checkpoint(
         "key": key,
         "total_windows": total,
         "complete": done,
-        # the last window's warm start for the next one: a resumed run continues exactly
-        "warm_state": None if warm_state is None else warm_state.as_dict(),
+        # the last window's warm start for the next one (with that window's index): a run resumed
+        # after it continues exactly as an uninterrupted one
+        "warm_state": None
+        if warm_state is None or not result.windows
+        else {"index": result.windows[-1].index, **warm_state.as_dict()},
     }
     _atomic_write_text(folder / CHECKPOINT_NAME, json.dumps(data, indent=1))
 
@@ -377,11 +380,10 @@ def estimate_recording(
         warm_state = None
         if done_rows and warm:
             saved = (previous[1] if previous else {}).get("warm_state")
-            warm_state = (
-                WarmState.from_dict(saved)
-                if saved
-                else WarmState(theta=done_rows[-1].theta, value=done_rows[-1].value)
-            )
+            if saved and saved.get("index") == done_rows[-1].index:
+                warm_state = WarmState.from_dict(saved)
+            else:  # a checkpoint without the last window's state: its estimate and J
+                warm_state = WarmState(theta=done_rows[-1].theta, value=done_rows[-1].value)
         crash = _crash_hook(crash_hook, name)
         t0 = time.perf_counter()
         with io.open_recording(path, format=format) as rec:
@@ -399,11 +401,12 @@ def estimate_recording(
             written = SequenceResult(warp=model.name, param_names=model.params, units=model.units)
             written.windows = list(done_rows)  # earlier runs' rows first, then this run's
 
+            last_state: list[WarmState | None] = [warm_state]
+
             def on_window(row: WindowResult, prob: Any, res: Any) -> None:
                 written.windows.append(row)
-                _write_checkpoint(
-                    folder, written, key, total, done=False, warm_state=WarmState.after(row, res)
-                )
+                last_state[0] = WarmState.after(row, res)
+                _write_checkpoint(folder, written, key, total, done=False, warm_state=last_state[0])
                 if hooks is not None:
                     hooks.window(folder, row, prob, res)
                 crash(row.index)
@@ -423,7 +426,7 @@ def estimate_recording(
         files = [result.to_csv(folder / "results.csv"), result.to_json(folder / "results.json")]
         if hooks is not None:
             files += hooks.finished(folder, result)
-        _write_checkpoint(folder, result, key, len(result.windows), done=True)
+        _write_checkpoint(folder, result, key, len(result.windows), done=True, warm_state=last_state[0])
         summary.status = "done"
         summary.windows = len(result.windows)
         summary.new_windows = len(result.windows) - len(done_rows)

@@ -541,6 +541,7 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=Non
     warm_curvature = H is not None
     if H is None:
         H = np.eye(n) * (lr / max(gnorm, 1e-300))  # inverse curvature guess: the first step moves lr px
+    frozen = np.zeros(n, dtype=bool)  # parameters held at a kink of J (see below)
     converged, message = False, f"reached max_iter={max_iter}"
     for _ in range(max_iter):
         if stop:
@@ -552,10 +553,10 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=Non
         if gnorm < gtol:
             converged, message = True, f"gradient norm {gnorm:.3g} < gtol={gtol:g}"
             break
-        direction = H @ g
-        if float(direction @ g) <= 0:  # lost positive definiteness: restart from a gradient step
+        direction = _free_direction(H, g, frozen, lr)
+        if direction is None:  # lost positive definiteness: restart from a gradient step
             H = np.eye(n) * (lr / max(gnorm, 1e-300))
-            direction = H @ g
+            direction = _free_direction(H, g, frozen, lr)
             warm_curvature = False
         newton = float(np.max(np.abs(np.clip(u + direction, lo, hi) - u)))
         if warm_curvature and newton < xtol:
@@ -564,6 +565,19 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=Non
         trial = _backtrack(
             obj.value_and_grad, u, val, g, direction, 1.0, lo, hi, c1, xtol, max_backtracks, interpolate=True
         )
+        while trial is None and np.count_nonzero(~frozen) > 1:
+            # A kink of J (a regularizer's one-sided hinge, e.g. the divergence penalty at h_z = 0) has
+            # different slopes on its two sides: the gradient of one side can point across it, and then
+            # every step along the direction descends although the gradient is not small. Hold the
+            # parameter that carries most of the predicted gain where it is and search the others.
+            gain_share = np.where(frozen, -np.inf, direction * g)
+            frozen[int(np.argmax(gain_share))] = True
+            direction = _free_direction(H, g, frozen, lr)
+            if direction is None:
+                break
+            trial = _backtrack(
+                obj.value_and_grad, u, val, g, direction, 1.0, lo, hi, c1, xtol, max_backtracks, True
+            )
         if trial is None:
             converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
             break
@@ -590,6 +604,26 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=Non
     best = int(np.argmax(rec.values))
     hess_inv = H.copy() if warm_curvature else None
     return _Run(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message, hess_inv)
+
+
+def _free_direction(H: np.ndarray, g: np.ndarray, frozen: np.ndarray, lr: float) -> np.ndarray | None:
+    """The quasi-Newton ascent direction ``H g`` over the parameters not ``frozen`` (frozen ones do not
+    move); the gradient step of ``lr`` px over them when ``H g`` does not ascend; None when neither
+    does (no gradient left on the free parameters)."""
+    free = ~frozen
+    direction = np.zeros_like(g)
+    if np.any(frozen):
+        sub = H[np.ix_(free, free)]
+        direction[free] = sub @ g[free]
+    else:
+        direction = H @ g
+    if float(direction @ g) > 0:
+        return direction
+    g_free = np.where(free, g, 0.0)
+    norm = float(np.linalg.norm(g_free))
+    if not norm > 0:
+        return None
+    return g_free * (lr / norm)
 
 
 def _positive_definite(matrix, n: int) -> np.ndarray | None:

@@ -42,11 +42,11 @@ __all__ = [
     "read_results",
 ]
 
-#: a warm-started window whose refined gain over the identity, J(theta) - J(0), falls below this fraction
-#: of the previous window's gain (scaled down by the squared ratio of window durations when this window
-#: is shorter: the gain grows with the motion blur of the identity, as its square for blurs of a few px)
-#: has lost track of the motion (a sudden change): the global search runs too. A lost track gives a gain
-#: near 0; windows of varying sizes or small fluctuations (a few %) are not a loss
+#: a warm-started window whose refined J falls below this fraction of the previous window's J, and whose
+#: gain over the identity, J(theta) - J(0), falls below this fraction of the previous window's gain (scaled
+#: down by the squared ratio of window durations when this window is shorter: the gain grows with the
+#: identity's motion blur, as its square for blurs of a few px) has lost track of the motion (a sudden
+#: change): the global search runs too. Windows of varying sizes or small fluctuations are not a loss
 TRACKING_LOSS_RATIO = 0.8
 
 #: problem options under which the estimate's own problem measures the FWL (variance, normalised, no
@@ -167,8 +167,11 @@ class WarmState:
 
     def lost_track(self, value: float, value_identity: float, duration: float) -> bool:
         """Whether a refined window (``value``, its identity's J, its duration in s) lost track of the
-        motion this state describes (see :data:`TRACKING_LOSS_RATIO`)."""
-        if not math.isfinite(self.value):
+        motion this state describes (see :data:`TRACKING_LOSS_RATIO`): J fell below the ratio times
+        the previous J, and, where both identities' J are known, so did the gain over the identity
+        (scaled for a shorter window). Either test alone misfires: J alone on windows of varying
+        sizes, the gain alone on recordings of weak contrast (gains of a few % that fluctuate)."""
+        if not math.isfinite(self.value) or value >= TRACKING_LOSS_RATIO * self.value:
             return False
         if math.isfinite(self.value_identity) and math.isfinite(value_identity):
             gain_before = self.value - self.value_identity
@@ -178,7 +181,7 @@ class WarmState:
             if math.isfinite(self.duration) and self.duration > 0 and duration > 0:
                 scale = min(1.0, duration / self.duration) ** 2
             return value - value_identity < TRACKING_LOSS_RATIO * gain_before * scale
-        return value < TRACKING_LOSS_RATIO * self.value
+        return True
 
 
 @dataclass
