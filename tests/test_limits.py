@@ -80,10 +80,11 @@ def test_limits_from_the_environment(monkeypatch):
     monkeypatch.setenv("CMAX_TAICHI_MAX_BYTES", "lots")
     with pytest.raises(ValueError, match="CMAX_TAICHI_MAX_BYTES"):
         cm.get_limits()
-    monkeypatch.setattr(limits, "_current", None)
-    monkeypatch.setenv("CMAX_TAICHI_MAX_BYTES", "-1")
-    with pytest.raises(ValueError, match="max_bytes"):
-        cm.get_limits()
+    for bad in ("-1", "inf", "nan"):
+        monkeypatch.setattr(limits, "_current", None)
+        monkeypatch.setenv("CMAX_TAICHI_MAX_BYTES", bad)
+        with pytest.raises(ValueError, match="max_bytes"):
+            cm.get_limits()
 
 
 def test_default_limits_are_documented_values():

@@ -9,7 +9,7 @@ exceeds a limit with one clear error that names the parameter, the estimate and 
 * ``max_blur_sigma``: the blur footprint ``2 ceil(3 sigma) + 1`` is unrolled into the kernels at
   compile time, so compile time and compiler memory grow with sigma (ValueError above it);
 * ``max_clusters``: the K-cluster kernels unroll the clusters and hold several vector fields of K
-  components; compile time grows with K and Taichi's limit on fields per tree is reached near K = 100
+  components; compile time grows with K, and K = 100 exceeded Taichi's limit on fields per tree
   (ValueError above it).
 
 The defaults come from the environment variables of :data:`ENV_VARS` where set, else from
@@ -64,16 +64,18 @@ class Limits:
         memory of the machine. On a GPU the device memory may be smaller: an allocation that still
         fails is reported as a MemoryError and leaves the session usable.
     max_blur_sigma : float
-        Largest ``blur_sigma`` (px); the footprint is unrolled at compile time (docs/estimation.md
-        gives the measured compile times).
+        Largest ``blur_sigma`` (px); default 3. The fused kernel unrolls the footprint at compile time:
+        sigma = 1, 3, 5, 8 px took 4.8, 8.3, 21.9, 40.7 s to compile cold (docs/estimation.md, limits).
     max_clusters : int
-        Largest number of clusters K of a segmentation or :class:`MultiClusterCMax`.
+        Largest number of clusters K of a segmentation or :class:`MultiClusterCMax`; default 8 (the
+        size of the candidate batches that ``segment`` compiles anyway). Compile time grows with K
+        (docs/estimation.md, limits); K = 100 exceeded Taichi's limit on fields per tree.
     """
 
     max_sensor_pixels: int = 4096 * 4096
     max_bytes: int = dataclasses.field(default_factory=_half_the_memory)
-    max_blur_sigma: float = 5.0
-    max_clusters: int = 16
+    max_blur_sigma: float = 3.0
+    max_clusters: int = 8
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -110,7 +112,8 @@ def _from_environment() -> Limits:
             value = float(text)
         except ValueError:
             raise ValueError(f"environment variable {var} must be a number, got {text!r}") from None
-        changes[name] = int(value) if name != "max_blur_sigma" and value == int(value) else value
+        whole = math.isfinite(value) and value == math.floor(value)
+        changes[name] = int(value) if name != "max_blur_sigma" and whole else value
     try:
         return dataclasses.replace(DEFAULTS, **changes)
     except (TypeError, ValueError) as exc:
@@ -195,8 +198,8 @@ def clusters_bytes(
 
 
 def dense_flow_bytes(width: int, height: int, itemsize: int) -> int:
-    """Bytes of a dense flow: the (2, H, W) field and its float64 copy on the host."""
-    return 2 * width * height * (itemsize + 8)
+    """Bytes of a dense flow: a field of at most three (H, W) planes and their float64 copy on the host."""
+    return 3 * width * height * (itemsize + 8)
 
 
 # --- checks -------------------------------------------------------------------------------------------
@@ -249,7 +252,7 @@ def check_clusters(n_clusters: int) -> None:
     if n_clusters > limit:
         raise ValueError(
             f"n_clusters = {n_clusters} is above the limit max_clusters = {limit}: the K-cluster "
-            f"kernels are unrolled over K (compile time grows with K, and Taichi runs out of fields "
-            f"near K = 100); raise the limit with cmax_taichi.set_limits(max_clusters=...) or "
+            f"kernels are unrolled over K (compile time grows with K; K = 100 exceeded Taichi's limit "
+            f"on fields); raise the limit with cmax_taichi.set_limits(max_clusters=...) or "
             f"{ENV_VARS['max_clusters']}"
         )
