@@ -17,6 +17,7 @@ from conftest import SENSOR, edge_events
 import cmax_taichi as cm
 from cmax_taichi.core import backend, limits
 from cmax_taichi.pipeline.clusters import MultiClusterCMax
+from cmax_taichi.pipeline.fused import n_slices
 from cmax_taichi.testing import reference
 
 THETA = [40.0, -25.0]  # translation2, px/s
@@ -92,6 +93,16 @@ def test_default_limits_are_documented_values():
     assert d["max_sensor_pixels"] == 4096 * 4096
     assert d["max_bytes"] == os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2  # half the RAM
     assert set(d) == set(limits.ENV_VARS)
+
+
+def test_estimate_bounds_what_the_fused_pipeline_allocates():
+    prob = cm.ContrastMaximization(_window(), "translation2")
+    if prob._fused is None:
+        pytest.skip(f"the fused pipeline does not serve this problem here: {prob.path_reason}")
+    itemsize = np.dtype(backend.numpy_real()).itemsize
+    estimate = limits.problem_bytes(*SENSOR, 1, 0, prob.n_events, itemsize, n_slices())
+    allocated = prob._fused.nbytes()
+    assert allocated <= estimate <= 10 * allocated
 
 
 # --- refusals before allocating ------------------------------------------------------------------------

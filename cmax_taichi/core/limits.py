@@ -65,7 +65,8 @@ class Limits:
         fails is reported as a MemoryError and leaves the session usable.
     max_blur_sigma : float
         Largest ``blur_sigma`` (px); default 3. The fused kernel unrolls the footprint at compile time:
-        sigma = 1, 3, 5, 8 px took 4.8, 8.3, 21.9, 40.7 s to compile cold (docs/estimation.md, limits).
+        sigma = 1, 3, 5, 8 px took 4.8, 8.3, 21.9, 40.7 s to compile cold on a 2-core machine at load 4
+        (``benchmarks/compile_cost.py``; docs/estimation.md, limits).
     max_clusters : int
         Largest number of clusters K of a segmentation or :class:`MultiClusterCMax`; default 8 (the
         size of the candidate batches that ``segment`` compiles anyway). Compile time grows with K

@@ -22,7 +22,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend, limits, workspace
+from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import clusters as kcl
 from cmax_taichi.models.objectives import Objective
@@ -112,7 +112,6 @@ class MultiClusterCMax:
         K = int(n_clusters)
         if K < 1:
             raise ValueError(f"n_clusters must be at least 1, got {K}")
-        limits.check_clusters(K)
         self.n_clusters = K
         self.models = _resolve_warps(warp, K)
         setup = ProblemSetup.build(

@@ -265,10 +265,13 @@ class ProblemSetup:
 def check_limits(setup: ProblemSetup, what: str, *, n_clusters: int = 0, n_slices: int = 1) -> None:
     """Refuse a problem above the limits of ``core/limits.py`` before anything is allocated.
 
-    ValueError for a sensor above ``max_sensor_pixels`` or a blur above ``max_blur_sigma``, MemoryError
-    for fields estimated above ``max_bytes``. ``n_clusters`` > 0: a K-cluster problem; ``n_slices``:
-    the fused pipeline's accumulation slices (CPU threads).
+    ValueError for a sensor above ``max_sensor_pixels``, a blur above ``max_blur_sigma`` or more
+    clusters than ``max_clusters``, MemoryError for fields estimated above ``max_bytes``.
+    ``n_clusters`` > 0: a K-cluster problem; ``n_slices``: the fused pipeline's accumulation slices
+    (CPU threads).
     """
+    if n_clusters:
+        limits.check_clusters(n_clusters)
     W, H = setup.width, setup.height
     limits.check_sensor(W, H, what)
     limits.check_blur_sigma(setup.blur_sigma)
