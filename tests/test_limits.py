@@ -222,9 +222,14 @@ def test_failed_allocation_elsewhere_leaves_the_session_usable(monkeypatch, what
     assert_session_usable()
 
 
-def test_runtime_broken_outside_the_guard_is_repaired():
-    """A failure outside cmax-taichi (e.g. the user's own field) left Taichi unable to make fields."""
-    ti.lang.impl._root_fb.finalized = True
+@pytest.mark.parametrize("how", ["failed allocation", "ti.reset"])
+def test_runtime_broken_outside_the_guard_is_repaired(how):
+    """A failure outside cmax-taichi (e.g. the user's own field) or a ``ti.reset()`` left Taichi unable
+    to make fields."""
+    if how == "ti.reset":
+        ti.reset()
+    else:
+        ti.lang.impl._root_fb.finalized = True
     assert backend.is_broken()
     with pytest.warns(RuntimeWarning, match="re-initialised"):
         assert_session_usable()

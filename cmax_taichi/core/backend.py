@@ -148,8 +148,16 @@ def recover() -> BackendInfo:
 
 
 def is_broken() -> bool:
-    """Whether an earlier failure left Taichi's field builder finalized (no new field can be made)."""
-    return _state is not None and bool(ti.root.finalized)
+    """Whether an earlier failure left Taichi's field builder finalized (no new field can be made), or
+    Taichi was reset behind cmax-taichi's back (``ti.reset()``)."""
+    if _state is None:
+        return False
+    if ti.lang.impl.get_runtime().prog is None:  # ti.reset() without ti.init()
+        return True
+    try:
+        return bool(ti.root.finalized)
+    except RuntimeError:  # "Please call init() first"
+        return True
 
 
 def init_if_needed(arch: str | None = None, precision: str | None = None) -> BackendInfo:
@@ -183,9 +191,9 @@ def ensure_initialized() -> BackendInfo:
         return init()
     if is_broken():
         warnings.warn(
-            "cmax_taichi: an earlier failed allocation left Taichi unable to make new fields; the "
-            "backend was re-initialised with the same arch and precision (problems built before it "
-            "must be built again)",
+            "cmax_taichi: Taichi was left unable to make new fields (a failed allocation outside "
+            "cmax-taichi, or ti.reset()); the backend was re-initialised with the same arch and "
+            "precision (problems built before it must be built again)",
             RuntimeWarning,
             stacklevel=2,
         )
