@@ -176,6 +176,24 @@ def test_dense_flow_sensor_is_checked():
     assert_session_usable()
 
 
+def test_command_line_reports_a_limit_in_one_line(tmp_path, capsys):
+    from cmax_taichi.cli import main
+
+    x, y, t, p = edge_events(500)
+    path = tmp_path / "events.txt"
+    np.savetxt(path, np.c_[t, np.round(x), np.round(y), p], fmt=["%.6f", "%d", "%d", "%d"])
+    cm.set_limits(max_bytes=1000)
+    args = ["estimate", str(path), "--window", "250", "--warp", "translation2", "--quiet"]
+    assert main(args + ["--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "max_bytes" in err and "Traceback" not in err
+    cm.set_limits(max_bytes=10**8, max_clusters=8)
+    assert main(["segment", str(path), "-k", "9", "--out", str(tmp_path / "seg")]) == 2
+    err = capsys.readouterr().err
+    assert "n_clusters = 9 is above the limit max_clusters = 8" in err and "Traceback" not in err
+    assert_session_usable()
+
+
 # --- a Taichi allocation that fails all the same ------------------------------------------------------
 def _fail_next_materialize(monkeypatch):
     """Make the next allocation of fields fail as a failed virtual-memory allocation does: the field
