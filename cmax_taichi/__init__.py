@@ -7,6 +7,7 @@ Public names only; see README.md for a worked example and docs/FORMULAS.md for e
 from cmax_taichi.core.backend import BackendInfo, init
 from cmax_taichi.core.backend import info as backend_info
 from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.core.limits import Limits, get_limits, set_limits
 from cmax_taichi.models.objectives import (
     OBJECTIVES,
     FusedObjective,
@@ -55,6 +56,7 @@ __all__ = [
     "Events",
     "OBJECTIVES",
     "FusedObjective",
+    "Limits",
     "Objective",
     "OptimizeResult",
     "POLARITY_MODES",
@@ -71,6 +73,7 @@ __all__ = [
     "batch_run",
     "dense_flow",
     "event_jacobians",
+    "get_limits",
     "get_warp",
     "init",
     "maximize",
@@ -81,6 +84,7 @@ __all__ = [
     "register_warp",
     "regularizer_names",
     "segment",
+    "set_limits",
     "simulate_preset",
     "unregister_regularizer",
     "unregister_warp",

@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("cmax-taichi: interrupted", file=sys.stderr)
         return 130
-    except (CliError, ValueError, TypeError, OSError, KeyError) as exc:
+    except (CliError, ValueError, TypeError, OSError, KeyError, MemoryError) as exc:
         message = str(exc) or type(exc).__name__
         if isinstance(exc, KeyError):
             message = f"missing key {message}"

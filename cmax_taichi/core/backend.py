@@ -44,6 +44,7 @@ class BackendInfo:
 
 _state: BackendInfo | None = None
 _reset_hooks: list = []
+_options: dict = {}  # the keyword options of the last init(), kept by recover()
 
 
 def _arch_of(name: str):
@@ -130,7 +131,33 @@ def init(
             stacklevel=2,
         )
     _state = BackendInfo(requested_arch=arch, arch=used, precision=precision, generation=generation)
+    _options.update(quiet=quiet, kernel_profiler=kernel_profiler)
     return _state
+
+
+def recover() -> BackendInfo:
+    """Re-initialise Taichi with the arch, precision and options in use (after a failed allocation).
+
+    A field allocation that fails leaves Taichi's field builder finalized: every later field fails
+    with "FieldsBuilder finalized" until a reset. The reset drops the pooled workspaces and compiled
+    kernels (the :func:`on_reset` hooks); problems built before raise a clear error when used.
+    """
+    if _state is None:
+        return init()
+    return init(arch=_state.requested_arch, precision=_state.precision, **_options)
+
+
+def is_broken() -> bool:
+    """Whether an earlier failure left Taichi's field builder finalized (no new field can be made), or
+    Taichi was reset behind cmax-taichi's back (``ti.reset()``)."""
+    if _state is None:
+        return False
+    if ti.lang.impl.get_runtime().prog is None:  # ti.reset() without ti.init()
+        return True
+    try:
+        return bool(ti.root.finalized)
+    except RuntimeError:  # "Please call init() first"
+        return True
 
 
 def init_if_needed(arch: str | None = None, precision: str | None = None) -> BackendInfo:
@@ -155,9 +182,22 @@ def is_initialized() -> bool:
 
 
 def ensure_initialized() -> BackendInfo:
-    """Initialise the default backend once; return the current backend."""
+    """Initialise the default backend once; return the current backend.
+
+    Where a failure outside cmax-taichi's allocation guard left Taichi unable to make fields (see
+    :func:`recover`), re-initialise it with the same settings, with a warning.
+    """
     if _state is None:
         return init()
+    if is_broken():
+        warnings.warn(
+            "cmax_taichi: Taichi was left unable to make new fields (a failed allocation outside "
+            "cmax-taichi, or ti.reset()); the backend was re-initialised with the same arch and "
+            "precision (problems built before it must be built again)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return recover()
     return _state
 
 

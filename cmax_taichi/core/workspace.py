@@ -9,8 +9,9 @@ between. A sequence of windows solved one after the other compiles once.
 
 from __future__ import annotations
 
+import contextlib
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import taichi as ti
 
@@ -51,11 +52,36 @@ class Workspace:
         self._owner = None
 
 
-def acquire(key: tuple, build: Callable[[Workspace], None]) -> Workspace:
-    """The pooled workspace for ``key``, built by ``build(ws)`` on first use."""
+@contextlib.contextmanager
+def allocating(what: str) -> Iterator[None]:
+    """Declare fields inside this block; they are allocated (materialized) at its end.
+
+    A Taichi failure while declaring or allocating them (the machine's or the device's memory, the
+    address space, Taichi's limit on fields per tree) would leave Taichi unable to make any new field;
+    instead the backend is re-initialised with the same settings (:func:`backend.recover`: the pools
+    and compiled kernels are dropped) and one MemoryError names ``what`` and Taichi's reason.
+    """
+    try:
+        yield
+        ti.lang.impl.get_runtime().materialize()
+    except RuntimeError as exc:  # Taichi's allocation errors, TaichiRuntimeError, failed assertions
+        reason = " ".join(str(exc).split()).rstrip(".")
+        backend.recover()
+        raise MemoryError(
+            f"Taichi could not allocate the fields of {what}: {reason}. The Taichi backend was "
+            "re-initialised with the same arch and precision (the session stays usable; problems built "
+            "before must be built again)"
+        ) from None
+
+
+def acquire(key: tuple, build: Callable[[Workspace], None], what: str = "") -> Workspace:
+    """The pooled workspace for ``key``, built by ``build(ws)`` on first use inside :func:`allocating`
+    (``what`` names it in the error)."""
     ws = _POOL.get(key)
     if ws is None:
-        ws = _POOL[key] = Workspace(key, build)
+        with allocating(what or f"a {key[0]} workspace"):
+            ws = Workspace(key, build)
+        _POOL[key] = ws
     return ws
 
 
@@ -93,7 +119,9 @@ def event_buffer(dtype, n_columns: int, n_events: int) -> EventBuffer:
     key = ("events", backend.info().generation, str(dtype), int(n_columns), capacity)
     buf = _POOL.get(key)
     if buf is None:
-        buf = _POOL[key] = EventBuffer(dtype, n_columns, capacity)
+        with allocating(f"an event buffer of {capacity:,} x {n_columns} values"):
+            buf = EventBuffer(dtype, n_columns, capacity)
+        _POOL[key] = buf
     return buf
 
 

@@ -31,6 +31,7 @@ from cmax_taichi.models.warps import WarpModel, get_warp
 from cmax_taichi.pipeline.setup import (
     ProblemSetup,
     allocate_images,
+    check_limits,
     image_kernels,
     run_chain,
     run_chain_backward,
@@ -118,6 +119,7 @@ class MultiClusterCMax:
         )
         if setup.n_events < K:
             raise ValueError(f"n_clusters = {K} is more than the {setup.n_events} events of the window")
+        check_limits(setup, f"this {K}-cluster problem", n_clusters=K)
         self.setup = setup
         self.objective: Objective = setup.objective
         self.camera = camera
@@ -194,7 +196,7 @@ class MultiClusterCMax:
             self.setup.radius,
             self.objective.slots_per_channel,
         )
-        self._ws = workspace.acquire(key, self._build_fields)
+        self._ws = workspace.acquire(key, self._build_fields, f"a {K}-cluster problem on a {W}x{H} sensor")
         ev = self.events
         # Events are uploaded in pixel (row-major) order: neighbouring threads then vote into nearby
         # pixels, which makes the atomic adds of the splat and its adjoint ~1.5x cheaper than time order.
@@ -347,7 +349,8 @@ class MultiClusterCMax:
     def _check_alive(self) -> None:
         if backend.info().generation != self._backend.generation:
             raise RuntimeError(
-                "this problem was built before cmax_taichi.init() reset the backend; build it again"
+                "this problem was built before the Taichi backend was reset (by cmax_taichi.init() or "
+                "after a failed allocation); build it again"
             )
 
     def _require_memberships(self) -> None:

@@ -221,7 +221,7 @@ class FusedPipeline:
             )
             ws.kernels = {}
 
-        self._ws = workspace.acquire(key, build)
+        self._ws = workspace.acquire(key, build, f"a {W}x{H} problem (fused pipeline)")
         self.fields = self._ws.fields
         penalties = tuple(r.penalty for r in regs)
         kkey = (

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend, workspace
+from cmax_taichi.core import backend, limits, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import blocks as kblocks
 from cmax_taichi.kernels import iwe as kiwe
@@ -30,11 +30,12 @@ from cmax_taichi.kernels import whitening as kwhite
 from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
 from cmax_taichi.models.warps import WarpModel, get_warp
-from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline
+from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline, n_slices
 from cmax_taichi.pipeline.setup import (
     POLARITY_MODES,
     ProblemSetup,
     allocate_images,
+    check_limits,
     image_kernels,
     run_chain,
     run_chain_backward,
@@ -170,7 +171,7 @@ class ContrastMaximization:
 
     def _setup_for(self, events: Events, weights) -> ProblemSetup:
         o = self._options
-        return ProblemSetup.build(
+        setup = ProblemSetup.build(
             events,
             [self.model],
             o["objective"],
@@ -182,6 +183,8 @@ class ContrastMaximization:
             o["polarity"],
             weights,
         )
+        check_limits(setup, "this problem", n_slices=n_slices())  # before anything is allocated
+        return setup
 
     def set_events(self, events: Events, weights: Sequence[float] | np.ndarray | None = None) -> None:
         """Take another window of events in place, with this problem's warp, objective, regularizers,
@@ -290,7 +293,7 @@ class ContrastMaximization:
             self.polarity == "split",
             self.whitening,
         )
-        self._ws = workspace.acquire(key, self._build_fields)
+        self._ws = workspace.acquire(key, self._build_fields, f"a {self.width}x{self.height} problem")
         ev = self.events
         self._per_event = {
             "ex": ev.x,
@@ -406,7 +409,8 @@ class ContrastMaximization:
     def _check_alive(self) -> None:
         if backend.info().generation != self._backend.generation:
             raise RuntimeError(
-                "this problem was built before cmax_taichi.init() reset the backend; build it again"
+                "this problem was built before the Taichi backend was reset (by cmax_taichi.init() or "
+                "after a failed allocation); build it again"
             )
 
     def _args_splat(self, count=None, numer=None):
@@ -527,11 +531,13 @@ class ContrastMaximization:
         key = tuple(names)
         if key not in self._ws.maps:
             real = backend.real()
-            self._ws.maps[key] = (
-                ti.field(real, shape=(H, W)),
-                ti.field(real, shape=(len(regs), H, W)),
-                ti.field(real, shape=(2 * len(regs), H, W)),
-            )
+            with workspace.allocating(f"the maps of a {W}x{H} problem"):
+                fields = (
+                    ti.field(real, shape=(H, W)),
+                    ti.field(real, shape=(len(regs), H, W)),
+                    ti.field(real, shape=(2 * len(regs), H, W)),
+                )
+            self._ws.maps[key] = fields
         count, numer, out = self._ws.maps[key]
         self._load()
         reg_key = tuple((r.name, id(r)) for r in regs)
@@ -646,7 +652,7 @@ def dense_flow(
     backend.ensure_initialized()
     model = get_warp(warp)
     theta = _check_theta(theta, model.n_params, model.name)
-    W, H = (int(v) for v in sensor_size)
+    W, H = limits.check_dense_flow(sensor_size, np.dtype(backend.numpy_real()).itemsize)
     if model.needs_camera and camera is None:
         raise ValueError(f"warp {model.name!r} needs a camera (intrinsics): pass camera=")
     if not (math.isfinite(duration) and duration > 0):
@@ -659,7 +665,9 @@ def dense_flow(
         ws.ctx = ti.Vector.field(5, real, shape=())
         ws.out = ti.field(real, shape=(2, H, W))
 
-    ws = workspace.acquire(("dense_flow", info.generation, model.n_params, W, H), build)
+    ws = workspace.acquire(
+        ("dense_flow", info.generation, model.n_params, W, H), build, f"the dense flow of a {W}x{H} sensor"
+    )
     th, ctx, out = ws.th, ws.ctx, ws.out
     th[None] = theta.tolist()
     if camera is not None:

@@ -18,14 +18,21 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend, workspace
+from cmax_taichi.core import backend, limits, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.models.objectives import OBJECTIVES, Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
 
-__all__ = ["POLARITY_MODES", "ProblemSetup", "cached_kernel", "run_chain", "run_chain_backward"]
+__all__ = [
+    "POLARITY_MODES",
+    "ProblemSetup",
+    "cached_kernel",
+    "check_limits",
+    "run_chain",
+    "run_chain_backward",
+]
 
 POLARITY_MODES = ("ignore", "signed", "split")
 
@@ -253,6 +260,31 @@ class ProblemSetup:
 
     def one_sided(self) -> tuple[bool, ...]:
         return tuple(bool(r.one_sided) for r in self.regularizers)
+
+
+def check_limits(setup: ProblemSetup, what: str, *, n_clusters: int = 0, n_slices: int = 1) -> None:
+    """Refuse a problem above the limits of ``core/limits.py`` before anything is allocated.
+
+    ValueError for a sensor above ``max_sensor_pixels``, a blur above ``max_blur_sigma`` or more
+    clusters than ``max_clusters``, MemoryError for fields estimated above ``max_bytes``.
+    ``n_clusters`` > 0: a K-cluster problem; ``n_slices``: the fused pipeline's accumulation slices
+    (CPU threads).
+    """
+    if n_clusters:
+        limits.check_clusters(n_clusters)
+    W, H = setup.width, setup.height
+    limits.check_sensor(W, H, what)
+    limits.check_blur_sigma(setup.blur_sigma)
+    itemsize = np.dtype(backend.numpy_real()).itemsize
+    n_regs = len(setup.regularizers)
+    if n_clusters:
+        estimate = limits.clusters_bytes(W, H, n_clusters, n_regs, setup.n_events, itemsize)
+        parameters = f"sensor {W}x{H}, n_clusters = {n_clusters}"
+    else:
+        estimate = limits.problem_bytes(W, H, setup.n_channels, n_regs, setup.n_events, itemsize, n_slices)
+        parameters = f"sensor {W}x{H}, {setup.n_channels} channel(s)"
+    parameters += f", {n_regs} regularizer(s), {setup.n_events:,} events, {itemsize}-byte floats"
+    limits.check_bytes(estimate, what, parameters)
 
 
 # --- fields shared by the generic chains --------------------------------------------------------------

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend
+from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import simulator as ksim
 from cmax_taichi.sim.recording import SimulatedRecording
 from cmax_taichi.sim.scenes import PRESETS, Scene, preset_scene
@@ -125,8 +125,11 @@ def _bucket(n: int) -> int:
 def _pooled(key: tuple, build) -> SimpleNamespace:
     ns = _POOL.get(key)
     if ns is None:
-        ns = _POOL[key] = SimpleNamespace(owner=None)
-        build(ns)
+        ns = SimpleNamespace(owner=None)
+        # a failed allocation re-initialises the backend and raises MemoryError (core/workspace.py)
+        with workspace.allocating(f"the simulator's {key[0]} fields {key[2:]}"):
+            build(ns)
+        _POOL[key] = ns
     return ns
 
 
