@@ -194,3 +194,27 @@ def test_gpu_plan_limits():
     assert all(c.precision == "f32" for c in plan.configs)
     assert all("numpy" in c.impls for c in plan.configs)  # the value anchor of the agreement check
     assert {c.sensor_name for c in plan.configs} == {"346x260", "1280x720"}
+
+
+def test_realtime_factor_report(tmp_path):
+    """cmax-taichi bench --realtime (lab/realtime.py) on a short simulated stream and a missing recording:
+    one measured row, one skipped row, both files written."""
+    from cmax_taichi.lab import realtime
+
+    cases = (
+        realtime.RealtimeCase("simulated stream", "simulated", "translation2", n_events=3000),
+        realtime.RealtimeCase("absent", "no_such_recording", "translation2"),
+    )
+    lines = []
+    rows = realtime.run_realtime(
+        tmp_path / "data", tmp_path / "out", sim_seconds=0.05, cases=cases, log=lines.append
+    )
+    measured, skipped = rows
+    assert measured["status"] == "ok" and measured["windows"] >= 3
+    assert measured["real_time_factor"] > 0 and measured["warm_evaluations_median"] >= 1
+    assert skipped["status"].startswith("skipped: no ")
+    text = (tmp_path / "out" / "realtime.md").read_text()
+    assert "| simulated stream | translation2 | none |" in text and "| absent | translation2 |" in text
+    assert (tmp_path / "out" / "realtime.csv").read_text().count("\n") == 3
+    with pytest.raises(ValueError, match="--sim-seconds must be a positive number of seconds"):
+        realtime.run_realtime(tmp_path, tmp_path / "out", sim_seconds=0.0, cases=cases)
