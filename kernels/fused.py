@@ -105,7 +105,16 @@ class FusedFields:
         self.g0 = ti.field(real, shape=())
         # 0-D scalars (Taichi accumulates them thread-locally): objective slots, sum m, sum m P_r
         self.red = [ti.field(real, shape=()) for _ in range(objective_slots * C + 1 + n_voted)]
-        self.gsum = [ti.field(ti.f64, shape=()) for _ in range(n_params)]
+        # dJ/dtheta accumulators (f64 also in f32 runs) in a field tree of their own: Taichi 1.7.4's SPIR-V
+        # backends (Vulkan, Metal) pack a tree's fields without alignment padding but address an f64 at
+        # byte offset o as element o >> 3, so an f64 placed at 4 mod 8 among the f32 fields reads and
+        # writes 4 bytes too low, over its neighbour (it zeroed lambda's s_r; taichi-dev/taichi#8803,
+        # docs/GPU.md). Alone in their tree, every f64 sits at a multiple of 8.
+        self.gsum = [ti.field(ti.f64) for _ in range(n_params)]
+        f64_tree = ti.FieldsBuilder()
+        for g in self.gsum:
+            f64_tree.place(g)
+        self.f64_tree = f64_tree.finalize()
         # theta as a 0-D vector: Taichi keeps its loads outside the event loop (not so for 0-D scalars,
         # whose loads it moves into the loop, where they block hoisting the trigonometry)
         self.thv = ti.Vector.field(n_params, real, shape=())

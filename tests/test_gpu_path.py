@@ -20,6 +20,7 @@ import warnings
 
 import numpy as np
 import pytest
+import taichi as ti
 from conftest import CAMERA, THETAS
 from test_optimize import V_TRUE, moving_edges
 from test_pipeline_gradients import OBJECTIVES, REGS, check_against_reference
@@ -27,7 +28,6 @@ from test_pipeline_gradients import OBJECTIVES, REGS, check_against_reference
 import cmax_taichi as cm
 from cmax_taichi.core import backend
 from cmax_taichi.lab import segment_eval as se
-from cmax_taichi.pipeline.fused import UNRELIABLE_REGULARIZED_ARCHS
 
 #: the archs that select this module (``gpu`` lets Taichi pick CUDA, Vulkan or Metal)
 GPU_ARCHS = ("vulkan", "cuda", "metal", "gpu")
@@ -83,12 +83,37 @@ def test_backend_is_the_requested_gpu(on_gpu):
         assert on_gpu.arch == REQUESTED
 
 
+def misaligned_fields(fields) -> list[str]:
+    """The fields of ``fields`` (a FusedFields) whose elements do not sit at a multiple of their own size
+    from the start of their field tree, with their offsets.
+
+    Taichi 1.7.4's SPIR-V backends (Vulkan, Metal) pack a tree without alignment padding and address an
+    element of ``b`` bytes at byte offset ``o`` as element ``o // b``: a misaligned f64 reads and writes
+    4 bytes too low, over its neighbour (docs/GPU.md; taichi-dev/taichi#8803). Call after a launch (the
+    default tree gets its layout then).
+    """
+    bad = []
+    for name, value in vars(fields).items():
+        for i, field in enumerate(value if isinstance(value, list) else [value]):
+            if not isinstance(field, ti.Field):
+                continue
+            for member in field._get_field_members():
+                node = member.ptr.snode()  # the place node of one component
+                dtype = node.data_type()
+                size = 8 if dtype in (ti.f64, ti.i64, ti.u64) else 4
+                while node.parent is not None:  # up to the tree's root
+                    stride = None if node.is_place() else node.cell_size_bytes
+                    if node.offset_bytes_in_parent_cell % size or (stride is not None and stride % size):
+                        bad.append(f"{name}[{i}] ({dtype}): offset {node.offset_bytes_in_parent_cell}")
+                        break
+                    node = node.parent
+    return bad
+
+
 # every warp x objective x regularizer set, on the fused pipeline (atomic scatter on a GPU) and on the
 # generic kernel chain; 400 events on 64 x 48 pixels (compiling dominates: each case is its own kernel)
-# Known bug, found by this module (lavapipe, Taichi 1.7.4): with regularizers the fused kernel gave wrong
-# values on Vulkan in some cases (a single regularizer's scale zeroed; translation2 + gradient magnitude
-# with both regularizers off by 3%), varying with the field layout (docs/GPU.md). The library therefore
-# serves regularized problems on Vulkan with the generic chain: those "fused" cases check that guard.
+# This module found the f64 alignment bug of Taichi's SPIR-V field layout (docs/GPU.md): the fused cases
+# also check that every field of the fused pipeline sits where the SPIR-V code generator addresses it.
 COMBOS = list(itertools.product(("fused", "chain"), THETAS, OBJECTIVES, REGS))
 
 
@@ -99,10 +124,9 @@ def test_value_and_gradient_against_f64_reference(path, warp, objective, regs):
         dict(warp=warp, objective=objective, regularizers=REGS[regs], camera=CAMERA),
         fused=path == "fused",
     )
-    guarded = regs != "none" and cm.backend_info().arch in UNRELIABLE_REGULARIZED_ARCHS
-    assert (prob._fused is not None) == (path == "fused" and not guarded)
-    if path == "fused" and guarded:  # the known Vulkan bug: the library routes these to the chain
-        assert prob.path == "chain" and "known issues" in prob.path_reason
+    assert (prob._fused is not None) == (path == "fused")
+    if path == "fused":
+        assert misaligned_fields(prob._fused.fields) == []
 
 
 @pytest.mark.parametrize("path", ["fused", "chain"])
@@ -122,9 +146,7 @@ def test_fused_and_chain_agree_along_a_path():
     from cmax_taichi.pipeline.fused import FusedPipeline
 
     events = moving_edges(n=3000, seed=4)
-    # regularized problems take the chain on the backends of the known bug (docs/GPU.md)
-    regs = {} if cm.backend_info().arch in UNRELIABLE_REGULARIZED_ARCHS else REGS["both"]
-    options = dict(warp="sim2", regularizers=regs, camera=CAMERA)
+    options = dict(warp="sim2", regularizers=REGS["both"], camera=CAMERA)
     fused = cm.ContrastMaximization(events, **options)
     FusedPipeline.enabled = False
     try:

@@ -38,15 +38,6 @@ __all__ = ["ChainPathWarning", "FusedPipeline", "PathChoice"]
 
 MAX_PARAMS = kfused.MAX_PARAMS
 
-#: backends on which the fused kernel gave wrong values with regularizers (Taichi 1.7.4 on Mesa's
-#: lavapipe: J without, or with a wrong, penalty in some warp x objective x regularizer cases, varying
-#: with the field layout; docs/GPU.md). Regularized problems there take the generic chain, which is right.
-UNRELIABLE_REGULARIZED_ARCHS = frozenset({"vulkan"})
-UNRELIABLE_REGULARIZED_REASON = (
-    "on {arch}, the fused kernel gave wrong values with regularizers (docs/GPU.md, known issues): "
-    "regularized problems run on the generic autodiff chain there"
-)
-
 
 class ChainPathWarning(UserWarning):
     """A problem runs on the generic autodiff chain because a part of it does not declare what the fused
@@ -145,8 +136,6 @@ class FusedPipeline:
             return PathChoice(None, "the fused pipeline is switched off (FusedPipeline.enabled = False)")
         if problem.whitening:
             return PathChoice(None, "whitening runs on the generic autodiff chain only")
-        if problem.regularizer_weights and backend.info().arch in UNRELIABLE_REGULARIZED_ARCHS:
-            return PathChoice(None, UNRELIABLE_REGULARIZED_REASON.format(arch=backend.info().arch))
         model = problem.model
         if model.n_params > MAX_PARAMS:
             return PathChoice(
