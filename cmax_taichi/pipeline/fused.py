@@ -294,7 +294,7 @@ class FusedPipeline:
         self._packed = np.zeros((self._event_buffer.capacity, len(cols)), dtype=backend.numpy_real())
         # the events ordered by their pixel row (a stable radix sort: time order within a row), so that
         # consecutive events vote into, and gather the adjoints from, the same few rows of the images,
-        # which stay in the L1 cache: about 15% less CPU time per call at 1M events (docs/performance.md).
+        # which stay in the L1 cache: 10-30% less CPU time per call at 1M events (docs/performance.md).
         # J and dJ/dtheta are sums over events: the order changes their rounding only.
         # (on the CPU only: on a GPU, neighbouring events would contend for the same atomic adds)
         order = slice(None) if atomic else np.argsort(_row_keys(ev.y, H), kind="stable")
