@@ -108,6 +108,13 @@ def _abs_det_param_jac(model: WarpModel):
     return model._fallbacks[key]
 
 
+def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
+    """The pixel row of each event as the smallest integer type (int16 sorts by radix), clipped into
+    the image (events outside it keep their place among the rows at the border)."""
+    dtype = np.int16 if height < np.iinfo(np.int16).max else np.int32
+    return np.clip(y, 0, height - 1).astype(dtype)
+
+
 def n_slices() -> int:
     """Accumulation slices of the splat: one per CPU thread; 1 (atomics) on a GPU."""
     if backend.info().arch != "cpu":
@@ -254,7 +261,7 @@ class FusedPipeline:
             )
         self._run_k = self._ws.kernels[kkey]
 
-        self._weighted, self._split = weighted, split
+        self._weighted, self._split, self._atomic = weighted, split, atomic
         self._sensor = (W, H)
         self._theta = np.zeros(MAX_PARAMS)
         self._out = np.zeros(2 + P)  # J, G_raw, dJ/dtheta
@@ -295,7 +302,14 @@ class FusedPipeline:
             self._packed = np.zeros((self._event_buffer.capacity, len(cols)), dtype=backend.numpy_real())
         else:
             self._packed[self.n_events :] = 0.0
-        self._packed[: self.n_events] = np.stack(cols, axis=1)
+        # the events ordered by their pixel row (a stable radix sort: time order within a row), so that
+        # consecutive events vote into, and gather the adjoints from, the same few rows of the images,
+        # which stay in the L1 cache: 10-30% less CPU time per call at 1M events (docs/performance.md).
+        # J and dJ/dtheta are sums over events: the order changes their rounding only.
+        # (on the CPU only: on a GPU, neighbouring events would contend for the same atomic adds)
+        order = slice(None) if self._atomic else np.argsort(_row_keys(ev.y, self._sensor[1]), kind="stable")
+        for j, col in enumerate(cols):
+            self._packed[: self.n_events, j] = col[order]
         self.events = self._event_buffer.array
         self.event_bytes = self._packed.nbytes
         self._event_buffer.release()
