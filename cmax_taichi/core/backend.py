@@ -122,6 +122,12 @@ def init(
             log_level=log_level,
             offline_cache=True,
             kernel_profiler=kernel_profiler,
+            # Taichi 1.7.4's CPU multithreading pass runs a range-for of fewer than about 512
+            # iterations on one thread, whatever its block_dim: the fused kernels' per-thread slice
+            # loops (range(2) here) ran serially, one core for the whole event pass. The previous
+            # scheme honours ti.loop_config(block_dim=1): 1.6-1.7x faster value_and_grad at 1M
+            # events on 2 cores (docs/performance.md).
+            make_cpu_multithreading_loop=False,
         )
     used = _running_arch_name()
     if arch != "cpu" and used == "cpu":
