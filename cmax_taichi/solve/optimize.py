@@ -44,14 +44,16 @@ Learning rates, tolerances and grid spacings below are in these units (px over t
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from cmax_taichi.core import checks
 from cmax_taichi.models.warps import WarpModel
-from cmax_taichi.pipeline.problem import ContrastMaximization
+from cmax_taichi.pipeline.problem import ContrastMaximization, NonFiniteResultError, _check_theta
 from cmax_taichi.solve.search import distinct_top, grid_search, random_search, tpe_search
 
 __all__ = [
@@ -262,12 +264,18 @@ class _Objective:
 
     def value(self, u: np.ndarray) -> float:
         self.n_evaluations += 1
-        v = self.prob.value(self.theta(u))
+        try:
+            v = self.prob.value(self.theta(u))
+        except NonFiniteResultError:  # the parameters overflow the float type: outside the usable range
+            return -math.inf
         return v if math.isfinite(v) else -math.inf
 
     def value_and_grad(self, u: np.ndarray) -> tuple[float, np.ndarray]:
         self.n_evaluations += 1
-        v, g = self.prob.value_and_grad(self.theta(u))
+        try:
+            v, g = self.prob.value_and_grad(self.theta(u))
+        except NonFiniteResultError:
+            return -math.inf, np.zeros(len(self.scales))
         g = np.asarray(g, dtype=np.float64) / self.scales
         if not (math.isfinite(v) and np.all(np.isfinite(g))):
             return -math.inf, np.zeros_like(g)
@@ -535,6 +543,57 @@ def _bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> _Run:
 
 
 # --- the driver --------------------------------------------------------------------------------------
+def _real_number(name: str, value, unit: str) -> float:
+    if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a number ({unit}), got {value!r} ({type(value).__name__})")
+    try:
+        number = float(value)
+    except OverflowError:
+        raise ValueError(f"{name} must be a finite number ({unit}), got an int beyond float64") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number ({unit}), got {number}")
+    return number
+
+
+def _positive_number(name: str, value, unit: str) -> float:
+    number = _real_number(name, value, unit)
+    if not number > 0:
+        raise ValueError(f"{name} must be a positive number ({unit}), got {number}")
+    return number
+
+
+def _non_negative_number(name: str, value, unit: str) -> float:
+    number = _real_number(name, value, unit)
+    if not number >= 0:
+        raise ValueError(f"{name} must be a finite number >= 0 ({unit}), got {number}")
+    return number
+
+
+def _parameter_vector(name: str, value, model: WarpModel) -> np.ndarray:
+    """A parameter vector of ``model`` given by the user (``theta0``, a candidate, a bound), checked as
+    the problem checks theta, with ``name`` in the message."""
+    return _check_theta(value, model.n_params, model.name, label=name)
+
+
+def _check_bounds(bounds, model: WarpModel) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` of a user-given search box: finite parameter vectors with ``lo < hi``."""
+    P = model.n_params
+    if isinstance(bounds, (str, bytes)) or not hasattr(bounds, "__len__") or len(bounds) != 2:
+        raise TypeError(
+            f"bounds must be a pair (lo, hi) of {P} numbers each for warp {model.name!r}, got {bounds!r}"
+        )
+    lo = _parameter_vector("bounds lo", bounds[0], model)
+    hi = _parameter_vector("bounds hi", bounds[1], model)
+    inverted = np.flatnonzero(~(lo < hi))
+    if inverted.size:
+        i = int(inverted[0])
+        raise ValueError(
+            f"bounds: lo[{i}] = {lo[i]:.6g} is not below hi[{i}] = {hi[i]:.6g} "
+            f"(parameter {model.params[i]!r} of warp {model.name!r}); bounds are (lo, hi) with lo < hi"
+        )
+    return lo, hi
+
+
 def maximize(
     prob: ContrastMaximization,
     theta0: Sequence[float] | np.ndarray | None = None,
@@ -618,11 +677,17 @@ def maximize(
         raise ValueError(f"unknown method {method!r}; valid: {', '.join(METHODS)}")
     if init not in INITS:
         raise ValueError(f"unknown init {init!r}; valid: {', '.join(INITS)}")
-    for name, v in (("lr", lr), ("xtol", xtol), ("min_spacing", min_spacing)):
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"{name} must be a positive number (px), got {v}")
-    if int(n_starts) < 1:
-        raise ValueError(f"n_starts must be at least 1, got {n_starts}")
+    lr = _positive_number("lr", lr, "px")
+    xtol = _positive_number("xtol", xtol, "px")
+    min_spacing = _positive_number("min_spacing", min_spacing, "px")
+    gtol = _non_negative_number("gtol", gtol, "1/px")
+    rtol = _non_negative_number("rtol", rtol, "relative")
+    n_starts = checks.whole_number("n_starts", n_starts, minimum=1)
+    patience = checks.whole_number("patience", patience, minimum=1)
+    if n_init is not None:
+        n_init = checks.whole_number("n_init", n_init, minimum=1)
+    if max_iter is not None:
+        max_iter = checks.whole_number("max_iter", max_iter, minimum=0)
     model = prob.model
     P = model.n_params
     scales = parameter_scales(prob)
@@ -631,32 +696,25 @@ def maximize(
     if bounds is None:
         lo_t, hi_t = search_bounds(prob)
     else:
-        lo_t, hi_t = (np.asarray(b, dtype=np.float64).reshape(-1) for b in bounds)
-        if lo_t.size != P or hi_t.size != P or not np.all(lo_t < hi_t):
-            raise ValueError(f"bounds must be (lo, hi) with {P} values each and lo < hi")
+        lo_t, hi_t = _check_bounds(bounds, model)
     lo, hi = lo_t * scales, hi_t * scales
 
     u0 = None
     if theta0 is not None:
-        arr = np.asarray(theta0, dtype=np.float64).reshape(-1)
-        if arr.size != P or not np.all(np.isfinite(arr)):
-            raise ValueError(f"theta0 must hold {P} finite numbers for warp {model.name!r}, got {theta0!r}")
+        arr = _parameter_vector("theta0", theta0, model)
         u0 = arr * scales
         lo, hi = np.minimum(lo, u0), np.maximum(hi, u0)  # a warm start outside the box widens it
     if init == "auto":
         init = "grid" if u0 is None else "local"
     if max_iter is None:
         max_iter = {"adam": 150, "bfgs": 50}.get(method, 100)
-    max_iter = int(max_iter)
     rng = np.random.default_rng(seed)
 
     extra = [np.zeros(P)] if np.all((lo <= 0) & (hi >= 0)) else []
     if u0 is not None:
         extra.append(u0)
-    for c in candidates or ():
-        arr = np.asarray(c, dtype=np.float64).reshape(-1)
-        if arr.size != P or not np.all(np.isfinite(arr)):
-            raise ValueError(f"candidates must hold {P} finite numbers each for warp {model.name!r}")
+    for i, c in enumerate(candidates or ()):
+        arr = _parameter_vector(f"candidates[{i}]", c, model)
         extra.append(np.clip(arr * scales, lo, hi))
     if init == "warm" and u0 is None:
         raise ValueError("init='warm' refines a warm start: pass theta0")
