@@ -32,7 +32,13 @@ from cmax_taichi.models.warps import (
 )
 from cmax_taichi.pipeline.fused import ChainPathWarning
 from cmax_taichi.pipeline.jacobians import event_jacobians
-from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
+from cmax_taichi.pipeline.problem import (
+    POLARITY_MODES,
+    ContrastMaximization,
+    Evaluation,
+    NonFiniteResultError,
+    dense_flow,
+)
 from cmax_taichi.sim import (
     SimulatedRecording,
     Simulator,
@@ -55,6 +61,7 @@ __all__ = [
     "Events",
     "OBJECTIVES",
     "FusedObjective",
+    "NonFiniteResultError",
     "Objective",
     "OptimizeResult",
     "POLARITY_MODES",

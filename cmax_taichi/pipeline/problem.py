@@ -96,6 +96,10 @@ def _describe_number(value) -> str:
         return repr(value)
 
 
+def _format_vector(values: np.ndarray) -> str:
+    return "[" + ", ".join(f"{v:.6g}" for v in np.asarray(values, dtype=np.float64).reshape(-1)) + "]"
+
+
 def _check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
     """``theta`` as ``n`` finite float64 values that the backend's float type can hold.
 
@@ -129,7 +133,9 @@ def _check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
     bad = np.flatnonzero(~np.isfinite(arr))
     if bad.size:
         i = int(bad[0])
-        raise ValueError(f"{what} has a non-finite value: {label}[{i}] = {arr[i]} ({label} = {arr})")
+        raise ValueError(
+            f"{what} has a non-finite value: {label}[{i}] = {arr[i]} ({label} = {_format_vector(arr)})"
+        )
     limit = float(np.finfo(backend.numpy_real()).max)
     big = np.flatnonzero(np.abs(arr) > limit)
     if big.size:
@@ -147,8 +153,8 @@ def _require_finite(model: WarpModel, theta: np.ndarray, what: str, *values) -> 
     precision = backend.info().precision
     hint = " (or use cm.init(precision='f64'))" if precision == "f32" else ""
     raise NonFiniteResultError(
-        f"{what} is not finite at theta = {theta} of warp {model.name!r}: the parameters overflow "
-        f"{precision} arithmetic (values beyond {np.finfo(backend.numpy_real()).max:.3g}); "
+        f"{what} is not finite at theta = {_format_vector(theta)} of warp {model.name!r}: the parameters "
+        f"overflow {precision} arithmetic (values beyond {np.finfo(backend.numpy_real()).max:.3g}); "
         f"use smaller parameters{hint}"
     )
 

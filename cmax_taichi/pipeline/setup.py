@@ -52,6 +52,8 @@ def check_regularizers(regularizers) -> dict[str, float]:
     out = {}
     for name, weight in regularizers.items():
         REGULARIZERS.get(name)
+        if not isinstance(weight, numbers.Real) or isinstance(weight, (bool, np.bool_)):
+            raise TypeError(f"weight of regularizer {name!r} must be a number, got {weight!r}")
         try:
             w = float(weight)
         except OverflowError:  # an int such as 10**400

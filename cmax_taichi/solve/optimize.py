@@ -575,6 +575,26 @@ def _parameter_vector(name: str, value, model: WarpModel) -> np.ndarray:
     return _check_theta(value, model.n_params, model.name, label=name)
 
 
+#: the largest |u| (px over the window) the searches step through: they take differences and
+#: midpoints of the box, which overflow float64 beyond this
+_SEARCHABLE_U = float(np.finfo(np.float64).max) / 8
+
+
+def _check_searchable(name: str, thetas: np.ndarray, scales: np.ndarray, model: WarpModel) -> None:
+    """Refuse parameter values whose internal units (``theta * scale``, px) the searches cannot step
+    through (differences of the box overflow float64), naming the parameter and the limit."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        u = np.abs(thetas * scales)
+    bad = np.argwhere(~(u <= _SEARCHABLE_U))
+    if bad.size:
+        i = int(bad[0][1])
+        limit = _SEARCHABLE_U / scales[i]
+        raise ValueError(
+            f"{name}: {model.params[i]} = {thetas[tuple(bad[0])]:.6g} {model.units[i]} is beyond what the "
+            f"search can step through for this problem: |{model.params[i]}| <= {limit:.3g} {model.units[i]}"
+        )
+
+
 def _check_bounds(bounds, model: WarpModel) -> tuple[np.ndarray, np.ndarray]:
     """``(lo, hi)`` of a user-given search box: finite parameter vectors with ``lo < hi``."""
     P = model.n_params
@@ -698,10 +718,12 @@ def maximize(
     else:
         lo_t, hi_t = _check_bounds(bounds, model)
     lo, hi = lo_t * scales, hi_t * scales
+    _check_searchable("bounds", np.stack([lo_t, hi_t]), scales, model)
 
     u0 = None
     if theta0 is not None:
         arr = _parameter_vector("theta0", theta0, model)
+        _check_searchable("theta0", arr[None, :], scales, model)
         u0 = arr * scales
         lo, hi = np.minimum(lo, u0), np.maximum(hi, u0)  # a warm start outside the box widens it
     if init == "auto":
