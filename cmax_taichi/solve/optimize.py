@@ -576,8 +576,9 @@ def _parameter_vector(name: str, value, model: WarpModel) -> np.ndarray:
 
 
 #: the largest |u| (px over the window) the searches step through: they take differences and
-#: midpoints of the box, which overflow float64 beyond this
-_SEARCHABLE_U = float(np.finfo(np.float64).max) / 8
+#: midpoints of the box and round points to 1e-9 px to skip repeats (u * 1e9 overflows float64 from
+#: 1.8e299)
+_SEARCHABLE_U = 1e290
 
 
 def _check_searchable(name: str, thetas: np.ndarray, scales: np.ndarray, model: WarpModel) -> None:
@@ -657,17 +658,22 @@ def maximize(
         reported as converged.
     bounds : (lo, hi), optional
         Global search box in physical units; default :func:`search_bounds`. Local runs stay inside it.
+        Finite, ``lo < hi`` per parameter, and within 1e290 px of displacement over the window (the
+        searches step through differences of the box); a ValueError names the parameter otherwise.
+        Points where J overflows the float type (:class:`~cmax_taichi.NonFiniteResultError`) count
+        as -inf.
     n_init : int, optional
-        Evaluation budget of the global search (default 1000 for grid / random, 200 for TPE, 300
+        Evaluation budget of the global search, >= 1 (default 1000 for grid / random, 200 for TPE, 300
         for local).
     n_starts : int
         Local runs, from the best distinct candidates of the global search.
     max_iter : int, optional
-        Iterations per local run (default 150 for Adam, 100 otherwise).
+        Iterations per local run, >= 0 (0: the global search alone; default 150 for Adam, 50 for
+        BFGS, 100 otherwise).
     lr : float
         Adam step / first Armijo trial step, px of displacement over the window.
     gtol : float
-        Stop when ``|dJ/du|`` (1/px) is below it.
+        Stop when ``|dJ/du|`` (1/px) is below it (finite, >= 0).
     rtol : float
         Armijo / L-BFGS-B: stop when J improves by less than ``rtol * max(1, |J|)``.
     xtol : float
