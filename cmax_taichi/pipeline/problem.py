@@ -96,6 +96,10 @@ def _describe_number(value) -> str:
         return repr(value)
 
 
+#: the largest finite value of each backend float type
+_LARGEST = {"f32": float(np.finfo(np.float32).max), "f64": float(np.finfo(np.float64).max)}
+
+
 def _format_vector(values: np.ndarray) -> str:
     return "[" + ", ".join(f"{v:.6g}" for v in np.asarray(values, dtype=np.float64).reshape(-1)) + "]"
 
@@ -130,13 +134,15 @@ def _check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
                 ) from None
     if arr.size != n:
         raise ValueError(f"warp {name!r} takes {n} parameter(s), got {label} of length {arr.size}")
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        i = int(bad[0])
+    limit = _LARGEST[backend.info().precision]
+    if all(-limit <= v <= limit for v in arr.tolist()):  # the common case, in plain Python (NaN fails)
+        return arr
+    finite = np.isfinite(arr)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
         raise ValueError(
             f"{what} has a non-finite value: {label}[{i}] = {arr[i]} ({label} = {_format_vector(arr)})"
         )
-    limit = float(np.finfo(backend.numpy_real()).max)
     big = np.flatnonzero(np.abs(arr) > limit)
     if big.size:
         raise ValueError(
@@ -146,9 +152,18 @@ def _check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
     return arr
 
 
+def _all_finite(value) -> bool:
+    if isinstance(value, float):
+        return math.isfinite(value)
+    value = np.asarray(value, dtype=np.float64)
+    if value.size <= 64:  # a gradient, a few penalties: plain Python is faster than NumPy here
+        return all(map(math.isfinite, value.reshape(-1).tolist()))
+    return bool(np.isfinite(value).all())
+
+
 def _require_finite(model: WarpModel, theta: np.ndarray, what: str, *values) -> None:
     """Raise :class:`NonFiniteResultError` naming theta when a result is not finite (an overflow)."""
-    if all(np.all(np.isfinite(v)) for v in values):
+    if all(_all_finite(v) for v in values):
         return
     precision = backend.info().precision
     hint = " (or use cm.init(precision='f64'))" if precision == "f32" else ""
