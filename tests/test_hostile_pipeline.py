@@ -368,3 +368,22 @@ def test_viz_draws_nan_pixels_grey(f64):
     drawn = artist.get_array()
     np.testing.assert_array_equal(np.ma.getmaskarray(drawn), maps["count"] == 0)
     plt.close(fig)
+
+
+@pytest.mark.parametrize(
+    "init_thetas,error,message",
+    [
+        (
+            [[None, 1.0], [0.0, 0.0]],
+            ValueError,
+            r"parameter 0 of cluster 0 \(translation2\) is non-finite",
+        ),
+        ([[0.0, 1.0], [0.0, np.inf]], ValueError, r"thetas: parameter 1 of cluster 1 \(translation2\)"),
+        ([[10**400, 1.0], [0.0, 0.0]], ValueError, r"thetas has a value beyond the largest float64"),
+        ("fast", TypeError, r"thetas must be a \(K, P\) array"),
+    ],
+)
+def test_segment_init_thetas_name_the_problem(f64, init_thetas, error, message):
+    with pytest.raises(error, match=message):
+        cm.segment(small_events(), n_clusters=2, warp="translation2", init_thetas=init_thetas)
+    assert_session_usable()
