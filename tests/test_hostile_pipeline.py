@@ -387,3 +387,15 @@ def test_segment_init_thetas_name_the_problem(f64, init_thetas, error, message):
     with pytest.raises(error, match=message):
         cm.segment(small_events(), n_clusters=2, warp="translation2", init_thetas=init_thetas)
     assert_session_usable()
+
+
+@pytest.mark.parametrize("method", ["closed", "autodiff"])
+def test_event_jacobians_overflow_is_an_error_naming_theta(f64, method):
+    prob = cm.ContrastMaximization(small_events(), warp="zoom1")
+    with pytest.raises(
+        cm.NonFiniteResultError, match=r"per-event det or div is not finite at theta = \[1e\+308\]"
+    ):
+        cm.event_jacobians(prob, [1e308], method=method)
+    assert_session_usable()
+    result = cm.event_jacobians(prob, [4.0], method=method)
+    assert all(np.all(np.isfinite(v)) for v in result.values())
