@@ -33,7 +33,13 @@ from cmax_taichi.models.warps import (
 )
 from cmax_taichi.pipeline.fused import ChainPathWarning
 from cmax_taichi.pipeline.jacobians import event_jacobians
-from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation, dense_flow
+from cmax_taichi.pipeline.problem import (
+    POLARITY_MODES,
+    ContrastMaximization,
+    Evaluation,
+    NonFiniteResultError,
+    dense_flow,
+)
 from cmax_taichi.sim import (
     SimulatedRecording,
     Simulator,
@@ -57,6 +63,7 @@ __all__ = [
     "OBJECTIVES",
     "FusedObjective",
     "Limits",
+    "NonFiniteResultError",
     "Objective",
     "OptimizeResult",
     "POLARITY_MODES",

@@ -46,7 +46,8 @@ __all__ = [
     "plot_landscape_2d",
 ]
 
-#: colour of pixels that received no event in a regularizer map (distinct from the white neutral value)
+#: colour of pixels without a value: no event landed there in a regularizer map (NaN in
+#: ``ContrastMaximization.maps``), or a NaN flow (distinct from the white neutral value)
 NO_EVENT_COLOR = "0.80"
 
 
@@ -148,7 +149,9 @@ def flow_to_rgb(flow: np.ndarray, max_magnitude: float | None = None) -> np.ndar
     -----
     Hue is ``atan2(v_y, v_x) / 2 pi`` (mod 1) in image coordinates (y points down): flow to the right is
     red (hue 0), down is yellow-green (hue 1/4), left is cyan (hue 1/2), up is violet (hue 3/4).
-    Saturation is 1; zero flow is black. :func:`flow_wheel` draws the matching legend.
+    Saturation is 1; zero flow is black. NaN pixels (the library's "no value here", e.g.
+    :func:`~cmax_taichi.dense_flow` where a ray turns behind the camera) are drawn in
+    :data:`NO_EVENT_COLOR` grey. :func:`flow_wheel` draws the matching legend.
     """
     from matplotlib.colors import hsv_to_rgb
 
@@ -157,13 +160,16 @@ def flow_to_rgb(flow: np.ndarray, max_magnitude: float | None = None) -> np.ndar
         raise ValueError(f"flow must have shape (2, ...), got {flow.shape}")
     vx, vy = flow[0], flow[1]
     magnitude = np.hypot(vx, vy)
+    undefined = np.isnan(magnitude)
     if max_magnitude is None:
-        max_magnitude = float(np.nanmax(magnitude)) if magnitude.size else 1.0
+        max_magnitude = float(np.max(magnitude[~undefined])) if np.any(~undefined) else 1.0
     max_magnitude = max_magnitude if max_magnitude > 0 else 1.0
     hue = np.mod(np.arctan2(vy, vx) / (2.0 * math.pi), 1.0)
     value = np.clip(magnitude / max_magnitude, 0.0, 1.0)
     hsv = np.stack([hue, np.ones_like(hue), value], axis=-1)
-    return hsv_to_rgb(np.nan_to_num(hsv))
+    rgb = hsv_to_rgb(np.nan_to_num(hsv))
+    rgb[undefined] = float(NO_EVENT_COLOR)
+    return rgb
 
 
 def flow_wheel(size: int = 101) -> np.ndarray:
@@ -312,6 +318,8 @@ def show_map(
         Value drawn white (the middle of ``cmap``).
     count : ndarray, optional
         Vote count per pixel; pixels with ``count <= 0`` are drawn grey (the map is undefined there).
+        NaN pixels, the library's "no event here" (:meth:`ContrastMaximization.maps`), are drawn grey
+        with or without ``count``.
     unit : str
         Unit of the map, for the colour bar ("" = dimensionless).
     title : str

@@ -372,7 +372,7 @@ def test_zoom_divergence_penalty_and_sign():
     assert expanding["R_div"] == 0.0
     support = first["count"] > 0
     np.testing.assert_allclose(first["div_map"][support], 2 * hz, rtol=1e-12)
-    np.testing.assert_array_equal(first["div_map"][~support], 0.0)
+    assert np.all(np.isnan(first["div_map"][~support]))  # "no event here" is NaN
 
 
 def test_translation_has_zero_penalties():
@@ -397,7 +397,7 @@ def test_zoom_collapse_gives_large_finite_deformation():
     assert collapse["R_def"] > 10.0 * mild["R_def"]
     # the pixel at the centre collects the collapsed events (a_k -> 0): alpha is large there,
     # but it is one pixel of the support, so the mean R_def only reaches ~2 on uniform events
-    assert 100.0 < collapse["alpha_map"].max() <= 1.0 / reference.DEF_FLOOR - 1.0
+    assert 100.0 < np.nanmax(collapse["alpha_map"]) <= 1.0 / reference.DEF_FLOOR - 1.0
     assert collapse["R_def"] > 1.5
 
 

@@ -148,8 +148,14 @@ class MultiClusterCMax:
     def flatten(self, thetas) -> np.ndarray:
         """Flat float64 vector of all clusters' parameters from a (K, P) array, a list of K arrays or
         a flat vector."""
+        if thetas is None or isinstance(thetas, (str, bytes)):
+            raise TypeError(
+                f"thetas must be a (K, P) array, a list of K arrays or a flat vector, got {thetas!r}"
+            )
         try:
             arr = np.asarray(thetas, dtype=np.float64)
+        except OverflowError:  # an int such as 10**400
+            raise ValueError("thetas has a value beyond the largest float64 (1.8e+308)") from None
         except (TypeError, ValueError):  # ragged: one array per cluster
             arr = None
         if arr is not None and arr.ndim == 1:
@@ -157,6 +163,8 @@ class MultiClusterCMax:
         else:
             try:
                 parts = [np.asarray(t, dtype=np.float64).reshape(-1) for t in thetas]
+            except OverflowError:
+                raise ValueError("thetas has a value beyond the largest float64 (1.8e+308)") from None
             except (TypeError, ValueError):
                 raise TypeError(
                     "thetas must be a (K, P) array, a list of K arrays or a flat vector"
@@ -171,8 +179,13 @@ class MultiClusterCMax:
             flat = np.concatenate(parts)
         if flat.size != self.n_total:
             raise ValueError(f"expected {self.n_total} parameters in all, got {flat.size}")
-        if not np.all(np.isfinite(flat)):
-            raise ValueError(f"parameters have non-finite values: {flat}")
+        if not np.all(np.isfinite(flat)):  # None converts to NaN
+            i = int(np.flatnonzero(~np.isfinite(flat))[0])
+            j = int(np.searchsorted(self.offsets, i, side="right")) - 1
+            raise ValueError(
+                f"thetas: parameter {i - self.offsets[j]} of cluster {j} ({self.models[j].name}) is "
+                f"non-finite (NaN, an infinity or None): {flat}"
+            )
         return flat
 
     def unpack(self, flat) -> list[np.ndarray]:

@@ -14,7 +14,7 @@ import taichi as ti
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import jacobian_ad as kad
-from cmax_taichi.pipeline.problem import ContrastMaximization, _cached, _check_theta
+from cmax_taichi.pipeline.problem import ContrastMaximization, _cached, _check_theta, _require_finite
 
 __all__ = ["event_jacobians"]
 
@@ -38,6 +38,11 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
     dict
         ``"det"``: ``det dx'/dx`` per event (signed, unitless); ``"div"``: ``div v`` per event (1/s);
         with ``"autodiff"`` also ``"jacobian"``: (N, 2, 2) ``dx'/dx``.
+
+    Raises
+    ------
+    NonFiniteResultError
+        (a ValueError) when the parameters overflow the float type (e.g. ``zoom1`` at 1e308).
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; valid: {', '.join(METHODS)}")
@@ -68,6 +73,7 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
             )
             k(*args, out)
             result[name] = out.to_numpy()[:n].astype(np.float64)
+        _require_finite(model, theta, "a per-event det or div", *result.values())
         return result
 
     warp_k, flow_k = _cached(
@@ -94,6 +100,8 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
             jac[:, row, 1] = py.grad.to_numpy()[:n]
         rows[label] = jac
     jw = rows["warp"]
-    det = jw[:, 0, 0] * jw[:, 1, 1] - jw[:, 0, 1] * jw[:, 1, 0]
-    div = rows["flow"][:, 0, 0] + rows["flow"][:, 1, 1]
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is reported below, naming theta
+        det = jw[:, 0, 0] * jw[:, 1, 1] - jw[:, 0, 1] * jw[:, 1, 0]
+        div = rows["flow"][:, 0, 0] + rows["flow"][:, 1, 1]
+    _require_finite(model, theta, "a per-event det or div", det, div, jw)
     return {"det": det, "div": div, "jacobian": jw}

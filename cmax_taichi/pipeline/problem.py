@@ -11,6 +11,7 @@ repeated evaluations allocate nothing. Formulas: docs/FORMULAS.md.
 from __future__ import annotations
 
 import math
+import numbers
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -19,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend, limits, workspace
+from cmax_taichi.core import backend, checks, limits, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import blocks as kblocks
 from cmax_taichi.kernels import iwe as kiwe
@@ -43,7 +44,7 @@ from cmax_taichi.pipeline.setup import (
 )
 from cmax_taichi.pipeline.setup import cached_kernel as _cached
 
-__all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
+__all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation", "NonFiniteResultError", "dense_flow"]
 
 # reasons already warned about in this process (ChainPathWarning is issued once per reason)
 _WARNED_REASONS: set[str] = set()
@@ -80,16 +81,98 @@ class Evaluation:
     R: dict
 
 
-def _check_theta(theta, n: int, name: str) -> np.ndarray:
+class NonFiniteResultError(ValueError):
+    """A result (J, its gradient, a map, a flow) would not be finite: the parameters overflow the
+    backend's float type. The message names theta and the float type; the optimizers read it as a
+    point outside the usable range."""
+
+
+def _describe_number(value) -> str:
+    """A short text for a number, also for Python ints too large to format as a float."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10**300:
+        return f"{'-' if value < 0 else ''}1e{len(str(abs(value))) - 1} (approximately)"
     try:
+        return f"{float(value):.6g}"
+    except (OverflowError, TypeError, ValueError):
+        return repr(value)
+
+
+#: the largest finite value of each backend float type
+_LARGEST = {"f32": float(np.finfo(np.float32).max), "f64": float(np.finfo(np.float64).max)}
+
+
+def _format_vector(values: np.ndarray) -> str:
+    return "[" + ", ".join(f"{v:.6g}" for v in np.asarray(values, dtype=np.float64).reshape(-1)) + "]"
+
+
+def _check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
+    """``theta`` as ``n`` finite float64 values that the backend's float type can hold.
+
+    Raises TypeError for what is not a sequence of real numbers (None, a string, a complex number, a
+    bool) and ValueError for the wrong length, a non-finite value, or a value beyond the largest float
+    of the backend (a Python int such as ``10**400``, or above 3.4e38 with ``precision="f32"``).
+    ``label`` names the argument in the messages (``theta0``, ``bounds lo``, ...)."""
+    what = f"{label} of warp {name!r} ({n} parameter(s))"
+    if theta is None or isinstance(theta, (str, bytes, Mapping)):
+        raise TypeError(f"{what} must be a sequence of {n} real numbers, got {theta!r}")
+    if isinstance(theta, np.ndarray) and theta.dtype.kind in "fiu":
         arr = np.asarray(theta, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise TypeError(f"theta must be a sequence of {n} numbers, got {theta!r}") from None
+    else:
+        try:
+            items = np.asarray(theta, dtype=object).reshape(-1)
+        except (TypeError, ValueError):
+            raise TypeError(f"{what} must be a sequence of {n} real numbers, got {theta!r}") from None
+        arr = np.empty(items.size)
+        for i, v in enumerate(items):
+            if not isinstance(v, numbers.Real) or isinstance(v, (bool, np.bool_)):
+                raise TypeError(f"{what}: {label}[{i}] = {v!r} ({type(v).__name__}) is not a real number")
+            try:
+                arr[i] = float(v)
+            except OverflowError:
+                raise ValueError(
+                    f"{what}: {label}[{i}] = {_describe_number(v)} is beyond the largest float64 "
+                    f"({np.finfo(np.float64).max:.3g})"
+                ) from None
     if arr.size != n:
-        raise ValueError(f"warp {name!r} takes {n} parameter(s), got theta of length {arr.size}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"theta has non-finite values: {arr}")
+        raise ValueError(f"warp {name!r} takes {n} parameter(s), got {label} of length {arr.size}")
+    limit = _LARGEST[backend.info().precision]
+    if all(-limit <= v <= limit for v in arr.tolist()):  # the common case, in plain Python (NaN fails)
+        return arr
+    finite = np.isfinite(arr)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
+        raise ValueError(
+            f"{what} has a non-finite value: {label}[{i}] = {arr[i]} ({label} = {_format_vector(arr)})"
+        )
+    big = np.flatnonzero(np.abs(arr) > limit)
+    if big.size:
+        raise ValueError(
+            f"{what}: {label}[{big[0]}] = {arr[big[0]]:.6g} is beyond the largest "
+            f"{backend.info().precision} value ({limit:.3g}) of this backend; use cm.init(precision='f64')"
+        )
     return arr
+
+
+def _all_finite(value) -> bool:
+    if isinstance(value, float):
+        return math.isfinite(value)
+    value = np.asarray(value, dtype=np.float64)
+    if value.size <= 64:  # a gradient, a few penalties: plain Python is faster than NumPy here
+        return all(map(math.isfinite, value.reshape(-1).tolist()))
+    return bool(np.isfinite(value).all())
+
+
+def _require_finite(model: WarpModel, theta: np.ndarray, what: str, *values) -> None:
+    """Raise :class:`NonFiniteResultError` naming theta when a result is not finite (an overflow)."""
+    if all(_all_finite(v) for v in values):
+        return
+    precision = backend.info().precision
+    hint = " (or use cm.init(precision='f64'))" if precision == "f32" else ""
+    raise NonFiniteResultError(
+        f"{what} is not finite at theta = {_format_vector(theta)} of warp {model.name!r}: the parameters "
+        f"overflow {precision} arithmetic (values beyond {np.finfo(backend.numpy_real()).max:.3g}); "
+        f"use smaller parameters{hint}"
+    )
 
 
 class ContrastMaximization:
@@ -490,17 +573,23 @@ class ContrastMaximization:
         self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name)
         if self._fused is not None:
-            return self._fused.value(theta)
-        return self._forward(theta)[0]
+            value = self._fused.value(theta)
+        else:
+            value = self._forward(theta)[0]
+        _require_finite(self.model, theta, "J", value)
+        return value
 
     def value_and_grad(self, theta) -> tuple[float, np.ndarray]:
         """``(J, dJ/dtheta)`` at ``theta`` (physical units), by Taichi reverse-mode autodiff."""
         self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name)
         if self._fused is not None:
-            return self._fused.value_and_grad(theta)
-        value = self._forward(theta)[0]
-        return value, self._backward()
+            value, grad = self._fused.value_and_grad(theta)
+        else:
+            value = self._forward(theta)[0]
+            grad = self._backward()
+        _require_finite(self.model, theta, "J or dJ/dtheta", value, grad)
+        return value, grad
 
     def evaluate(self, theta) -> Evaluation:
         """J, G, G_raw, G0 and the penalty of every registered regularizer at ``theta``."""
@@ -508,6 +597,7 @@ class ContrastMaximization:
         theta = _check_theta(theta, self.model.n_params, self.model.name)
         value, g_raw = self._forward(theta)
         penalties = self._all_penalties(theta)
+        _require_finite(self.model, theta, "J", value, g_raw, list(penalties.values()))
         return Evaluation(J=value, G=g_raw / self.G0, G_raw=g_raw, G0=self._identity_objective, R=penalties)
 
     # --- images -----------------------------------------------------------------------------------
@@ -520,6 +610,7 @@ class ContrastMaximization:
             img = self._fused.image()
         else:
             img = self._img.to_numpy().astype(np.float64)
+        _require_finite(self.model, theta, "the IWE", img)
         return img[0] if self.n_channels == 1 else img
 
     def _map_fields(self, theta: np.ndarray):
@@ -570,26 +661,42 @@ class ContrastMaximization:
     def maps(self, theta) -> dict[str, np.ndarray | float]:
         """Regularizer maps at ``theta`` as (H, W) NumPy images.
 
+        A map is the vote-weighted average of a per-event quantity, so it is undefined where no
+        warped event landed (``count == 0``): every map and pixel penalty is **NaN** there (the
+        "no event here" convention of the library; ``plt.imshow`` leaves NaN pixels blank, and
+        ``np.nanmean`` / ``np.isnan`` select the defined pixels). 0 would be a value: for
+        ``"deformation"`` it means total collapse (its neutral value is 1), for ``"divergence"``
+        it is the neutral value.
+
         Returns
         -------
         dict
-            ``"count"``: the vote count C(x); for each registered regularizer ``name``: its map
-            (``"divergence"`` in 1/s, ``"deformation"`` unitless; 0 where no event landed),
-            ``name + "_penalty"``: the pixel penalty, and ``"R_" + name``: the scalar penalty.
+            ``"count"``: the vote count C(x) (>= 0 everywhere, 0 where no event landed); for each
+            registered regularizer ``name``: its map (``"divergence"`` in 1/s, ``"deformation"``
+            unitless), ``name + "_penalty"``: the pixel penalty (both NaN where ``count == 0``), and
+            ``"R_" + name``: the scalar penalty (finite).
+
+        Raises
+        ------
+        NonFiniteResultError
+            (a ValueError) when the parameters overflow the float type where events landed.
         """
         self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name)
         names, count, out = self._map_fields(theta)
+        penalties = self._penalties_of(names, count, out)
+        hit = count > 0
+        _require_finite(self.model, theta, "a regularizer map", out[:, hit], list(penalties.values()))
         result: dict[str, np.ndarray | float] = {"count": count}
         for r, name in enumerate(names):
-            result[name] = out[2 * r]
-            result[name + "_penalty"] = out[2 * r + 1]
-        for name, value in self._penalties_of(names, count, out).items():
+            result[name] = np.where(hit, out[2 * r], np.nan)
+            result[name + "_penalty"] = np.where(hit, out[2 * r + 1], np.nan)
+        for name, value in penalties.items():
             result["R_" + name] = value
         return result
 
     def dense_flow(self, theta, dt: float = 0.0) -> np.ndarray:
-        """Flow implied by ``theta`` on the pixel grid, shape (2, H, W).
+        """Flow implied by ``theta`` on the pixel grid, shape (2, H, W); see :func:`dense_flow`.
 
         ``dt = 0``: the instantaneous flow (px/s); else the displacement over ``dt`` seconds (px).
         """
@@ -647,7 +754,22 @@ def dense_flow(
     duration : float
         Window duration T (s) for ``mitrokhin4``.
     dt : float
-        0: instantaneous flow (px/s). Otherwise the displacement ``-(W(x, dt) - x)`` in px.
+        0: instantaneous flow (px/s). Otherwise the displacement ``-(W(x, dt) - x)`` in px over ``dt``
+        seconds (finite; a negative ``dt`` gives the displacement backwards in time).
+
+    Returns
+    -------
+    ndarray
+        ``(2, H, W)`` float64. NaN (the library's "no value here") where the warp sends the pixel
+        nowhere: a ``rotation3`` ray rotated behind the camera over ``dt``.
+
+    Raises
+    ------
+    TypeError, ValueError
+        For a ``dt``, ``duration`` or ``theta`` that is not a finite number (``dt = NaN`` would give
+        an all-NaN field).
+    NonFiniteResultError
+        (a ValueError) when the parameters overflow the float type on the grid.
     """
     backend.ensure_initialized()
     model = get_warp(warp)
@@ -655,15 +777,15 @@ def dense_flow(
     W, H = limits.check_dense_flow(sensor_size, np.dtype(backend.numpy_real()).itemsize)
     if model.needs_camera and camera is None:
         raise ValueError(f"warp {model.name!r} needs a camera (intrinsics): pass camera=")
-    if not (math.isfinite(duration) and duration > 0):
-        raise ValueError(f"duration must be positive seconds, got {duration}")
+    duration = checks.seconds("duration", duration, positive=True)
+    dt = checks.seconds("dt", dt)
     info = backend.info()
 
     def build(ws):
         real = backend.real()
         ws.th = ti.Vector.field(model.n_params, real, shape=())
         ws.ctx = ti.Vector.field(5, real, shape=())
-        ws.out = ti.field(real, shape=(2, H, W))
+        ws.out = ti.field(real, shape=(3, H, W))  # x, y and "sent nowhere"
 
     ws = workspace.acquire(
         ("dense_flow", info.generation, model.n_params, W, H), build, f"the dense flow of a {W}x{H} sensor"
@@ -678,5 +800,9 @@ def dense_flow(
         ("dense_flow", model.name, id(model), W, H),
         lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H),
     )
-    kernel(th, ctx, float(dt), out)
-    return out.to_numpy().astype(np.float64)
+    kernel(th, ctx, dt, out)
+    planes = out.to_numpy().astype(np.float64)
+    flow, nowhere = planes[:2], planes[2] > 0
+    _require_finite(model, theta, "the dense flow", flow[:, ~nowhere])
+    flow[:, nowhere] = np.nan
+    return flow

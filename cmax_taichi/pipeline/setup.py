@@ -12,6 +12,7 @@ through :func:`run_chain` and :func:`run_chain_backward`.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -58,10 +59,14 @@ def check_regularizers(regularizers) -> dict[str, float]:
     out = {}
     for name, weight in regularizers.items():
         REGULARIZERS.get(name)
+        if not isinstance(weight, numbers.Real) or isinstance(weight, (bool, np.bool_)):
+            raise TypeError(f"weight of regularizer {name!r} must be a number, got {weight!r}")
         try:
             w = float(weight)
+        except OverflowError:  # an int such as 10**400
+            w = math.inf
         except (TypeError, ValueError):
-            raise TypeError(f"weight of regularizer {name!r} must be a number") from None
+            raise TypeError(f"weight of regularizer {name!r} must be a number, got {weight!r}") from None
         if not (math.isfinite(w) and w >= 0):
             raise ValueError(f"weight of regularizer {name!r} must be finite and >= 0, got {w}")
         out[name] = w
@@ -82,6 +87,8 @@ def resolve_t_ref(t_ref, events: Events) -> float:
         return float(choices[t_ref])
     try:
         value = float(t_ref)
+    except OverflowError:  # an int such as 10**400
+        value = math.inf
     except (TypeError, ValueError):
         raise TypeError(f"t_ref must be a string or a number, got {t_ref!r}") from None
     if not math.isfinite(value):
@@ -181,7 +188,14 @@ class ProblemSetup:
         reg_weights = check_regularizers(regularizers)
         if polarity not in POLARITY_MODES:
             raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
-        blur_sigma = float(blur_sigma)
+        if not isinstance(blur_sigma, numbers.Real) or isinstance(blur_sigma, (bool, np.bool_)):
+            raise TypeError(
+                f"blur_sigma must be a number of px >= 0, got {blur_sigma!r} ({type(blur_sigma).__name__})"
+            )
+        try:
+            blur_sigma = float(blur_sigma)
+        except OverflowError:  # an int such as 10**400
+            blur_sigma = math.inf
         if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
             raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
 
@@ -189,7 +203,11 @@ class ProblemSetup:
             raise ValueError(f"a CMax problem needs at least 2 events, got {len(events)}")
         user_weights = None
         if weights is not None:
-            user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+            try:
+                user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError, OverflowError) as err:
+                n = len(events)
+                raise TypeError(f"weights must be {n} finite numbers, one per event ({err})") from None
             if user_weights.size != len(events):
                 raise ValueError(f"weights has {user_weights.size} values for {len(events)} events")
             if not np.all(np.isfinite(user_weights)):

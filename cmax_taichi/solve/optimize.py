@@ -44,14 +44,16 @@ Learning rates, tolerances and grid spacings below are in these units (px over t
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from cmax_taichi.core import checks
 from cmax_taichi.models.warps import WarpModel
-from cmax_taichi.pipeline.problem import ContrastMaximization
+from cmax_taichi.pipeline.problem import ContrastMaximization, NonFiniteResultError, _check_theta
 from cmax_taichi.solve.search import distinct_top, grid_search, random_search, tpe_search
 
 __all__ = [
@@ -283,7 +285,10 @@ class _Objective:
         if known is not None:
             return known[0]
         self.n_evaluations += 1
-        v = self.prob.value(self.theta(u))
+        try:
+            v = self.prob.value(self.theta(u))
+        except NonFiniteResultError:  # the parameters overflow the float type: outside the usable range
+            v = -math.inf
         v = v if math.isfinite(v) else -math.inf
         self._remember(u, v, None)
         return v
@@ -293,7 +298,10 @@ class _Objective:
         if known is not None and known[1] is not None:
             return known[0], known[1].copy()
         self.n_evaluations += 1
-        v, g = self.prob.value_and_grad(self.theta(u))
+        try:
+            v, g = self.prob.value_and_grad(self.theta(u))
+        except NonFiniteResultError:
+            return -math.inf, np.zeros(len(self.scales))
         g = np.asarray(g, dtype=np.float64) / self.scales
         if not (math.isfinite(v) and np.all(np.isfinite(g))):
             v, g = -math.inf, np.zeros_like(g)
@@ -643,6 +651,78 @@ def _positive_definite(matrix, n: int) -> np.ndarray | None:
 
 
 # --- the driver --------------------------------------------------------------------------------------
+def _real_number(name: str, value, unit: str) -> float:
+    if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a number ({unit}), got {value!r} ({type(value).__name__})")
+    try:
+        number = float(value)
+    except OverflowError:
+        raise ValueError(f"{name} must be a finite number ({unit}), got an int beyond float64") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number ({unit}), got {number}")
+    return number
+
+
+def _positive_number(name: str, value, unit: str) -> float:
+    number = _real_number(name, value, unit)
+    if not number > 0:
+        raise ValueError(f"{name} must be a positive number ({unit}), got {number}")
+    return number
+
+
+def _non_negative_number(name: str, value, unit: str) -> float:
+    number = _real_number(name, value, unit)
+    if not number >= 0:
+        raise ValueError(f"{name} must be a finite number >= 0 ({unit}), got {number}")
+    return number
+
+
+def _parameter_vector(name: str, value, model: WarpModel) -> np.ndarray:
+    """A parameter vector of ``model`` given by the user (``theta0``, a candidate, a bound), checked as
+    the problem checks theta, with ``name`` in the message."""
+    return _check_theta(value, model.n_params, model.name, label=name)
+
+
+#: the largest |u| (px over the window) the searches step through: they take differences and
+#: midpoints of the box and round points to 1e-9 px to skip repeats (u * 1e9 overflows float64 from
+#: 1.8e299)
+_SEARCHABLE_U = 1e290
+
+
+def _check_searchable(name: str, thetas: np.ndarray, scales: np.ndarray, model: WarpModel) -> None:
+    """Refuse parameter values whose internal units (``theta * scale``, px) the searches cannot step
+    through (differences of the box overflow float64), naming the parameter and the limit."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        u = np.abs(thetas * scales)
+    bad = np.argwhere(~(u <= _SEARCHABLE_U))
+    if bad.size:
+        i = int(bad[0][1])
+        limit = _SEARCHABLE_U / scales[i]
+        raise ValueError(
+            f"{name}: {model.params[i]} = {thetas[tuple(bad[0])]:.6g} {model.units[i]} is beyond what the "
+            f"search can step through for this problem: |{model.params[i]}| <= {limit:.3g} {model.units[i]}"
+        )
+
+
+def _check_bounds(bounds, model: WarpModel) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` of a user-given search box: finite parameter vectors with ``lo < hi``."""
+    P = model.n_params
+    if isinstance(bounds, (str, bytes)) or not hasattr(bounds, "__len__") or len(bounds) != 2:
+        raise TypeError(
+            f"bounds must be a pair (lo, hi) of {P} numbers each for warp {model.name!r}, got {bounds!r}"
+        )
+    lo = _parameter_vector("bounds lo", bounds[0], model)
+    hi = _parameter_vector("bounds hi", bounds[1], model)
+    inverted = np.flatnonzero(~(lo < hi))
+    if inverted.size:
+        i = int(inverted[0])
+        raise ValueError(
+            f"bounds: lo[{i}] = {lo[i]:.6g} is not below hi[{i}] = {hi[i]:.6g} "
+            f"(parameter {model.params[i]!r} of warp {model.name!r}); bounds are (lo, hi) with lo < hi"
+        )
+    return lo, hi
+
+
 def maximize(
     prob: ContrastMaximization,
     theta0: Sequence[float] | np.ndarray | None = None,
@@ -687,17 +767,22 @@ def maximize(
         reported as converged.
     bounds : (lo, hi), optional
         Global search box in physical units; default :func:`search_bounds`. Local runs stay inside it.
+        Finite, ``lo < hi`` per parameter, and within 1e290 px of displacement over the window (the
+        searches step through differences of the box); a ValueError names the parameter otherwise.
+        Points where J overflows the float type (:class:`~cmax_taichi.NonFiniteResultError`) count
+        as -inf.
     n_init : int, optional
-        Evaluation budget of the global search (default 1000 for grid / random, 200 for TPE, 300
+        Evaluation budget of the global search, >= 1 (default 1000 for grid / random, 200 for TPE, 300
         for local).
     n_starts : int
         Local runs, from the best distinct candidates of the global search.
     max_iter : int, optional
-        Iterations per local run (default 150 for Adam, 100 otherwise).
+        Iterations per local run, >= 0 (0: the global search alone; default 150 for Adam, 50 for
+        BFGS, 100 otherwise).
     lr : float
         Adam step / first Armijo trial step, px of displacement over the window.
     gtol : float
-        Stop when ``|dJ/du|`` (1/px) is below it.
+        Stop when ``|dJ/du|`` (1/px) is below it (finite, >= 0).
     rtol : float
         Armijo / L-BFGS-B: stop when J improves by less than ``rtol * max(1, |J|)``.
     xtol : float
@@ -731,11 +816,17 @@ def maximize(
         raise ValueError(f"unknown method {method!r}; valid: {', '.join(METHODS)}")
     if init not in INITS:
         raise ValueError(f"unknown init {init!r}; valid: {', '.join(INITS)}")
-    for name, v in (("lr", lr), ("xtol", xtol), ("min_spacing", min_spacing)):
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"{name} must be a positive number (px), got {v}")
-    if int(n_starts) < 1:
-        raise ValueError(f"n_starts must be at least 1, got {n_starts}")
+    lr = _positive_number("lr", lr, "px")
+    xtol = _positive_number("xtol", xtol, "px")
+    min_spacing = _positive_number("min_spacing", min_spacing, "px")
+    gtol = _non_negative_number("gtol", gtol, "1/px")
+    rtol = _non_negative_number("rtol", rtol, "relative")
+    n_starts = checks.whole_number("n_starts", n_starts, minimum=1)
+    patience = checks.whole_number("patience", patience, minimum=1)
+    if n_init is not None:
+        n_init = checks.whole_number("n_init", n_init, minimum=1)
+    if max_iter is not None:
+        max_iter = checks.whole_number("max_iter", max_iter, minimum=0)
     model = prob.model
     P = model.n_params
     if hess_inv0 is not None:
@@ -754,32 +845,27 @@ def maximize(
     if bounds is None:
         lo_t, hi_t = search_bounds(prob)
     else:
-        lo_t, hi_t = (np.asarray(b, dtype=np.float64).reshape(-1) for b in bounds)
-        if lo_t.size != P or hi_t.size != P or not np.all(lo_t < hi_t):
-            raise ValueError(f"bounds must be (lo, hi) with {P} values each and lo < hi")
+        lo_t, hi_t = _check_bounds(bounds, model)
     lo, hi = lo_t * scales, hi_t * scales
+    _check_searchable("bounds", np.stack([lo_t, hi_t]), scales, model)
 
     u0 = None
     if theta0 is not None:
-        arr = np.asarray(theta0, dtype=np.float64).reshape(-1)
-        if arr.size != P or not np.all(np.isfinite(arr)):
-            raise ValueError(f"theta0 must hold {P} finite numbers for warp {model.name!r}, got {theta0!r}")
+        arr = _parameter_vector("theta0", theta0, model)
+        _check_searchable("theta0", arr[None, :], scales, model)
         u0 = arr * scales
         lo, hi = np.minimum(lo, u0), np.maximum(hi, u0)  # a warm start outside the box widens it
     if init == "auto":
         init = "grid" if u0 is None else "local"
     if max_iter is None:
         max_iter = {"adam": 150, "bfgs": 50}.get(method, 100)
-    max_iter = int(max_iter)
     rng = np.random.default_rng(seed)
 
     extra = [np.zeros(P)] if np.all((lo <= 0) & (hi >= 0)) else []
     if u0 is not None:
         extra.append(u0)
-    for c in candidates or ():
-        arr = np.asarray(c, dtype=np.float64).reshape(-1)
-        if arr.size != P or not np.all(np.isfinite(arr)):
-            raise ValueError(f"candidates must hold {P} finite numbers each for warp {model.name!r}")
+    for i, c in enumerate(candidates or ()):
+        arr = _parameter_vector(f"candidates[{i}]", c, model)
         extra.append(np.clip(arr * scales, lo, hi))
     if init == "warm" and u0 is None:
         raise ValueError("init='warm' refines a warm start: pass theta0")

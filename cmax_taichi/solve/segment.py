@@ -226,6 +226,9 @@ def _candidate_scores(
     Wc, Hc = int(math.ceil((W - 1) / cell)) + 1, int(math.ceil((H - 1) / cell)) + 1
     binned = Events(sub.x / cell, sub.y / cell, sub.t, sub.p, (Wc, Hc), undistorted=True, _validated=True)
     flows = disp / (cell * T)  # binned px/s
+    # the candidates are scored ``batch`` at a time as the clusters of one problem, which takes at
+    # least as many events as clusters: on a tiny window, fewer at a time
+    batch = max(1, min(batch, len(sub)))
     prob = MultiClusterCMax(binned, batch, "translation2", blur_sigma=1.0, normalize=False, t_ref=t_ref)
     prob.set_memberships(np.ones((len(sub), batch)), identity=False)
     scores = np.zeros((len(sub), len(disp)))

@@ -489,8 +489,8 @@ def evaluate(
     dict
         ``J`` (float, augmented objective), ``G`` (objective used in J), ``G_raw``, ``G0`` (raw
         objective of the identity warp), ``R_div``, ``R_def`` (penalties, dimensionless),
-        ``iwe`` (C, H, W), ``count`` C(x) (H, W), ``div_map`` DIV(x) (1/s, 0 where C = 0),
-        ``def_map`` DEF(x) (0 where C = 0), ``alpha_map`` alpha(x) (0 where C = 0), and per
+        ``iwe`` (C, H, W), ``count`` C(x) (H, W), ``div_map`` DIV(x) (1/s, NaN where C = 0),
+        ``def_map`` DEF(x) (NaN where C = 0), ``alpha_map`` alpha(x) (NaN where C = 0), and per
         event ``xw``, ``yw`` (px), ``det`` (signed ``det dx'/dx``), ``div`` (1/s).
     """
     _check_warp(warp)
@@ -580,9 +580,10 @@ def evaluate(
         "R_def": float(r_def),
         "iwe": iwe,
         "count": count,
-        "div_map": div_map,
-        "def_map": def_map,
-        "alpha_map": alpha_map,
+        # NaN where no event landed: the library's "no event here" (ContrastMaximization.maps)
+        "div_map": np.where(support, div_map, np.nan),
+        "def_map": np.where(support, def_map, np.nan),
+        "alpha_map": np.where(support, alpha_map, np.nan),
         "xw": xw,
         "yw": yw,
         "det": det,

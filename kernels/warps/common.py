@@ -44,6 +44,15 @@ def _cmul(a, b):
 
 
 @ti.func
+def _cdiv(a, b):
+    """a / b for complex a, b != 0, scaled by max(|Re b|, |Im b|) so that |b|^2 neither overflows nor
+    underflows (f32 overflows at |b| ~ 1.8e19, its gradient at |b| ~ 4e9)."""
+    m = ti.max(ti.abs(b[0]), ti.abs(b[1]))
+    bs = b / m
+    return _cmul(a, ti.Vector([bs[0], -bs[1]])) / ((bs[0] * bs[0] + bs[1] * bs[1]) * m)
+
+
+@ti.func
 def _cexp(z):
     r = ti.exp(z[0])
     return ti.Vector([r * ti.cos(z[1]), r * ti.sin(z[1])])
@@ -59,9 +68,7 @@ def _cexpm1_over_z(z):
         z3 = _cmul(z2, z)
         out = ti.Vector([1.0, 0.0]) + z / 2.0 + z2 / 6.0 + z3 / 24.0
     else:
-        num = _cexp(z) - ti.Vector([1.0, 0.0])
-        # num / z = num * conj(z) / |z|^2
-        out = _cmul(num, ti.Vector([z[0], -z[1]])) / nrm2
+        out = _cdiv(_cexp(z) - ti.Vector([1.0, 0.0]), z)
     return out
 
 
@@ -79,8 +86,9 @@ def _cexpm1_over_z_prime(z):
     else:
         ez = _cexp(z)
         num = _cmul(z, ez) - ez + ti.Vector([1.0, 0.0])
-        z2 = _cmul(z, z)
-        out = _cmul(num, ti.Vector([z2[0], -z2[1]])) / (z2[0] * z2[0] + z2[1] * z2[1])
+        # num / z^2 as two scaled divisions: z^2 itself overflows f32 from |z| ~ 1.8e19 and |z^2|^2
+        # from |z| ~ 4e9 (a NaN gradient of se2 / sim2 at rotation rates >= 1e15 rad/s)
+        out = _cdiv(_cdiv(num, z), z)
     return out
 
 
@@ -140,10 +148,11 @@ def make_fd_div(flow_fn):
 
 
 def make_dense_flow_kernel(flow_fn, warp_fn, width: int, height: int):
-    """Kernel writing the flow on the pixel grid into ``out`` (shape (2, H, W)).
+    """Kernel writing the flow on the pixel grid into ``out`` (shape (3, H, W)).
 
     ``dt == 0``: the instantaneous flow ``v(x)`` (px/s); ``dt != 0``: the displacement
-    ``-(W(x, dt) - x)`` (px) of each pixel over ``dt`` seconds.
+    ``-(W(x, dt) - x)`` (px) of each pixel over ``dt`` seconds. ``out[2]`` is 1 where the warp sends
+    the pixel nowhere (it returns ``(OUTSIDE, OUTSIDE)``: a ray rotated behind the camera), else 0.
     """
 
     @ti.kernel
@@ -151,11 +160,16 @@ def make_dense_flow_kernel(flow_fn, warp_fn, width: int, height: int):
         for y, x in ti.ndrange(height, width):
             p = ti.Vector([ti.cast(x, float), ti.cast(y, float)])
             v = ti.Vector([0.0, 0.0])
+            nowhere = 0.0
             if dt == 0.0:
                 v = flow_fn(p, th[None], ctx[None])
             else:
-                v = p - warp_fn(p, dt, th[None], ctx[None])
+                moved = warp_fn(p, dt, th[None], ctx[None])
+                if moved[0] == OUTSIDE and moved[1] == OUTSIDE:
+                    nowhere = 1.0
+                v = p - moved
             out[0, y, x] = v[0]
             out[1, y, x] = v[1]
+            out[2, y, x] = nowhere
 
     return dense
