@@ -394,7 +394,7 @@ def make_fused_kernels(
             for i in range(n):
                 splat_event(0, ev[i], theta_vec(), f.ctx[None])
         else:
-            ti.loop_config(block_dim=1)  # one slice per thread (see backend.init)
+            ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
                 lo, hi = slice_events(s, n)
                 theta = theta_vec()
@@ -574,7 +574,7 @@ def make_fused_kernels(
                     for j in ti.static(range(P)):
                         gsum[j][None] += gev[j]
         else:
-            ti.loop_config(block_dim=1)  # one slice per thread (see backend.init)
+            ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
                 if grad != 0:
                     lo, hi = slice_events(s, n)

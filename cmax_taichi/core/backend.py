@@ -8,8 +8,10 @@ says so when used.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import taichi as ti
@@ -122,12 +124,6 @@ def init(
             log_level=log_level,
             offline_cache=True,
             kernel_profiler=kernel_profiler,
-            # Taichi 1.7.4's CPU multithreading pass runs a range-for of fewer than about 512
-            # iterations on one thread, whatever its block_dim: the fused kernels' per-thread slice
-            # loops (range(2) here) ran serially, one core for the whole event pass. The previous
-            # scheme honours ti.loop_config(block_dim=1): 1.6-1.7x faster value_and_grad at 1M
-            # events on 2 cores (docs/performance.md).
-            make_cpu_multithreading_loop=False,
         )
     used = _running_arch_name()
     if arch != "cpu" and used == "cpu":
@@ -227,3 +223,25 @@ def numpy_real():
 def on_reset(hook) -> None:
     """Register a callable run before Taichi is reset by a later ``init()`` (clears kernel caches)."""
     _reset_hooks.append(hook)
+
+
+@contextlib.contextmanager
+def per_thread_loops() -> Iterator[None]:
+    """Compile the kernels launched inside with Taichi's earlier CPU loop scheduling, which gives each
+    iteration of a ``ti.loop_config(block_dim=1)`` loop its own task.
+
+    Taichi 1.7.4's CPU multithreading pass (``make_cpu_multithreading_loop``, on by default) runs a
+    range-for of fewer than about 512 iterations on one thread whatever its ``block_dim``, so the fused
+    kernels' loops over their per-thread slices (``range(2)`` on two cores) ran serially: one core
+    for the whole event pass. Only the fused kernels take the earlier scheme: with it, the generic
+    chain's autodiff gradients came out wrong on small windows (a race not located; docs/performance.md).
+    The setting is read when a kernel compiles; launching an already compiled kernel inside costs two
+    attribute writes.
+    """
+    cfg = ti.lang.impl.current_cfg()
+    previous = cfg.make_cpu_multithreading_loop
+    cfg.make_cpu_multithreading_loop = False
+    try:
+        yield
+    finally:
+        cfg.make_cpu_multithreading_loop = previous

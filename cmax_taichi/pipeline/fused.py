@@ -339,7 +339,8 @@ class FusedPipeline:
         self._load()
         args = self._theta
         args[: theta.size] = theta
-        self._run_k(self.n_events, self.events, *args.tolist(), grad, self._out)
+        with backend.per_thread_loops():  # one slice per thread on the CPU
+            self._run_k(self.n_events, self.events, *args.tolist(), grad, self._out)
         return self._out
 
     # --- evaluation ------------------------------------------------------------------------------
