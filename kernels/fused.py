@@ -206,6 +206,10 @@ def make_fused_kernels(
     if len(constant) != R:
         raise ValueError("constant needs one flag per quantity")
     voted = tuple(r for r in range(R) if not constant[r])  # voted quantity -> its regularizer
+    # CPU: the row passes in bands of about H / (2 threads) rows, a power of two (the scheduling of
+    # backend.per_thread_loops otherwise makes tasks of a few rows, whose overhead dominated small
+    # windows); a GPU keeps its default block
+    row_block = None if atomic_scatter else 1 << max(0, (max(1, height // (2 * n_slices))).bit_length() - 1)
     vpos = tuple(voted.index(r) if r in voted else -1 for r in range(R))  # regularizer -> voted slot
     RV = len(voted)
     f = fields
@@ -402,6 +406,7 @@ def make_fused_kernels(
                 for i in range(lo, hi):
                     splat_event(s, ev[i], theta, c)
         # --- 3. rows: sum the slices, blur along x, reduce the maps -------------------------------------
+        ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
         for y in range(H):
             if ti.static(S > 1):
                 for x in range(W):
@@ -441,6 +446,7 @@ def make_fused_kernels(
                 for v in ti.static(range(RV)):
                     red[i_m + 1 + v][None] += psum[v]
         # --- 4. rows: blur along y, reduce the objective --------------------------------------------------
+        ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
         for y in range(H):
             rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
             interior = y >= r_ and y < H - r_
@@ -457,6 +463,7 @@ def make_fused_kernels(
                     red[k][None] += rsum[k]
         if ti.static(sobel):
             # Sobel images (kept for the backward) and the pixel terms that read them
+            ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
             for y in range(H):
                 rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
                 for x in range(W):
@@ -508,11 +515,13 @@ def make_fused_kernels(
         # --- 6. rows (grad): adjoint images ------------------------------------------------------------
         if ti.static(sobel):
             # L(I): transposed Sobel of the Sobel images
+            ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
             for y in range(H):
                 if grad != 0:
                     for x in range(W):
                         for c in ti.static(range(C)):
                             f.ibar[y, x, c] = sobel_t(f.sobel, c, y, x)
+        ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
         for y in range(H):
             if grad != 0:
                 # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp row y: by
