@@ -206,10 +206,15 @@ def make_fused_kernels(
     if len(constant) != R:
         raise ValueError("constant needs one flag per quantity")
     voted = tuple(r for r in range(R) if not constant[r])  # voted quantity -> its regularizer
-    # CPU: the row passes in bands of about H / (2 threads) rows, a power of two (the scheduling of
-    # backend.per_thread_loops otherwise makes tasks of a few rows, whose overhead dominated small
-    # windows); a GPU keeps its default block
-    row_block = None if atomic_scatter else 1 << max(0, (max(1, height // (2 * n_slices))).bit_length() - 1)
+    # CPU: images of fewer than 512 rows are reduced in one band, in row order, so that J and its
+    # reductions are the same from run to run (Taichi's default CPU scheduling ran them serially too);
+    # taller images in bands of about H / (2 threads) rows, a power of two; a GPU keeps its default
+    if atomic_scatter:
+        row_block = None
+    elif height < 512:
+        row_block = 1 << (height - 1).bit_length()  # a power of two >= H: one band
+    else:
+        row_block = 1 << max(0, (height // (2 * n_slices)).bit_length() - 1)
     vpos = tuple(voted.index(r) if r in voted else -1 for r in range(R))  # regularizer -> voted slot
     RV = len(voted)
     f = fields
