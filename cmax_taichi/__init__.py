@@ -31,15 +31,11 @@ from cmax_taichi.models.warps import (
     unregister_warp,
     warp_names,
 )
+from cmax_taichi.pipeline.flow_field import dense_flow
 from cmax_taichi.pipeline.fused import ChainPathWarning
 from cmax_taichi.pipeline.jacobians import event_jacobians
-from cmax_taichi.pipeline.problem import (
-    POLARITY_MODES,
-    ContrastMaximization,
-    Evaluation,
-    NonFiniteResultError,
-    dense_flow,
-)
+from cmax_taichi.pipeline.parameters import NonFiniteResultError
+from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation
 from cmax_taichi.sim import (
     SimulatedRecording,
     Simulator,

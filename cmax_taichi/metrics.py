@@ -32,7 +32,8 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.models.warps import WarpModel
-from cmax_taichi.pipeline.problem import ContrastMaximization, dense_flow
+from cmax_taichi.pipeline.flow_field import dense_flow
+from cmax_taichi.pipeline.problem import ContrastMaximization
 
 __all__ = [
     "angular_velocity_error",

@@ -14,7 +14,10 @@ import taichi as ti
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import jacobian_ad as kad
-from cmax_taichi.pipeline.problem import ContrastMaximization, _cached, _check_theta, _require_finite
+from cmax_taichi.pipeline.parameters import check_theta as _check_theta
+from cmax_taichi.pipeline.parameters import require_finite as _require_finite
+from cmax_taichi.pipeline.problem import ContrastMaximization
+from cmax_taichi.pipeline.setup import cached_kernel as _cached
 
 __all__ = ["event_jacobians"]
 

@@ -11,7 +11,6 @@ repeated evaluations allocate nothing. Formulas: docs/FORMULAS.md.
 from __future__ import annotations
 
 import math
-import numbers
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -20,18 +19,20 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend, checks, limits, workspace
+from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import blocks as kblocks
 from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.kernels import loss as kloss
 from cmax_taichi.kernels import maps as kmaps
-from cmax_taichi.kernels import warps as kwarps
 from cmax_taichi.kernels import whitening as kwhite
 from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
 from cmax_taichi.models.warps import WarpModel, get_warp
+from cmax_taichi.pipeline.flow_field import dense_flow
 from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline, n_slices
+from cmax_taichi.pipeline.parameters import check_theta as _check_theta
+from cmax_taichi.pipeline.parameters import require_finite as _require_finite
 from cmax_taichi.pipeline.setup import (
     POLARITY_MODES,
     ProblemSetup,
@@ -44,7 +45,7 @@ from cmax_taichi.pipeline.setup import (
 )
 from cmax_taichi.pipeline.setup import cached_kernel as _cached
 
-__all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation", "NonFiniteResultError", "dense_flow"]
+__all__ = ["ContrastMaximization", "POLARITY_MODES", "Evaluation"]
 
 # reasons already warned about in this process (ChainPathWarning is issued once per reason)
 _WARNED_REASONS: set[str] = set()
@@ -79,100 +80,6 @@ class Evaluation:
     G_raw: float
     G0: float
     R: dict
-
-
-class NonFiniteResultError(ValueError):
-    """A result (J, its gradient, a map, a flow) would not be finite: the parameters overflow the
-    backend's float type. The message names theta and the float type; the optimizers read it as a
-    point outside the usable range."""
-
-
-def _describe_number(value) -> str:
-    """A short text for a number, also for Python ints too large to format as a float."""
-    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10**300:
-        return f"{'-' if value < 0 else ''}1e{len(str(abs(value))) - 1} (approximately)"
-    try:
-        return f"{float(value):.6g}"
-    except (OverflowError, TypeError, ValueError):
-        return repr(value)
-
-
-#: the largest finite value of each backend float type
-_LARGEST = {"f32": float(np.finfo(np.float32).max), "f64": float(np.finfo(np.float64).max)}
-
-
-def _format_vector(values: np.ndarray) -> str:
-    return "[" + ", ".join(f"{v:.6g}" for v in np.asarray(values, dtype=np.float64).reshape(-1)) + "]"
-
-
-def _check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
-    """``theta`` as ``n`` finite float64 values that the backend's float type can hold.
-
-    Raises TypeError for what is not a sequence of real numbers (None, a string, a complex number, a
-    bool) and ValueError for the wrong length, a non-finite value, or a value beyond the largest float
-    of the backend (a Python int such as ``10**400``, or above 3.4e38 with ``precision="f32"``).
-    ``label`` names the argument in the messages (``theta0``, ``bounds lo``, ...)."""
-    what = f"{label} of warp {name!r} ({n} parameter(s))"
-    if theta is None or isinstance(theta, (str, bytes, Mapping)):
-        raise TypeError(f"{what} must be a sequence of {n} real numbers, got {theta!r}")
-    if isinstance(theta, np.ndarray) and theta.dtype.kind in "fiu":
-        arr = np.asarray(theta, dtype=np.float64).reshape(-1)
-    else:
-        try:
-            items = np.asarray(theta, dtype=object).reshape(-1)
-        except (TypeError, ValueError):
-            raise TypeError(f"{what} must be a sequence of {n} real numbers, got {theta!r}") from None
-        arr = np.empty(items.size)
-        for i, v in enumerate(items):
-            if not isinstance(v, numbers.Real) or isinstance(v, (bool, np.bool_)):
-                raise TypeError(f"{what}: {label}[{i}] = {v!r} ({type(v).__name__}) is not a real number")
-            try:
-                arr[i] = float(v)
-            except OverflowError:
-                raise ValueError(
-                    f"{what}: {label}[{i}] = {_describe_number(v)} is beyond the largest float64 "
-                    f"({np.finfo(np.float64).max:.3g})"
-                ) from None
-    if arr.size != n:
-        raise ValueError(f"warp {name!r} takes {n} parameter(s), got {label} of length {arr.size}")
-    limit = _LARGEST[backend.info().precision]
-    if all(-limit <= v <= limit for v in arr.tolist()):  # the common case, in plain Python (NaN fails)
-        return arr
-    finite = np.isfinite(arr)
-    if not finite.all():
-        i = int(np.flatnonzero(~finite)[0])
-        raise ValueError(
-            f"{what} has a non-finite value: {label}[{i}] = {arr[i]} ({label} = {_format_vector(arr)})"
-        )
-    big = np.flatnonzero(np.abs(arr) > limit)
-    if big.size:
-        raise ValueError(
-            f"{what}: {label}[{big[0]}] = {arr[big[0]]:.6g} is beyond the largest "
-            f"{backend.info().precision} value ({limit:.3g}) of this backend; use cm.init(precision='f64')"
-        )
-    return arr
-
-
-def _all_finite(value) -> bool:
-    if isinstance(value, float):
-        return math.isfinite(value)
-    value = np.asarray(value, dtype=np.float64)
-    if value.size <= 64:  # a gradient, a few penalties: plain Python is faster than NumPy here
-        return all(map(math.isfinite, value.reshape(-1).tolist()))
-    return bool(np.isfinite(value).all())
-
-
-def _require_finite(model: WarpModel, theta: np.ndarray, what: str, *values) -> None:
-    """Raise :class:`NonFiniteResultError` naming theta when a result is not finite (an overflow)."""
-    if all(_all_finite(v) for v in values):
-        return
-    precision = backend.info().precision
-    hint = " (or use cm.init(precision='f64'))" if precision == "f32" else ""
-    raise NonFiniteResultError(
-        f"{what} is not finite at theta = {_format_vector(theta)} of warp {model.name!r}: the parameters "
-        f"overflow {precision} arithmetic (values beyond {np.finfo(backend.numpy_real()).max:.3g}); "
-        f"use smaller parameters{hint}"
-    )
 
 
 class ContrastMaximization:
@@ -728,81 +635,3 @@ class ContrastMaximization:
             f"regularizers={regs}, events={self.n_events}, sensor={self.width}x{self.height}, "
             f"T={self.duration * 1e3:.3f} ms)"
         )
-
-
-def dense_flow(
-    warp: str | WarpModel,
-    theta,
-    sensor_size: tuple[int, int],
-    *,
-    camera: Camera | None = None,
-    duration: float = 1.0,
-    dt: float = 0.0,
-) -> np.ndarray:
-    """Flow field of a parametric warp on the pixel grid, shape (2, H, W) (x then y component).
-
-    Parameters
-    ----------
-    warp : str or WarpModel
-        The model.
-    theta : array_like
-        Parameters, physical units.
-    sensor_size : (int, int)
-        ``(W, H)``.
-    camera : Camera, optional
-        Centre (and intrinsics for ``rotation3``); default the image centre.
-    duration : float
-        Window duration T (s) for ``mitrokhin4``.
-    dt : float
-        0: instantaneous flow (px/s). Otherwise the displacement ``-(W(x, dt) - x)`` in px over ``dt``
-        seconds (finite; a negative ``dt`` gives the displacement backwards in time).
-
-    Returns
-    -------
-    ndarray
-        ``(2, H, W)`` float64. NaN (the library's "no value here") where the warp sends the pixel
-        nowhere: a ``rotation3`` ray rotated behind the camera over ``dt``.
-
-    Raises
-    ------
-    TypeError, ValueError
-        For a ``dt``, ``duration`` or ``theta`` that is not a finite number (``dt = NaN`` would give
-        an all-NaN field).
-    NonFiniteResultError
-        (a ValueError) when the parameters overflow the float type on the grid.
-    """
-    backend.ensure_initialized()
-    model = get_warp(warp)
-    theta = _check_theta(theta, model.n_params, model.name)
-    W, H = limits.check_dense_flow(sensor_size, np.dtype(backend.numpy_real()).itemsize)
-    if model.needs_camera and camera is None:
-        raise ValueError(f"warp {model.name!r} needs a camera (intrinsics): pass camera=")
-    duration = checks.seconds("duration", duration, positive=True)
-    dt = checks.seconds("dt", dt)
-    info = backend.info()
-
-    def build(ws):
-        real = backend.real()
-        ws.th = ti.Vector.field(model.n_params, real, shape=())
-        ws.ctx = ti.Vector.field(5, real, shape=())
-        ws.out = ti.field(real, shape=(3, H, W))  # x, y and "sent nowhere"
-
-    ws = workspace.acquire(
-        ("dense_flow", info.generation, model.n_params, W, H), build, f"the dense flow of a {W}x{H} sensor"
-    )
-    th, ctx, out = ws.th, ws.ctx, ws.out
-    th[None] = theta.tolist()
-    if camera is not None:
-        ctx[None] = [camera.cx, camera.cy, camera.fx, camera.fy, duration]
-    else:
-        ctx[None] = [(W - 1) / 2.0, (H - 1) / 2.0, 1.0, 1.0, duration]
-    kernel = _cached(
-        ("dense_flow", model.name, id(model), W, H),
-        lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H),
-    )
-    kernel(th, ctx, dt, out)
-    planes = out.to_numpy().astype(np.float64)
-    flow, nowhere = planes[:2], planes[2] > 0
-    _require_finite(model, theta, "the dense flow", flow[:, ~nowhere])
-    flow[:, nowhere] = np.nan
-    return flow

@@ -53,7 +53,9 @@ import numpy as np
 
 from cmax_taichi.core import checks
 from cmax_taichi.models.warps import WarpModel
-from cmax_taichi.pipeline.problem import ContrastMaximization, NonFiniteResultError, _check_theta
+from cmax_taichi.pipeline.parameters import NonFiniteResultError
+from cmax_taichi.pipeline.parameters import check_theta as _check_theta
+from cmax_taichi.pipeline.problem import ContrastMaximization
 from cmax_taichi.solve.search import distinct_top, grid_search, random_search, tpe_search
 
 __all__ = [
@@ -202,7 +204,7 @@ def _kinds(model: WarpModel) -> tuple[str, ...] | None:
 
 def _numeric_scales_per_second(prob: ContrastMaximization) -> np.ndarray:
     """RMS flow (px/s) over the pixel grid per unit of each parameter, at theta = 0 (cached)."""
-    from cmax_taichi.pipeline.problem import dense_flow
+    from cmax_taichi.pipeline.flow_field import dense_flow
 
     model = prob.model
     key = (model.name, id(model), prob.width, prob.height, prob.camera, prob.center)
