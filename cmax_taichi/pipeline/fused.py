@@ -359,7 +359,11 @@ class FusedPipeline:
         return float(out[0]), out[2:].copy()
 
     def image(self) -> np.ndarray:
-        """The blurred IWE of the last evaluation, (C, H, W) float64."""
+        """The blurred IWE of the last evaluation, (C, H, W) float64 (one more launch at its theta, which
+        keeps the image: the evaluations do not store it unless the objective reads it)."""
+        self._load()
+        with backend.per_thread_loops():
+            self._run_k(self.n_events, self.events, *self._theta.tolist(), 2, self._out)
         return np.moveaxis(self.fields.img.to_numpy().astype(np.float64), -1, 0)
 
     def nbytes(self) -> int:

@@ -1,0 +1,294 @@
+"""Where a window's image work happens: segment masks of the pixels its warped events touch, dilated
+by the footprint of each image pass.
+
+Every image pass of the pipelines (slice sums, blurs, objective and map reductions, Sobel, adjoints,
+clears) runs over the pixels the events can reach rather than over all ``W x H``: a 5,000-event window
+touches a few ten thousand pixels of a 1280x720 sensor. The image is cut into **segments** of
+:data:`SEG` = 4 pixels of one row; a *mask* holds one bit per segment, 32 segments to a ``u32`` word
+(``words`` per row). Bit ``b`` of word ``j`` of row ``y`` is the segment of pixels
+``x0 = SEG (32 j + b) .. x0 + 3`` of row ``y``.
+
+* The splat calls :func:`TileOps.mark` for every footprint it votes: the segments of its top-left row
+  holding its columns ``ix, ix + 1`` (clipped into the image; a check before the ``atomic_or``, so an
+  already set bit costs one load). The footprint's second row is added by the dilation below.
+* ``F0``, the touched segments: the marks of row ``y`` or ``y - 1``.
+* A **region** ``(kx, ry)`` is ``F0`` dilated by ``kx`` segments along x and ``ry`` rows along y: the
+  pixels within ``SEG kx`` columns and ``ry`` rows of a touched one. A pass reaching ``r`` pixels along
+  x needs ``kx = ceil(r / SEG)`` (:func:`reach`); along y the dilation is exact. Region 0 is always
+  ``F0`` itself.
+* Two row passes compute them (:meth:`TileOps.build_x`: ``F0`` and its x-dilations per row;
+  :meth:`TileOps.build_y`: the y-dilations, the in-image pixel count of each region's row, and the
+  marks cleared for the next call). The fused kernel then loops over rows and iterates the set bits of
+  a row's words (:func:`first_pixel`, :func:`drop_lowest`); the autodiff chains need flat loops and
+  read the regions as **lists** of segments in row-major order (:meth:`TileOps.prefix`,
+  :meth:`TileOps.fill`; :meth:`TileOps.entry`).
+
+Everything here is integer work on ``u32`` / ``i32`` fields, never differentiated; the lists and
+masks are a function of the set of touched pixels only, so the order of every pass and reduction that
+follows them is fixed (the same input gives the same sums to the last bit). ``clz`` is avoided (its
+SPIR-V lowering fails in Taichi 1.7.4 on Vulkan): the lowest set bit comes from ``popcnt``.
+"""
+
+import taichi as ti
+
+SEG = 4  # pixels per segment (of one row)
+WORD = 32  # segments per mask word
+
+
+def reach(px: int) -> int:
+    """Segments of x dilation that cover ``px`` pixels on each side: ``ceil(px / SEG)``."""
+    return -(-int(px) // SEG)
+
+
+class TileFields:
+    """The mask fields of one ``width x height`` image and its regions.
+
+    Parameters
+    ----------
+    width, height : int
+        Image size, px.
+    regions : sequence of (int, int)
+        ``(kx, ry)`` of each region (segments along x, rows along y); the first must be ``(0, 0)``
+        (``F0``).
+    history : sequence of int
+        Regions whose previous masks are kept (``old``), so that a pass can clear what the previous
+        call left outside the new region (:meth:`TileOps.stale`).
+    lists : bool
+        Also keep each region as a list of segments (the autodiff chains' flat loops).
+    """
+
+    def __init__(self, width: int, height: int, regions, *, history=(), lists: bool = False) -> None:
+        regions = tuple((int(kx), int(ry)) for kx, ry in regions)
+        if not regions or regions[0] != (0, 0):
+            raise ValueError("region 0 must be (0, 0): the touched segments")
+        if any(kx < 0 or ry < 0 or kx >= WORD for kx, ry in regions):
+            raise ValueError(f"region dilations must be 0 <= kx < {WORD} and ry >= 0, got {regions}")
+        W, H = int(width), int(height)
+        self.width, self.height = W, H
+        self.regions = regions
+        self.history = tuple(int(h) for h in history)
+        self.n_segments = -(-W // SEG)
+        self.n_words = -(-self.n_segments // WORD)
+        self.kxs = tuple(sorted({kx for kx, _ in regions}))  # distinct x dilations (build_x)
+        R, NW = len(regions), self.n_words
+        self.marks = ti.field(ti.u32, shape=(H, NW))  # set by the splat; cleared by build_y
+        self.xmask = ti.field(ti.u32, shape=(len(self.kxs), H, NW))  # F0 dilated along x
+        self.masks = ti.field(ti.u32, shape=(R, H, NW))  # the regions of the last build
+        self.old = ti.field(ti.u32, shape=(max(len(self.history), 1), H, NW))  # regions of the call before
+        self.rowpx = ti.field(ti.i32, shape=(R, H))  # in-image pixels of each region's row
+        self.pixels = ti.field(ti.i32, shape=R)  # in-image pixels of each region
+        self.lists = None
+        if lists:
+            self.rows = ti.field(ti.i32, shape=(R, H + 1))  # list offset of each row
+            self.lists = ti.field(ti.i32, shape=(R, H * self.n_segments))  # y * n_segments + segment
+            self.count = ti.field(ti.i32, shape=R)  # segments per list
+
+    def nbytes(self) -> int:
+        """Bytes held by the mask and list fields."""
+        R, H, NW = len(self.regions), self.height, self.n_words
+        total = 4 * H * NW * (1 + len(self.kxs) + R + max(len(self.history), 1)) + 4 * R * (H + 1)
+        if self.lists is not None:
+            total += 4 * R * (H + 1 + H * self.n_segments + 1)
+        return total
+
+
+@ti.func
+def lowest_bit(w):
+    """Index of the lowest set bit of a non-zero ``u32``."""
+    return ti.cast(ti.math.popcnt((w & (ti.u32(0) - w)) - ti.u32(1)), ti.i32)
+
+
+@ti.func
+def drop_lowest(w):
+    """``w`` without its lowest set bit."""
+    return w & (w - ti.u32(1))
+
+
+@ti.func
+def first_pixel(j, w):
+    """First pixel column of the segment of the lowest set bit of word ``j``'s value ``w``."""
+    return (j * WORD + lowest_bit(w)) * SEG
+
+
+class TileOps:
+    """The Taichi functions over the fields of a :class:`TileFields` of one geometry (sizes, regions and
+    history compiled in). Each takes the fields as its first (template) argument, so kernels built
+    from one ``TileOps`` serve every ``TileFields`` of that geometry."""
+
+    def __init__(self, tf: TileFields) -> None:
+        self.geometry = (tf.width, tf.height, tf.regions, tf.history, tf.lists is not None)
+        W, H = tf.width, tf.height
+        NS, NW, R = tf.n_segments, tf.n_words, len(tf.regions)
+        regions, kxs, history = tf.regions, tf.kxs, tf.history
+        kx_slot = tuple(kxs.index(kx) for kx, _ in regions)
+        tail = NS - WORD * (NW - 1)  # segments in the last word of a row
+        last_mask = (1 << tail) - 1 if tail < WORD else 0xFFFFFFFF
+        partial = SEG * NS - W  # columns of the last segment beyond the image
+        self.partial = partial
+
+        @ti.func
+        def set_bits(tf: ti.template(), y, j, bits):
+            if (tf.marks[y, j] & bits) != bits:
+                ti.atomic_or(tf.marks[y, j], bits)
+
+        @ti.func
+        def mark(tf: ti.template(), ix, iy):
+            """Mark the footprint with top-left corner ``(ix, iy)`` (px; -1 .. W-1, -1 .. H-1)."""
+            y = ti.max(iy, 0)
+            s0 = ti.max(ix, 0) // SEG
+            s1 = ti.min(ix + 1, W - 1) // SEG
+            j0 = s0 // WORD
+            b0 = ti.u32(1) << ti.cast(s0 % WORD, ti.u32)
+            b1 = ti.u32(1) << ti.cast(s1 % WORD, ti.u32)
+            if s1 // WORD == j0:
+                set_bits(tf, y, j0, b0 | b1)
+            else:
+                set_bits(tf, y, j0, b0)
+                set_bits(tf, y, j0 + 1, b1)
+
+        @ti.func
+        def touched(tf: ti.template(), y, j):
+            """Word ``j`` of ``F0`` in row ``y``: marks of rows ``y`` and ``y - 1``."""
+            w = ti.u32(0)
+            if 0 <= j < NW:
+                w = tf.marks[y, j]
+                if y > 0:
+                    w |= tf.marks[y - 1, j]
+            return w
+
+        @ti.func
+        def row_pixels(w, j):
+            """In-image pixels of the segments of word ``j``'s value ``w``."""
+            px = ti.cast(ti.math.popcnt(w), ti.i32) * SEG
+            if ti.static(partial > 0):
+                if j == NW - 1 and (w >> ti.u32(tail - 1)) & ti.u32(1) != ti.u32(0):
+                    px -= partial
+            return px
+
+        @ti.func
+        def build_x(tf: ti.template(), y):
+            """Row ``y`` of ``F0`` (region 0), of its x-dilations and of the regions without y-dilation,
+            with their in-image pixel counts (a row pass; reads the marks of rows ``y`` and ``y - 1``)."""
+            px = ti.Vector([0 for _ in ti.static(range(R))])
+            for j in range(NW):
+                w = touched(tf, y, j)
+                left = touched(tf, y, j - 1)
+                right = touched(tf, y, j + 1)
+                tf.masks[0, y, j] = w
+                px[0] += row_pixels(w, j)
+                for s in ti.static(range(len(kxs))):
+                    d = w
+                    for k in ti.static(range(1, kxs[s] + 1)):
+                        d |= (w << ti.u32(k)) | (w >> ti.u32(k))
+                        d |= (left >> ti.u32(WORD - k)) | (right << ti.u32(WORD - k))
+                    if j == NW - 1:
+                        d &= ti.u32(last_mask)
+                    tf.xmask[s, y, j] = d
+                    for ri in ti.static(range(1, R)):
+                        if ti.static(regions[ri][1] == 0 and kx_slot[ri] == s):
+                            tf.masks[ri, y, j] = d
+                            px[ri] += row_pixels(d, j)
+            for ri in ti.static(range(R)):
+                if ti.static(regions[ri][1] == 0):
+                    tf.rowpx[ri, y] = px[ri]
+
+        @ti.func
+        def build_y(tf: ti.template(), y):
+            """Row ``y`` of the regions with y-dilation (from :meth:`build_x`'s rows ``y - ry .. y + ry``:
+            a later row pass), their in-image pixel counts, and the marks of row ``y`` cleared."""
+            for ri in ti.static(range(1, R)):
+                ry = ti.static(regions[ri][1])
+                if ti.static(ry > 0):
+                    px = 0
+                    for j in range(NW):
+                        w = ti.u32(0)
+                        for dy in ti.static(range(-ry, ry + 1)):
+                            if 0 <= y + dy < H:
+                                w |= tf.xmask[kx_slot[ri], y + dy, j]
+                        tf.masks[ri, y, j] = w
+                        px += row_pixels(w, j)
+                    tf.rowpx[ri, y] = px
+            for j in range(NW):
+                tf.marks[y, j] = ti.u32(0)
+
+        @ti.func
+        def stale(tf: ti.template(), h: ti.template(), y, j):
+            """Segments of history slot ``h`` (region ``history[h]``) in the previous call's region but
+            not in the new one (row ``y``, word ``j``); the new region becomes the old one."""
+            new = tf.masks[history[h], y, j]
+            w = tf.old[h, y, j] & ~new
+            tf.old[h, y, j] = new
+            return w
+
+        @ti.func
+        def in_image(x):
+            """Column ``x`` of a segment is in the image (only the last segment of a row can stick out)."""
+            inside = True
+            if ti.static(partial > 0):
+                inside = x < W
+            return inside
+
+        self.mark, self.build_x, self.build_y, self.stale, self.in_image = mark, build_x, build_y, stale, in_image
+
+        if tf.lists is not None:
+
+            @ti.func
+            def prefix(tf: ti.template()):
+                """List offsets of every row, list lengths, pixel counts (at the top level of a kernel,
+                after :meth:`build_y`: serial loops)."""
+                for ri in ti.static(range(R)):
+                    tf.rows[ri, 0] = 0
+                    tf.count[ri] = 0
+                    tf.pixels[ri] = 0
+                ti.loop_config(serialize=True)
+                for y in range(H):
+                    for ri in ti.static(range(R)):
+                        n = 0
+                        for j in range(NW):
+                            n += ti.cast(ti.math.popcnt(tf.masks[ri, y, j]), ti.i32)
+                        tf.count[ri] += n
+                        tf.rows[ri, y + 1] = tf.count[ri]
+                        tf.pixels[ri] += tf.rowpx[ri, y]
+
+            @ti.func
+            def fill(tf: ti.template(), y):
+                """Row ``y``'s segments into every list (a row pass after :meth:`prefix`)."""
+                for ri in ti.static(range(R)):
+                    pos = tf.rows[ri, y]
+                    for j in range(NW):
+                        w = tf.masks[ri, y, j]
+                        while w != ti.u32(0):
+                            tf.lists[ri, pos] = y * NS + j * WORD + lowest_bit(w)
+                            pos += 1
+                            w = drop_lowest(w)
+
+            @ti.func
+            def entry(tf: ti.template(), ri: ti.template(), k):
+                """Row and first pixel column of entry ``k`` of list ``ri``."""
+                e = tf.lists[ri, k]
+                return e // NS, (e % NS) * SEG
+
+            @ti.kernel
+            def compact(tf: ti.template()):
+                """Regions and lists of the marks the splats left (and the marks cleared)."""
+                for y in range(H):
+                    build_x(tf, y)
+                for y in range(H):
+                    build_y(tf, y)
+                prefix(tf)
+                for y in range(H):
+                    fill(tf, y)
+
+            self.prefix, self.fill, self.entry, self.compact = prefix, fill, entry, compact
+
+
+_OPS: dict = {}
+
+
+def ops_for(tf: TileFields) -> TileOps:
+    """The (cached) :class:`TileOps` of ``tf``'s geometry."""
+    key = (tf.width, tf.height, tf.regions, tf.history, tf.lists is not None)
+    ops = _OPS.get(key)
+    if ops is None:
+        ops = _OPS[key] = TileOps(tf)
+    return ops
