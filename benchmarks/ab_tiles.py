@@ -133,7 +133,9 @@ def _time(path: str, rows: list[str], repeats: int, json_out: str | None) -> int
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="python benchmarks/ab_tiles.py", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python benchmarks/ab_tiles.py", description=__doc__.split("\n\n")[0]
+    )
     sub = parser.add_subparsers(dest="cmd", required=True)
     w = sub.add_parser("windows")
     w.add_argument("path")

@@ -76,9 +76,9 @@ def _planes(builder, real, outer: tuple, height: int, width: int, channels: int)
     a segment's blur taps are vector loads."""
     field = ti.field(real)
     n = len(outer)
-    builder.dense(ti.axes(*range(n), n + 2), outer + (channels,)).dense(ti.axes(n, n + 1), (height, width)).place(
-        field
-    )
+    builder.dense(ti.axes(*range(n), n + 2), outer + (channels,)).dense(
+        ti.axes(n, n + 1), (height, width)
+    ).place(field)
     return field
 
 
@@ -638,7 +638,7 @@ def make_fused_kernels(
                     for p in ti.static(range(SEG)):
                         x = x0 + p
                         if in_image(x):
-                            if ti.static(R > 0):
+                            if ti.static(R > 0):  # noqa: SIM102 - compile-time if
                                 if grad & 1 == 0:  # else the backward reads the maps and clears them
                                     for k in ti.static(range(i_cnt, K)):
                                         f.acc[0, y, x, k] = 0.0
@@ -810,7 +810,7 @@ def make_fused_kernels(
         out[1] = ti.cast(f.graw[None], ti.f64)
         for j in ti.static(range(P)):
             gj = gsum[j][None]
-            if ti.static(not atomic_scatter):
+            if ti.static(not atomic_scatter):  # noqa: SIM102 - compile-time if
                 if grad & 1 != 0:
                     for s in ti.static(range(S)):
                         gj += f.gpart[s, j]

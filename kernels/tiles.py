@@ -21,7 +21,8 @@ touches a few ten thousand pixels of a 1280x720 sensor. The image is cut into **
   marks cleared for the next call). The fused kernel then loops over rows and iterates the set bits of
   a row's words (:func:`first_pixel`, :func:`drop_lowest`); the autodiff chains need flat loops and
   read the regions as **lists** of segments in row-major order (:meth:`TileOps.prefix`,
-  :meth:`TileOps.fill`; :meth:`TileOps.entry`).
+  :meth:`TileOps.fill`, :func:`make_entry`), and clear what the last evaluation wrote over the last
+  lists before the next (:func:`make_clear_kernel`).
 
 Everything here is integer work on ``u32`` / ``i32`` fields, never differentiated; the lists and
 masks are a function of the set of touched pixels only, so the order of every pass and reduction that
@@ -110,6 +111,61 @@ def first_pixel(j, w):
     return (j * WORD + lowest_bit(w)) * SEG
 
 
+def make_mark(width: int, height: int):
+    """``mark(tf, ix, iy)``: mark the footprint with top-left corner ``(ix, iy)`` (px; ``-1 .. W - 1``,
+    ``-1 .. H - 1``) in ``tf.marks``: the segments of row ``max(iy, 0)`` holding columns ``ix`` and
+    ``ix + 1`` clipped into the image (the footprint's second row comes with ``F0``). Atomic, after
+    a load that skips bits already set."""
+    W = int(width)
+
+    @ti.func
+    def set_bits(tf: ti.template(), y, j, bits):
+        if (tf.marks[y, j] & bits) != bits:
+            ti.atomic_or(tf.marks[y, j], bits)
+
+    @ti.func
+    def mark(tf: ti.template(), ix, iy):
+        y = ti.max(iy, 0)
+        s0 = ti.max(ix, 0) // SEG
+        s1 = ti.min(ix + 1, W - 1) // SEG
+        j0 = s0 // WORD
+        b0 = ti.u32(1) << ti.cast(s0 % WORD, ti.u32)
+        b1 = ti.u32(1) << ti.cast(s1 % WORD, ti.u32)
+        if s1 // WORD == j0:
+            set_bits(tf, y, j0, b0 | b1)
+        else:
+            set_bits(tf, y, j0, b0)
+            set_bits(tf, y, j0 + 1, b1)
+
+    return mark
+
+
+def make_mark_position(width: int, height: int):
+    """``mark_position(tf, q)``: :func:`make_mark`'s mark of the footprint of a warped position ``q``
+    (px) whose footprint touches the image (nothing otherwise, NaN included)."""
+    W, H = int(width), int(height)
+    mark = make_mark(W, H)
+
+    @ti.func
+    def mark_position(tf: ti.template(), q):
+        if q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H:
+            mark(tf, ti.cast(ti.floor(q[0]), ti.i32), ti.cast(ti.floor(q[1]), ti.i32))
+
+    return mark_position
+
+
+def make_entry(width: int):
+    """``entry(tf, ri, k) -> (y, x0)``: row and first pixel column of entry ``k`` of list ``ri``."""
+    NS = -(-int(width) // SEG)
+
+    @ti.func
+    def entry(tf: ti.template(), ri: ti.template(), k):
+        e = tf.lists[ri, k]
+        return e // NS, (e % NS) * SEG
+
+    return entry
+
+
 class TileOps:
     """The Taichi functions over the fields of a :class:`TileFields` of one geometry (sizes, regions and
     history compiled in). Each takes the fields as its first (template) argument, so kernels built
@@ -126,25 +182,7 @@ class TileOps:
         partial = SEG * NS - W  # columns of the last segment beyond the image
         self.partial = partial
 
-        @ti.func
-        def set_bits(tf: ti.template(), y, j, bits):
-            if (tf.marks[y, j] & bits) != bits:
-                ti.atomic_or(tf.marks[y, j], bits)
-
-        @ti.func
-        def mark(tf: ti.template(), ix, iy):
-            """Mark the footprint with top-left corner ``(ix, iy)`` (px; -1 .. W-1, -1 .. H-1)."""
-            y = ti.max(iy, 0)
-            s0 = ti.max(ix, 0) // SEG
-            s1 = ti.min(ix + 1, W - 1) // SEG
-            j0 = s0 // WORD
-            b0 = ti.u32(1) << ti.cast(s0 % WORD, ti.u32)
-            b1 = ti.u32(1) << ti.cast(s1 % WORD, ti.u32)
-            if s1 // WORD == j0:
-                set_bits(tf, y, j0, b0 | b1)
-            else:
-                set_bits(tf, y, j0, b0)
-                set_bits(tf, y, j0 + 1, b1)
+        mark = make_mark(W, H)
 
         @ti.func
         def touched(tf: ti.template(), y, j):
@@ -160,7 +198,7 @@ class TileOps:
         def row_pixels(w, j):
             """In-image pixels of the segments of word ``j``'s value ``w``."""
             px = ti.cast(ti.math.popcnt(w), ti.i32) * SEG
-            if ti.static(partial > 0):
+            if ti.static(partial > 0):  # noqa: SIM102 - compile-time if
                 if j == NW - 1 and (w >> ti.u32(tail - 1)) & ti.u32(1) != ti.u32(0):
                     px -= partial
             return px
@@ -228,7 +266,13 @@ class TileOps:
                 inside = x < W
             return inside
 
-        self.mark, self.build_x, self.build_y, self.stale, self.in_image = mark, build_x, build_y, stale, in_image
+        self.mark, self.build_x, self.build_y, self.stale, self.in_image = (
+            mark,
+            build_x,
+            build_y,
+            stale,
+            in_image,
+        )
 
         if tf.lists is not None:
 
@@ -262,12 +306,6 @@ class TileOps:
                             pos += 1
                             w = drop_lowest(w)
 
-            @ti.func
-            def entry(tf: ti.template(), ri: ti.template(), k):
-                """Row and first pixel column of entry ``k`` of list ``ri``."""
-                e = tf.lists[ri, k]
-                return e // NS, (e % NS) * SEG
-
             @ti.kernel
             def compact(tf: ti.template()):
                 """Regions and lists of the marks the splats left (and the marks cleared)."""
@@ -279,7 +317,7 @@ class TileOps:
                 for y in range(H):
                     fill(tf, y)
 
-            self.prefix, self.fill, self.entry, self.compact = prefix, fill, entry, compact
+            self.prefix, self.fill, self.compact = prefix, fill, compact
 
 
 _OPS: dict = {}
@@ -292,3 +330,44 @@ def ops_for(tf: TileFields) -> TileOps:
     if ops is None:
         ops = _OPS[key] = TileOps(tf)
     return ops
+
+
+def make_clear_kernel(tf: TileFields, region: int, images=(), rows=(), scalars=()):
+    """A kernel ``clear()`` that zeroes what one evaluation of an autodiff chain wrote, before the next:
+    ``images`` (``(C, H, W)`` or ``(H, W)`` fields; pass ``f.grad`` to clear a gradient) over the
+    segments of list ``region`` of ``tf`` (the last compaction's: the region everything was written
+    in), ``rows`` (pairs ``(field, list)``: per-entry ``(n, k)`` partial sums, the first
+    ``count[list]`` rows) and ``scalars`` (0-D fields). Built per set of fields (they are closed
+    over)."""
+    W = tf.width
+    entry = make_entry(W)
+    partial = SEG * tf.n_segments - W
+
+    @ti.kernel
+    def clear():
+        for k in range(tf.count[region]):
+            y, x0 = entry(tf, region, k)
+            for p in ti.static(range(SEG)):
+                x = x0 + p
+                inside = True
+                if ti.static(partial > 0):
+                    inside = x < W
+                if inside:
+                    for img in ti.static(images):
+                        if ti.static(len(img.shape) == 2):
+                            img[y, x] = 0.0
+                        else:
+                            for c in ti.static(range(img.shape[0])):
+                                img[c, y, x] = 0.0
+        for field, lst in ti.static(rows):
+            for k in range(tf.count[lst]):
+                for j in ti.static(range(field.shape[1])):
+                    field[k, j] = 0.0
+        for f in ti.static(scalars):
+            if ti.static(isinstance(f, ti.MatrixField)):
+                for j in ti.static(range(f.n)):
+                    f[None][j] = 0.0
+            else:
+                f[None] = 0.0
+
+    return clear
