@@ -65,11 +65,16 @@ def corner_weights(ax, ay, dx: ti.template(), dy: ti.template()):
 
 
 def make_bilinear(width: int, height: int):
-    """``(vote, sample)`` over the in-image corners of the footprint of a warped position ``q`` (px):
-    ``vote(img, c, q, b)`` adds ``b`` times the corner weights into ``img[c, y, x]`` (``img[y, x]`` for
-    a 2-D image) by atomic adds (reverse-mode safe), ``sample(img, c, q)`` returns the bilinear
-    interpolation of ``img[c]`` (0 outside the image). Nothing happens for ``q`` outside
-    ``(-1, W) x (-1, H)`` (or not finite)."""
+    """``(vote, vote_maps, sample)`` over the in-image corners of the footprint of a warped position
+    ``q`` (px); nothing happens for ``q`` outside ``(-1, W) x (-1, H)`` (or not finite).
+
+    * ``vote(img, c, q, b)``: ``img[c, y, x] += b wx wy`` (atomic adds: reverse-mode safe);
+    * ``vote_maps(count, numer, base, q, ab, vals, with_count)``: per corner ``w = ab wx wy``,
+      ``count[y, x] += w`` (``with_count``, static) and ``numer[base + r, y, x] += w vals[r]``: a
+      numerator's votes are the count's times the quantity, so a quantity of exactly 1 gives a map of
+      exactly 1 (the penalties' kinks sit there);
+    * ``sample(img, c, q)``: the bilinear interpolation of ``img[c]`` (0 outside the image).
+    """
     W, H = width, height
 
     @ti.func
@@ -80,10 +85,21 @@ def make_bilinear(width: int, height: int):
                 for dx in ti.static(range(2)):
                     if corner_in_image(ix, iy, dx, dy, W, H):
                         wx, wy = corner_weights(ax, ay, dx, dy)
-                        if ti.static(len(img.shape) == 2):
-                            img[iy + dy, ix + dx] += b * wx * wy
-                        else:
-                            img[c, iy + dy, ix + dx] += b * wx * wy
+                        img[c, iy + dy, ix + dx] += b * wx * wy
+
+    @ti.func
+    def vote_maps(count: ti.template(), numer: ti.template(), base, q, ab, vals, with_count: ti.template()):
+        if in_window(q, W, H):
+            ix, iy, ax, ay = bilinear_footprint(q)
+            for dy in ti.static(range(2)):
+                for dx in ti.static(range(2)):
+                    if corner_in_image(ix, iy, dx, dy, W, H):
+                        wx, wy = corner_weights(ax, ay, dx, dy)
+                        w = ab * wx * wy
+                        if ti.static(with_count):
+                            count[iy + dy, ix + dx] += w
+                        for r in ti.static(range(vals.n)):
+                            numer[base + r, iy + dy, ix + dx] += w * vals[r]
 
     @ti.func
     def sample(img: ti.template(), c, q):
@@ -97,7 +113,7 @@ def make_bilinear(width: int, height: int):
                         v += wx * wy * img[c, iy + dy, ix + dx]
         return v
 
-    return vote, sample
+    return vote, vote_maps, sample
 
 
 # --- Gaussian blur ----------------------------------------------------------------------------------

@@ -58,7 +58,7 @@ def make_cluster_splat_kernel(
     K = len(warp_fns)
     n_r = len(quantity_fns[0]) if K else 0
     W, H = width, height
-    vote_at, _ = _b.make_bilinear(W, H)
+    vote_at, vote_maps, _ = _b.make_bilinear(W, H)
 
     @ti.kernel
     def splat(
@@ -84,8 +84,9 @@ def make_cluster_splat_kernel(
                     theta = ti.Vector([thv[offsets[j] + a] for a in ti.static(range(n_params[j]))])
                     q = warp_fns[j](p, dt, theta, c)
                     vote_at(vote, j, q, b)
-                    for r in ti.static(range(n_r)):
-                        vote_at(numer, j * n_r + r, q, b * quantity_fns[j][r](p, dt, theta, c))
+                    if ti.static(n_r > 0):
+                        vals = ti.Vector([quantity_fns[j][r](p, dt, theta, c) for r in ti.static(range(n_r))])
+                        vote_maps(vote, numer, j * n_r, q, b, vals, False)
 
     return splat
 
@@ -205,7 +206,7 @@ def make_cluster_lookup_kernel(warp_fns: tuple, offsets: tuple, n_params: tuple,
     """
     K = len(warp_fns)
     W, H = width, height
-    _, sample = _b.make_bilinear(W, H)
+    _, _, sample = _b.make_bilinear(W, H)
 
     @ti.kernel
     def lookup(

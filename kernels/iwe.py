@@ -54,7 +54,7 @@ def make_splat_kernel(
     """
     n_q = len(quantity_fns)
     W, H = width, height
-    vote_at, _ = _b.make_bilinear(W, H)
+    vote_at, vote_maps, _ = _b.make_bilinear(W, H)
 
     @ti.kernel
     def splat(
@@ -89,10 +89,8 @@ def make_splat_kernel(
                 else:
                     vote_at(vote, ch, q, b)
             if ti.static(n_q > 0):
-                ab = ti.abs(b)
-                vote_at(count, 0, q, ab)
-                for r in ti.static(range(n_q)):
-                    vote_at(numer, r, q, ab * quantity_fns[r](p, dt, theta, c))
+                vals = ti.Vector([quantity_fns[r](p, dt, theta, c) for r in ti.static(range(n_q))])
+                vote_maps(count, numer, 0, q, ti.abs(b), vals, True)
 
     _ = n_channels  # the channel count is carried by the field shapes
     return splat
