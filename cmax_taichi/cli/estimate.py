@@ -69,11 +69,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
     opt = parser.add_argument_group("optimizer")
-    opt.add_argument("--method", default="adam", help=f"{common.names(METHODS)} (default adam)")
+    opt.add_argument("--method", default="bfgs", help=f"{common.names(METHODS)} (default bfgs)")
     opt.add_argument(
         "--init",
         default="auto",
-        help=f"{common.names(INITS)} (default auto: grid, then warm)",
+        help=f"{common.names(INITS)} (default auto: pyramid, then warm)",
     )
     opt.add_argument("--n-init", type=int, default=None, help="evaluations of the global search")
     opt.add_argument("--no-warm-start", action="store_true", help="global search in every window")

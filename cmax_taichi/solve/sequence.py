@@ -486,7 +486,7 @@ def process(
     n_events: int = 30000,
     duration: float | None = None,
     stride: int | float | None = None,
-    method: str = "adam",
+    method: str = "bfgs",
     warm_start: bool = True,
     compute_fwl: bool = True,
     max_windows: int | None = None,
@@ -518,7 +518,8 @@ def process(
         Start-to-start step (events, or s for time windows); default the window size.
     method : str
         Local optimizer of :func:`~cmax_taichi.maximize` after a global search (the first window, and
-        every window without ``warm_start`` or after a tracking loss).
+        every window without ``warm_start`` or after a tracking loss); default ``"bfgs"``, which with
+        the default coarse-to-fine search solves a first window in at most 150 evaluations.
     warm_start : bool
         Refine the previous window's estimate (``maximize(init="warm", method=warm_method)``: the
         previous estimate and the identity are the candidates, a few quasi-Newton steps follow); the
