@@ -178,3 +178,16 @@ def test_tracking_test_allows_for_shorter_windows():
     assert back.value == state.value and back.duration == state.duration and back.hess_inv is None
     with pytest.raises(TypeError, match="warm_state must be a sequence.WarmState"):
         sequence.process(translating_edges(), "translation2", n_events=1000, warm_state=[1.0, 2.0])
+
+
+def test_fwl_of_a_regularized_sequence_is_the_fwl(events):
+    """With regularizers, the FWL comes from a problem with the same regularizers at weight 0 (it runs
+    on the estimate's compiled kernel): the same value as metrics.fwl on the window."""
+    from cmax_taichi.metrics import fwl
+
+    regs = {"divergence": 1.0, "deformation": 1.0}
+    result = sequence.process(
+        events, "mitrokhin4", regularizers=regs, n_events=1000, max_windows=2, progress=False
+    )
+    for w, window in zip(result.windows, events.windows_by_count(1000), strict=False):
+        assert w.fwl == pytest.approx(fwl(window, "mitrokhin4", w.theta), rel=1e-9)

@@ -672,14 +672,7 @@ def process(
                         value_fwl = res.value  # the estimate's problem is the FWL problem
                     else:
                         if fprob is None:
-                            fprob = fwl_problem(
-                                prob.events,  # already undistorted: the same events as the estimate
-                                model,
-                                camera=camera,
-                                blur_sigma=prob.blur_sigma,
-                                t_ref=popts.get("t_ref", "first"),
-                                polarity=prob.polarity,
-                            )
+                            fprob = _fwl_problem(prob, model, camera, popts.get("t_ref", "first"))
                         else:
                             fprob.set_events(prob.events)
                         value_fwl = fprob.value(res.theta)
@@ -708,6 +701,22 @@ def process(
             bar.close()
     lossy.report()
     return result
+
+
+def _fwl_problem(prob: ContrastMaximization, model, camera: Camera | None, t_ref) -> ContrastMaximization:
+    """The problem whose J is the FWL of ``prob``'s window (the same, already undistorted, events).
+
+    For a variance problem with regularizers on the fused path: the same regularizers at weight 0, so
+    that it runs on the estimate's compiled kernel (the weights are data); a problem without them would
+    compile a kernel of its own on the first window (about a second of front end and code generation).
+    """
+    options = dict(camera=camera, blur_sigma=prob.blur_sigma, t_ref=t_ref, polarity=prob.polarity)
+    if prob.regularizer_weights and prob.path == "fused" and prob.objective.name == "variance":
+        zero = {name: 0.0 for name in prob.regularizer_weights}
+        return ContrastMaximization(
+            prob.events, warp=model, objective="variance", regularizers=zero, **options
+        )
+    return fwl_problem(prob.events, model, **options)
 
 
 def _solve_window(
