@@ -158,28 +158,41 @@ def _figure(width: float, height: float):
     return fig
 
 
-def _window_figure(path: Path, row, prob, res) -> None:
+def _window_figure_data(row, prob, res) -> dict:
+    """What the figure of a window shows (computed with the window's problem, drawn anywhere)."""
     import numpy as np
-
-    from cmax_taichi import viz
 
     model = prob.model
     params = ", ".join(
         f"{n}={v:.4g} {u}" for n, v, u in zip(model.params, res.theta, model.units, strict=True)
     )
+    return {
+        "identity": prob.iwe(np.zeros(model.n_params)),
+        "estimate": prob.iwe(res.theta),
+        "flow": prob.dense_flow(res.theta),
+        "value": float(res.value),
+        "warp": model.name,
+        "title": f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events; "
+        f"{params}",
+    }
+
+
+def _draw_window_figure(path: Path, data: dict) -> None:
+    from cmax_taichi import viz
+
     fig = _figure(16, 4.6)
     axes = fig.subplots(1, 3)
     # fixed margins: the constrained layout engine took a third of the figure's time
     fig.subplots_adjust(left=0.035, right=0.965, bottom=0.08, top=0.86, wspace=0.42)
-    viz.show_iwe(axes[0], prob.iwe(np.zeros(model.n_params)), title="IWE, identity warp (no motion)")
-    viz.show_iwe(axes[1], prob.iwe(res.theta), title=f"IWE, estimate (J = {res.value:.3f})")
-    flow = prob.dense_flow(res.theta)
-    viz.show_flow(axes[2], flow, unit="px/s", title=f"Flow of the estimate ({model.name})")
-    fig.suptitle(
-        f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events; {params}",
-        fontsize=10,
-    )
+    viz.show_iwe(axes[0], data["identity"], title="IWE, identity warp (no motion)")
+    viz.show_iwe(axes[1], data["estimate"], title=f"IWE, estimate (J = {data['value']:.3f})")
+    viz.show_flow(axes[2], data["flow"], unit="px/s", title=f"Flow of the estimate ({data['warp']})")
+    fig.suptitle(data["title"], fontsize=10)
     fig.savefig(path, dpi=90)
+
+
+def _window_figure(path: Path, row, prob, res) -> None:
+    _draw_window_figure(path, _window_figure_data(row, prob, res))
 
 
 def _flow_dir(flow_out: str | None) -> Path | None:
@@ -205,23 +218,120 @@ def _write_window_flow(path: Path, row, prob, res) -> None:
     write_flow(path, flow, unit="px", **meta)
 
 
-def _parameters_figure(path: Path, result) -> None:
-    P = len(result.param_names)
+def _parameters_figure_data(result) -> dict:
+    return {
+        "t": result.t_mid,
+        "theta": result.theta,
+        "fwl": [w.fwl for w in result.windows],
+        "names": result.param_names,
+        "units": result.units,
+        "warp": result.warp,
+    }
+
+
+def _draw_parameters_figure(path: Path, data: dict) -> None:
+    P = len(data["names"])
     fig = _figure(8, 1.8 * (P + 1))
     axes = fig.subplots(P + 1, 1, sharex=True)
     fig.subplots_adjust(left=0.14, right=0.97, bottom=0.3 / (P + 1), top=1 - 0.25 / (P + 1), hspace=0.15)
-    t = result.t_mid
-    theta = result.theta
-    for i, (name, unit) in enumerate(zip(result.param_names, result.units, strict=True)):
+    t, theta = data["t"], data["theta"]
+    for i, (name, unit) in enumerate(zip(data["names"], data["units"], strict=True)):
         axes[i].plot(t, theta[:, i], ".-")
         axes[i].set_ylabel(f"{name} [{unit}]")
         axes[i].grid(alpha=0.3)
-    axes[P].plot(t, [w.fwl for w in result.windows], ".-", color="C1")
+    axes[P].plot(t, data["fwl"], ".-", color="C1")
     axes[P].set_ylabel("FWL")
     axes[P].set_xlabel("time (window middle) [s]")
     axes[P].grid(alpha=0.3)
-    axes[0].set_title(f"{result.warp} estimates per window")
+    axes[0].set_title(f"{data['warp']} estimates per window")
     fig.savefig(path, dpi=90)
+
+
+def _parameters_figure(path: Path, result) -> None:
+    _draw_parameters_figure(path, _parameters_figure_data(result))
+
+
+_DRAW = {"window": _draw_window_figure, "parameters": _draw_parameters_figure}
+
+
+def _figure_worker(conn) -> None:
+    """The figure process: import matplotlib at once (while the estimate runs), then draw each
+    ``(kind, path, data)`` it receives until None; send back the list of errors."""
+    import matplotlib.backends.backend_agg  # noqa: F401 - the import is the point: it runs in parallel
+    import matplotlib.figure  # noqa: F401
+
+    errors = []
+    while True:
+        job = conn.recv()
+        if job is None:
+            break
+        kind, path, data = job
+        try:
+            _DRAW[kind](path, data)
+        except Exception as exc:  # reported by the parent, which then draws nothing more
+            errors.append(f"{path}: {type(exc).__name__}: {exc}")
+    conn.send(errors)
+    conn.close()
+
+
+class FigureWriter:
+    """Draws the command's figures in a child process where the platform can fork and Taichi has not
+    started yet (else in this process).
+
+    matplotlib's import and the drawing took 1.2 s of CPU time of a 38,000-event run whose estimate
+    takes about as long: forked before the backend starts (no Taichi thread exists yet), the child
+    imports matplotlib on the other core while the problem is built and solved, and draws each figure
+    while the results are written. :meth:`close` waits for it and raises CliError if a figure failed.
+    """
+
+    def __init__(self) -> None:
+        import multiprocessing
+
+        from cmax_taichi.core import backend
+
+        self._conn = self._process = None
+        # fork only a process without Taichi's thread pool (a thread holding a lock at the fork would
+        # leave it held in the child): the command forks before it starts the backend
+        if "fork" not in multiprocessing.get_all_start_methods() or backend.is_initialized():
+            return
+        ctx = multiprocessing.get_context("fork")
+        parent, child = ctx.Pipe()
+        self._process = ctx.Process(target=_figure_worker, args=(child,), daemon=True)
+        self._process.start()
+        child.close()
+        self._conn = parent
+
+    def draw(self, kind: str, path: Path, data: dict) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.send((kind, path, data))
+                return
+            except OSError:  # the child is gone: draw here from now on
+                self._conn = None
+        _DRAW[kind](path, data)
+
+    def close(self) -> None:
+        from cmax_taichi.cli import CliError
+
+        if self._conn is None:
+            return
+        conn, self._conn = self._conn, None
+        try:
+            conn.send(None)
+            errors = conn.recv()
+        except (OSError, EOFError):
+            errors = ["the figure process ended before drawing every figure"]
+        conn.close()
+        self._process.join(timeout=60)
+        if errors:
+            raise CliError("figures: " + "; ".join(errors))
+
+    def abandon(self) -> None:
+        """Stop the child without waiting for its figures (the run failed)."""
+        if self._process is not None and self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout=5)
+        self._conn = None
 
 
 def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
@@ -333,13 +443,9 @@ def run_batch(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    import cmax_taichi as cm
     from cmax_taichi.cli import CliError
-    from cmax_taichi.metrics import area_scale
-    from cmax_taichi.solve.sequence import process
 
     regs = common.parse_regularizers(args.reg)
-    example = None
     if args.example is not None:
         if args.path:
             raise CliError("give a recording PATH or --example NAME, not both")
@@ -356,8 +462,23 @@ def run(args: argparse.Namespace) -> int:
     if len(args.path) > 1 or args.workers is not None or args.engine is not None or args.address is not None:
         return run_batch(args)
     check_choices(args)
-    from cmax_taichi import io
+    figures = FigureWriter()  # before the backend starts: see FigureWriter
+    try:
+        return _run_one(args, regs, figures)
+    except BaseException:
+        figures.abandon()
+        raise
 
+
+def _run_one(args: argparse.Namespace, regs: dict, figures: FigureWriter) -> int:
+    """One recording or example (:func:`run` after its checks)."""
+    import cmax_taichi as cm
+    from cmax_taichi import io
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.metrics import area_scale
+    from cmax_taichi.solve.sequence import process
+
+    example = None
     common.init_backend(args.arch, args.precision)
     if args.example is not None:
         from cmax_taichi.sim.examples import make_example
@@ -391,7 +512,9 @@ def run(args: argparse.Namespace) -> int:
                 area_scales.append((area_scale(prob, res.theta), area_scale(prob, example.truth)))
             if figures_left[0] > 0:
                 fig_dir.mkdir(exist_ok=True)
-                _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
+                figures.draw(
+                    "window", fig_dir / f"window_{row.index:04d}.png", _window_figure_data(row, prob, res)
+                )
                 figures_left[0] -= 1
             if flow_dir is not None:
                 _write_window_flow(flow_dir / f"flow_{row.index:04d}.{args.flow_format}", row, prob, res)
@@ -410,8 +533,9 @@ def run(args: argparse.Namespace) -> int:
         written.append(Path(args.flow_out) / f"flow_*.{args.flow_format} ({len(result.windows)} files)")
     if len(result.windows) > 1:
         fig_dir.mkdir(exist_ok=True)
-        _parameters_figure(fig_dir / "parameters.png", result)
+        figures.draw("parameters", fig_dir / "parameters.png", _parameters_figure_data(result))
         written.append(fig_dir / "parameters.png")
+    figures.close()
     if fig_dir.is_dir():
         written += sorted(p for p in fig_dir.glob("window_*.png"))
     theta = result.theta
