@@ -196,16 +196,16 @@ def maximize(
     init : {"auto", "pyramid", "grid", "random", "tpe", "local", "warm", "none"}
         Global initialisation. ``"pyramid"``: coarse to fine over an image pyramid
         (:mod:`cmax_taichi.solve.pyramid`: a design of ``n_init`` points and short BFGS ascents on
-        views of the events 8-64 times coarser, then on views twice as fine each, about 40-100
-        evaluations in all); ``"grid"``: a coarse grid over the box (``n_init`` points) refined by a
-        beam of zooming grids down to ``min_spacing`` px; ``"random"``: ``n_init`` uniform samples;
-        ``"tpe"``: ``n_init`` trials of optuna's TPE sampler (needs optuna); ``"local"``: a grid search
-        in a box around ``theta0`` of half-width ``0.5 |u0| + 5`` px per parameter (inside the global
-        box); ``"warm"``: no search, one local run from the best of ``theta0``, ``candidates`` and the
-        identity (the refinement of a sequence's warm start); ``"none"``: start at ``theta0`` (or 0).
-        ``"auto"`` is ``"pyramid"`` without ``theta0`` and ``"local"`` with it. ``theta0`` (when
-        given), ``candidates`` and the identity are always evaluated; a result below the identity's J
-        is never reported as converged.
+        views of the events 8-64 times coarser, then on views twice as fine each; 49-129 evaluations
+        with the local run on the cases of docs/estimation.md); ``"grid"``: a coarse grid over the
+        box (``n_init`` points) refined by a beam of zooming grids down to ``min_spacing`` px;
+        ``"random"``: ``n_init`` uniform samples; ``"tpe"``: ``n_init`` trials of optuna's TPE
+        sampler (needs optuna); ``"local"``: a grid search in a box around ``theta0`` of half-width
+        ``0.5 |u0| + 5`` px per parameter (inside the global box); ``"warm"``: no search, one local
+        run from the best of ``theta0``, ``candidates`` and the identity (the refinement of a
+        sequence's warm start); ``"none"``: start at ``theta0`` (or 0). ``"auto"`` is ``"pyramid"``
+        without ``theta0`` and ``"local"`` with it. ``theta0`` (when given), ``candidates`` and the
+        identity are always evaluated; a result below the identity's J is never reported as converged.
     bounds : (lo, hi), optional
         Global search box in physical units; default :func:`search_bounds`. Local runs stay inside it.
         Finite, ``lo < hi`` per parameter, and within 1e290 px of displacement over the window (the
