@@ -26,7 +26,6 @@ normalised objective) and :func:`cmax_taichi.maximize` with its defaults (global
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 import warnings
@@ -36,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 import cmax_taichi as cm
+from cmax_taichi.lab.experiments import shared_data_root
 from cmax_taichi.metrics import (
     COLLAPSE_SHARE,
     angular_velocity_error,
@@ -50,9 +50,9 @@ ROTATION_CUTS = ("shapes_rotation", "boxes_rotation", "dynamic_rotation", "poste
 
 
 def default_data_dir() -> Path:
-    """``$CMAX_SHARED_DATA`` or ``../shared/data`` beside the checkout."""
-    env = os.environ.get("CMAX_SHARED_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data"
+    """``$CMAX_SHARED_DATA``, else ``../shared/data`` beside the checkout
+    (:func:`cmax_taichi.lab.experiments.shared_data_root`)."""
+    return shared_data_root()
 
 
 def _fmt_vec(v) -> str:
@@ -385,7 +385,12 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m cmax_taichi.lab.experiments_real",
         description="Reproduce the real-data tables of docs/results-real.md on ../shared/data.",
     )
-    parser.add_argument("--data", type=Path, default=None, help="shared data folder (default ../shared/data)")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="shared data folder (default $CMAX_SHARED_DATA, else ../shared/data beside the checkout)",
+    )
     parser.add_argument("--method", default="adam", choices=METHODS)
     parser.add_argument(
         "--arch", default=None, help="cpu | gpu | cuda | ... (default $CMAX_TAICHI_ARCH or cpu)"
@@ -406,7 +411,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     data = args.data or default_data_dir()
     if not data.is_dir():
-        print(f"experiments_real: error: data folder {data} not found (pass --data)", file=sys.stderr)
+        print(
+            f"experiments_real: error: data folder {data} not found (pass --data or set CMAX_SHARED_DATA)",
+            file=sys.stderr,
+        )
         return 2
     if args.lam is not None and not args.lam > 0:
         print(f"experiments_real: error: --lam must be > 0, got {args.lam}", file=sys.stderr)
