@@ -104,12 +104,16 @@ def test_whitening_table_lines_match_their_header():
         "theta": np.array([39.0, -39.0, 65.0]),
         "angle": 2.06,
         "behind": 347,
+        "spread": 1234.4,
+        "top10": 0.4321,
         "J_white": 449.6511,
         "J_white_ref": 449.6511,
         "J_plain": 0.134,
     }
     header = WHITENING_HEADER.splitlines()[0]
-    for r in (row, {**row, "behind": None, "J_white_ref": None}):
+    for r in (row, {**row, "behind": None, "spread": None, "top10": None, "J_white_ref": None}):
         assert header.count("|") == whitening_line(r).count("|")
     line = whitening_line(row)
-    assert line == "| 0.5 x ray | (+39.00, -39.00, +65.00) | 2.06 | 347 | 449.6511 | 449.6511 | 0.1340 |"
+    assert line == (
+        "| 0.5 x ray | (+39.00, -39.00, +65.00) | 2.06 | 347 | 1234 | 43.2% | 449.6511 | 449.6511 | 0.1340 |"
+    )

@@ -406,8 +406,14 @@ def whitening_rows(
     dt = ev.t - ev.t[0]
     for s in steps:
         theta = s * np.asarray(ray, dtype=np.float64)
-        xw, _, _, _ = reference.warp_events(
+        xw, yw, _, _ = reference.warp_events(
             "rotation3", ev.x, ev.y, dt, theta, duration=white.duration, **geometry
+        )
+        kept = np.isfinite(xw)
+        spread = float(np.sqrt(np.max(np.linalg.eigvalsh(np.cov(xw[kept], yw[kept], bias=True)))))
+        xs, ys = reference.whiten(xw, yw, ev.x, ev.y)
+        votes = np.sort(
+            reference.bilinear_votes(xs, ys, np.ones_like(xs), white.width, white.height), axis=None
         )
         ref = reference.evaluate(
             ev.x,
@@ -424,7 +430,9 @@ def whitening_rows(
             "label": f"{s:g} x ray",
             "theta": theta,
             "angle": float(np.linalg.norm(theta) * white.duration),
-            "behind": int(np.sum(~np.isfinite(xw))),
+            "behind": int(np.sum(~kept)),
+            "spread": spread,
+            "top10": float(np.sum(votes[-10:]) / len(xs)),
             "J_white": white.value(theta),
             "J_white_ref": float(ref["J"]),
             "J_plain": plain.value(theta),
@@ -443,6 +451,8 @@ def whitening_rows(
             "theta": np.asarray(theta, dtype=np.float64),
             "angle": float(np.linalg.norm(theta) * white.duration),
             "behind": None,
+            "spread": None,
+            "top10": None,
             "J_white": white.value(theta),
             "J_white_ref": None,
             "J_plain": plain.value(theta),
@@ -451,18 +461,23 @@ def whitening_rows(
 
 WHITENING_HEADER = (
     "| point | w (rad/s) | rotation over the window (rad) | events behind the camera | "
+    "spread of the warped events (px) | whitened events in the 10 fullest pixels | "
     "J with whitening | J with whitening, float64 reference | J without whitening |\n"
-    "|---|---|---|---|---|---|---|"
+    "|---|---|---|---|---|---|---|---|---|"
 )
 
 
 def whitening_line(r: dict) -> str:
+    """One row; the spread is the square root of the largest eigenvalue of the warped events'
+    covariance (what whitening divides by), the share is of all the window's events."""
     behind = "-" if r["behind"] is None else str(r["behind"])
+    spread = "-" if r["spread"] is None else f"{r['spread']:.0f}"
+    top10 = "-" if r["top10"] is None else f"{100 * r['top10']:.1f}%"
     ref = "-" if r["J_white_ref"] is None else f"{r['J_white_ref']:.4f}"
     w = "(" + ", ".join(f"{v:+.2f}" for v in r["theta"]) + ")"
     return (
-        f"| {r['label']} | {w} | {r['angle']:.2f} | {behind} | {r['J_white']:.4f} | {ref} | "
-        f"{r['J_plain']:.4f} |"
+        f"| {r['label']} | {w} | {r['angle']:.2f} | {behind} | {spread} | {top10} | {r['J_white']:.4f} | "
+        f"{ref} | {r['J_plain']:.4f} |"
     )
 
 
