@@ -290,11 +290,14 @@ class FigureWriter:
         from cmax_taichi.core import backend
 
         self._conn = self._process = None
+        self._errors: list[str] = []  # of the figures drawn in this process
         # fork only a process without Taichi's thread pool (a thread holding a lock at the fork would
         # leave it held in the child): the command forks before it starts the backend
         if "fork" not in multiprocessing.get_all_start_methods() or backend.is_initialized():
             return
         ctx = multiprocessing.get_context("fork")
+        sys.stdout.flush()  # the child flushes its copy of the buffers when it ends: empty them first
+        sys.stderr.flush()
         parent, child = ctx.Pipe()
         self._process = ctx.Process(target=_figure_worker, args=(child,), daemon=True)
         self._process.start()
@@ -308,21 +311,24 @@ class FigureWriter:
                 return
             except OSError:  # the child is gone: draw here from now on
                 self._conn = None
-        _DRAW[kind](path, data)
+        try:
+            _DRAW[kind](path, data)
+        except Exception as exc:  # one error line at close(), as from the child
+            self._errors.append(f"{path}: {type(exc).__name__}: {exc}")
 
     def close(self) -> None:
         from cmax_taichi.cli import CliError
 
-        if self._conn is None:
-            return
-        conn, self._conn = self._conn, None
-        try:
-            conn.send(None)
-            errors = conn.recv()
-        except (OSError, EOFError):
-            errors = ["the figure process ended before drawing every figure"]
-        conn.close()
-        self._process.join(timeout=60)
+        errors, self._errors = self._errors, []
+        if self._conn is not None:
+            conn, self._conn = self._conn, None
+            try:
+                conn.send(None)
+                errors += conn.recv()
+            except (OSError, EOFError):
+                errors.append("the figure process ended before drawing every figure")
+            conn.close()
+            self._process.join(timeout=60)
         if errors:
             raise CliError("figures: " + "; ".join(errors))
 
