@@ -429,10 +429,13 @@ def test_process_reports_undistortion_once_with_totals():
     assert len(dropped) == 2, dropped
     assert dropped[0].startswith("dropped ") and "of 200 event(s) in undistortion" in dropped[0]
     total = sum(w.n_events for w in result.windows)
-    assert (
-        dropped[1] == f"dropped {600 - total} of 600 event(s) in undistortion over 3 windows "
-        "(the first window's warning has the details)"
+    assert dropped[1] == (
+        f"Events(n=600): {600 - total} of 600 event(s) not estimated: {600 - total} lost in undistortion "
+        "(the first such window's warning says why)"
     )
+    # per window in the results, and in the totals
+    assert [w.n_events + w.n_dropped for w in result.windows] == [200] * 3
+    assert result.events["undistortion"] == 600 - total and result.events["estimated"] == total
 
 
 @pytest.mark.parametrize(

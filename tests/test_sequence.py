@@ -71,7 +71,11 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
     header = sequence.SequenceResult
     assert rows[0] == [*header.WINDOW_COLUMNS, "v_x [px/s]", "v_y [px/s]", *header.DIAGNOSTIC_COLUMNS]
     assert header.WINDOW_COLUMNS[:2] == ("index", "t_start [s]") and "converged" in header.DIAGNOSTIC_COLUMNS
-    assert len(rows) == 4 and float(rows[1][4]) == pytest.approx(result.windows[0].theta[0])
+    # the three windows, then the row of the partial tail (273 events, not estimated, counted)
+    assert len(rows) == 5 and float(rows[1][4]) == pytest.approx(result.windows[0].theta[0])
+    assert [r[-1] for r in rows[1:]] == ["estimated"] * 3 + ["partial_tail"]
+    assert rows[4][:4] == ["3", repr(float(events.t[3000])), repr(float(events.t[-1])), "273"]
+    assert result.events["partial_tail"] == 273 and result.events["estimated"] == 3000
     json_path = result.to_json(tmp_path / "r.json")
     data = json.loads(json_path.read_text())
     assert data["params"] == ["v_x", "v_y"] and data["units"] == ["px/s", "px/s"]
