@@ -156,7 +156,8 @@ def test_estimate_then_evaluate_end_to_end(tmp_path):
     results = json.loads((out / "results.json").read_text())
     assert [w["status"] for w in results["windows"]] == ["estimated", "estimated", "partial_tail"]
     tail = results["windows"][2]
-    assert tail["theta"] == {"v_x": None, "v_y": None} and tail["n_events"] + 2000 == results["events"]["total"]
+    assert tail["theta"] == {"v_x": None, "v_y": None}
+    assert tail["n_events"] + 2000 == results["events"]["total"]
     for w in results["windows"][:2]:
         assert abs(w["theta"]["v_x"] - V[0]) < 10 and abs(w["theta"]["v_y"] - V[1]) < 10, w
     header = (out / "results.csv").read_text().splitlines()[0]

@@ -86,7 +86,9 @@ TABLE_NAMES = ("summary.csv", "windows.csv")
 
 #: Test hook: ``NAME:K:MARKER`` makes the worker of recording NAME exit abruptly (``os._exit``) right
 #: after writing the checkpoint of window K, once: only while the file MARKER does not exist (the hook
-#: creates it). Used by the tests to check that a dead worker is replaced and its recording resumed.
+#: creates it). ``NAME:K:`` (no marker) makes it exit after every window from K on, in every attempt (a
+#: recording that always kills its worker). Used by the tests to check that a dead worker is replaced,
+#: its recording resumed, and that the deaths are charged to that recording alone.
 CRASH_HOOK_ENV = "CMAX_TAICHI_BATCH_CRASH"
 
 #: keyword arguments of :func:`~cmax_taichi.solve.sequence.process` that :func:`run` passes on
@@ -233,11 +235,14 @@ def _crash_hook(spec: str | None, name: str) -> Callable[[int], None]:
         return lambda index: None
     target, _, rest = spec.partition(":")
     at, _, marker = rest.partition(":")
-    if target != name or not at or not marker:
+    if target != name or not at:
         return lambda index: None
 
     def hook(index: int) -> None:
-        if index == int(at) and not os.path.exists(marker):
+        if not marker:  # every attempt dies
+            if index >= int(at):
+                os._exit(70)
+        elif index == int(at) and not os.path.exists(marker):
             Path(marker).touch()
             os._exit(70)  # abrupt, like a killed process: no cleanup, no exception
 

@@ -44,6 +44,7 @@ __all__ = [
     "WindowResult",
     "SequenceResult",
     "ProgressBar",
+    "count_events",
     "process",
     "read_results",
 ]
@@ -273,6 +274,63 @@ def _count_spans(n_total: int, n_events: int, stride: int | None, keep_tail: boo
     return full + (1 if keep_tail and tail >= spans_.min_tail_events(n_events) else 0)
 
 
+def _window_fate(span: Span, plan: _Plan, camera: Camera | None, lossy: checks.UndistortionTally):
+    """Read a window and decide its fate: ``(events used, on-sensor mask or None, undistortion mask or
+    None, status)``; undistorted here (once) when ``camera`` is given, so that the losses are counted."""
+    events, inside = plan.read(span)  # the events on the sensor (inside: which rows)
+    used, kept = events, None
+    if camera is not None and span.keep and len(events):
+        used, kept = events.undistort(camera, return_mask=True)
+        lossy.add(events, used)
+    return used, inside, kept, window_status(span, len(used), used.duration)
+
+
+def count_events(
+    source: Events | Any | str | os.PathLike,
+    *,
+    camera: Camera | None = None,
+    n_events: int = 30000,
+    duration: float | None = None,
+    stride: int | float | None = None,
+    max_windows: int | None = None,
+    keep_tail: bool = False,
+    format: str | None = None,
+) -> dict:
+    """Where :func:`process` would take each event, without estimating anything: the
+    :attr:`SequenceResult.events` dict of a run with these windows (``total``, ``estimated``, each
+    reason of :data:`cmax_taichi.core.windows.CATEGORIES`, ``after_max_windows`` and the windows per
+    status). The arguments are those of :func:`process` and are checked the same way. No warning."""
+    if isinstance(source, (str, os.PathLike)):
+        from cmax_taichi import io
+
+        with io.open_recording(source, format=format) as rec:
+            return count_events(
+                rec, camera=camera, n_events=n_events, duration=duration, stride=stride,
+                max_windows=max_windows, keep_tail=keep_tail,
+            )  # fmt: skip
+    if duration is None:
+        n_events = checks.whole_number("n_events", n_events, 2)
+    if max_windows is not None:
+        max_windows = checks.whole_number("max_windows", max_windows, 1)
+    plan = _plan(source, n_events, duration, stride, keep_tail)
+    camera = camera if camera is not None else plan.camera
+    undistort = camera is not None and camera.has_distortion and not plan.undistorted
+    ledger = EventLedger(plan.n_total)
+    stopped_early = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", checks.EventsDroppedWarning)
+        for span in plan.spans:
+            if max_windows is not None and span.index >= max_windows:
+                stopped_early = True
+                break
+            _, inside, kept, status = _window_fate(
+                span, plan, camera if undistort else None, checks.UndistortionTally()
+            )
+            ledger.add(span, status, inside, kept)
+    ledger.finish(stopped_early)
+    return ledger.as_dict()
+
+
 def _skipped_row(span: Span, events: Events, n_used: int, status: str, n_params: int) -> WindowResult:
     """The row of a window that is not estimated (NaN parameters and values)."""
     nan = math.nan
@@ -494,12 +552,7 @@ def process(
                     break
                 index = span.index
                 t0 = time.perf_counter()
-                events, inside = plan.read(span)  # the events on the sensor (inside: which rows)
-                used, kept = events, None
-                if undistort and span.keep and len(events):  # undistorted once, here, to count the losses
-                    used, kept = events.undistort(camera, return_mask=True)
-                    lossy.add(events, used)
-                status = window_status(span, len(used), used.duration)
+                used, inside, kept, status = _window_fate(span, plan, camera if undistort else None, lossy)
                 ledger.add(span, status, inside, kept)
                 if index < first_window:
                     continue  # done by an earlier, interrupted run (accounted for all the same)

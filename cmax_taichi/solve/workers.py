@@ -58,6 +58,7 @@ def _worker_main(conn: Connection, parent_pid: int, make: Callable[[], Any]) -> 
     die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     state = make()
+    conn.send(("ready", os.getpid()))  # tasks come only after this: a death before is a start-up failure
     while True:
         try:
             task = conn.recv()
@@ -82,7 +83,7 @@ class _Worker:
         self.process.start()
         child.close()
         self.task: int | None = None
-        self.served = 0
+        self.ready = False  # its state is built: it takes tasks
 
     def stop(self) -> None:
         """Ask the worker to leave; terminate it (then kill it) if it does not."""
@@ -126,7 +127,7 @@ def run_tasks(
             while queue and len(pool) < min(workers, len(tasks) - len(results)):
                 pool.append(_Worker(context, make))
             for worker in pool:
-                if worker.task is None and queue:
+                if worker.ready and worker.task is None and queue:
                     i = queue.popleft()
                     call, args, kwargs = tasks[i]
                     try:
@@ -144,10 +145,13 @@ def run_tasks(
                 if worker.conn in ready or worker.process.sentinel in ready:
                     try:
                         if worker.conn.poll():
-                            i, value, error = worker.conn.recv()
-                            results[i] = value if error is None else failed(i, error)
-                            worker.task, answered = None, True
-                            worker.served += 1
+                            message = worker.conn.recv()
+                            if message[0] == "ready":
+                                worker.ready = answered = True
+                            else:
+                                i, value, error = message
+                                results[i] = value if error is None else failed(i, error)
+                                worker.task, answered = None, True
                     except (EOFError, OSError):
                         pass
                 if answered or worker.process.is_alive():
@@ -156,9 +160,12 @@ def run_tasks(
                 worker.stop()
                 code = worker.process.exitcode
                 if worker.task is None:
-                    idle_deaths += 1
-                    if idle_deaths > max_restarts + 2:
-                        error = f"worker processes die before taking a task (exit code {code})"
+                    idle_deaths += 0 if worker.ready else 1
+                    if idle_deaths > max_restarts + 2:  # they die at start-up: no task can run
+                        error = (
+                            f"worker processes die at start-up (exit code {code}; a script that calls "
+                            "batch.run must guard its entry point with if __name__ == '__main__':)"
+                        )
                         for i in list(queue):
                             results[i] = failed(i, error)
                         queue.clear()
