@@ -232,8 +232,8 @@ class OutputFolder:
     inputs : sequence of paths
         The run's inputs (recordings, data folders): ``OUT`` must not be nor hold any of them.
     patterns : sequence of str
-        What the run may write, as paths relative to ``OUT`` with ``fnmatch`` wildcards
-        (``"figures/window_*.png"``): existing files that match and that no run wrote are refused
+        What the run may write, as paths relative to ``OUT`` with ``fnmatch`` wildcards in the file
+        name (``"figures/window_*.png"``): existing files that match and that no run wrote are refused
         before any work.
     command : str
         Named in the lock (for the message a second run gets) and the manifest.
@@ -285,16 +285,19 @@ class OutputFolder:
         return self
 
     def _existing(self, patterns: Sequence[str]) -> list[str]:
-        """Files under ``OUT`` (not the staging folders) whose relative path matches one of ``patterns``."""
-        found = []
-        for root, dirs, files in os.walk(self.out):
-            dirs[:] = [d for d in dirs if not d.startswith(STAGING_PREFIX)]
-            for name in files:
-                relative = os.path.relpath(os.path.join(root, name), self.out)
-                if relative in RESERVED_NAMES:
-                    continue
-                if any(fnmatch.fnmatchcase(relative, p) for p in patterns):
-                    found.append(relative)
+        """Files under ``OUT`` whose relative path matches one of ``patterns`` (only the folders the
+        patterns name are listed: an ``OUT`` that holds much else is not walked)."""
+        found = set()
+        for pattern in patterns:
+            folder, name = os.path.split(pattern)
+            try:
+                entries = list(os.scandir(self.out / folder))
+            except OSError:  # no such folder (or not one): nothing there to replace
+                continue
+            for entry in entries:
+                relative = os.path.join(folder, entry.name) if folder else entry.name
+                if relative not in RESERVED_NAMES and fnmatch.fnmatchcase(entry.name, name):
+                    found.add(relative)
         return sorted(found)
 
     def _refuse_foreign(self, relative: str) -> None:
