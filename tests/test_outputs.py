@@ -133,6 +133,10 @@ def test_atomic_path_never_leaves_half_a_file(tmp_path):
         tmp.write_text("half of the new")
         raise ValueError("interrupted")
     assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["results.csv"]
+    outputs.atomic_write_text(target, "new")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert target.read_text() == "new" and target.stat().st_mode & 0o777 == 0o666 & ~umask  # not 0600
 
 
 # --- the commands ----------------------------------------------------------------------------------
@@ -268,3 +272,12 @@ def test_interrupted_estimate_leaves_out_as_it_was(tmp_path, sig, code, capsys):
     _, stderr = proc.communicate(timeout=300)
     assert proc.returncode == code, stderr
     assert not out.exists()  # the folder this run created, its staging and its lock: all gone
+
+
+def test_flow_out_may_be_out_itself(recording, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["estimate", recording, "--out", out, "--flow-out", out, *FAST, "--max-windows", "1"]
+    code, stdout, err = run(capsys, *argv)
+    assert code == 0, err
+    assert (out / "flow_0000.flo").exists() and (out / "results.csv").exists()
+    assert "flow_0000.flo" in json.loads((out / outputs.MANIFEST_NAME).read_text())["files"]

@@ -375,12 +375,14 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{inputs[0]}: no such file or folder")
     out_folders = _output_folders(args, inputs)  # refuses, before any work, an OUT that would touch inputs
     common.init_backend(args.arch, args.precision)
+    unique = list(dict.fromkeys(out_folders))  # the flow folder may be OUT itself
     with contextlib.ExitStack() as stack:
-        folders = [stack.enter_context(f) for f in out_folders]  # lock, checks, staging
-        folder, flow_folder = folders[0], (folders[-1] if args.flow_out is not None else None)
+        for f in unique:
+            stack.enter_context(f)  # lock, checks, staging
+        folder, flow_folder = out_folders[0], (out_folders[-1] if args.flow_out is not None else None)
         written = _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliError)
         final = []
-        for f in dict.fromkeys(folders):  # the flow folder may be OUT itself
+        for f in unique:
             final += f.commit()  # every file moved into place whole, now that the run is complete
     if written["flows"]:
         flow_dir = out_folders[-1].out

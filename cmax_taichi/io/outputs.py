@@ -79,9 +79,13 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     ends without an error, removed when it raises. A reader sees the old file or the new one, never a
     partial one."""
     path = Path(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    while True:  # a fresh name, created with the umask's permissions (mkstemp would give 0600)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}-{os.urandom(4).hex()}.tmp")
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            break
+        except FileExistsError:
+            continue
     try:
         yield tmp
         with contextlib.suppress(OSError), open(tmp, "rb") as fh:
