@@ -142,22 +142,28 @@ def hold_lock(folder: str | os.PathLike, what: str = "cmax-taichi") -> Iterator[
     lock_path = folder / LOCK_NAME
     fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
+        locked = True
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        except BlockingIOError:  # another process holds it
             holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
             raise OutputBusyError(
                 f"{folder} is in use by another cmax-taichi run ({holder}): wait for it to end, "
                 "or choose another output folder"
             ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()}, {what}, since {time.strftime('%Y-%m-%d %H:%M:%S')}".encode(), 0)
+        except OSError:  # a file system without flock (ENOLCK, ENOTSUP: some NFS mounts): no lock
+            locked = False
+        if locked:
+            os.ftruncate(fd, 0)
+            stamp = f"pid {os.getpid()}, {what}, since {time.strftime('%Y-%m-%d %H:%M:%S')}"
+            os.pwrite(fd, stamp.encode(), 0)
         try:
             yield
         finally:
-            with contextlib.suppress(OSError):
-                os.ftruncate(fd, 0)
-            fcntl.flock(fd, fcntl.LOCK_UN)
+            if locked:
+                with contextlib.suppress(OSError):
+                    os.ftruncate(fd, 0)
+                fcntl.flock(fd, fcntl.LOCK_UN)
     finally:
         os.close(fd)
 
