@@ -346,6 +346,11 @@ def test_sigterm_of_a_batch_is_handled_as_ctrl_c(long_recordings, tmp_path):
     assert driver.returncode == 143, err
     assert "terminated (SIGTERM)" in err and "Traceback" not in err
     _wait(lambda: not _alive(workers), 15, f"the workers {workers} to end")
-    assert not list(out.rglob("*.tmp")) and not list(out.rglob("results.csv"))  # nothing partial
+    assert not list(out.rglob("*.tmp"))  # nothing partial
+    unfinished = 0
     for path in out.glob("*/" + batch.CHECKPOINT_NAME):
-        assert json.loads(path.read_text())["checkpoint"]["complete"] is False  # whole, and resumable
+        complete = json.loads(path.read_text())["checkpoint"]["complete"]  # whole, and resumable
+        # results.csv only beside a complete checkpoint (a recording may have finished before the signal)
+        assert (path.parent / "results.csv").exists() == complete
+        unfinished += not complete
+    assert unfinished >= 1, "both recordings finished before SIGTERM: nothing was interrupted"
