@@ -111,9 +111,12 @@ def _resolved(path: str | os.PathLike) -> Path:
 
 def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], option: str = "--out") -> None:
     """OutputConflictError when the output folder ``out`` is one of ``inputs`` (files or folders) or a
-    folder that holds one (at any depth), or an existing file."""
+    folder that holds one (at any depth), or an existing file. Inputs that do not exist have nothing to
+    protect (the command reports them itself)."""
     target = _resolved(out)
     for item in inputs:
+        if not os.path.lexists(item):
+            continue
         source = _resolved(item)
         if target == source:
             raise OutputConflictError(
