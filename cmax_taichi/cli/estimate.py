@@ -80,11 +80,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also estimate the partial last window (count windows) when it holds at least half a window",
     )
     opt = parser.add_argument_group("optimizer")
-    opt.add_argument("--method", default="adam", help=f"{common.names(METHODS)} (default adam)")
+    opt.add_argument("--method", default="bfgs", help=f"{common.names(METHODS)} (default bfgs)")
     opt.add_argument(
         "--init",
         default="auto",
-        help=f"{common.names(INITS)} (default auto: grid, then warm)",
+        help=f"{common.names(INITS)} (default auto: pyramid, then warm)",
     )
     opt.add_argument("--n-init", type=int, default=None, help="evaluations of the global search")
     opt.add_argument("--no-warm-start", action="store_true", help="global search in every window")
@@ -178,30 +178,52 @@ def _save_figure(fig, path: Path, dpi: int) -> None:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
 
 
-def _window_figure(path: Path, row, prob, res) -> None:
-    import matplotlib
+def _figure(width: float, height: float):
+    """A matplotlib figure drawn by the Agg canvas directly: no pyplot (its import and backend
+    machinery are a third of a figure's cost on the command line), nothing left open."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    fig = Figure(figsize=(width, height))
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _window_figure_data(row, prob, res) -> dict:
+    """What the figure of a window shows (computed with the window's problem, drawn anywhere)."""
     import numpy as np
-
-    from cmax_taichi import viz
 
     model = prob.model
     params = ", ".join(
         f"{n}={v:.4g} {u}" for n, v, u in zip(model.params, res.theta, model.units, strict=True)
     )
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), constrained_layout=True)
-    viz.show_iwe(axes[0], prob.iwe(np.zeros(model.n_params)), title="IWE, identity warp (no motion)")
-    viz.show_iwe(axes[1], prob.iwe(res.theta), title=f"IWE, estimate (J = {res.value:.3f})")
-    flow = prob.dense_flow(res.theta)
-    viz.show_flow(axes[2], flow, unit="px/s", title=f"Flow of the estimate ({model.name})")
-    fig.suptitle(
-        f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events; {params}",
-        fontsize=10,
-    )
+    return {
+        "identity": prob.iwe(np.zeros(model.n_params)),
+        "estimate": prob.iwe(res.theta),
+        "flow": prob.dense_flow(res.theta),
+        "value": float(res.value),
+        "warp": model.name,
+        "title": f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events; "
+        f"{params}",
+    }
+
+
+def _draw_window_figure(path: Path, data: dict) -> None:
+    from cmax_taichi import viz
+
+    fig = _figure(16, 4.6)
+    axes = fig.subplots(1, 3)
+    # fixed margins: the constrained layout engine took a third of the figure's time
+    fig.subplots_adjust(left=0.035, right=0.965, bottom=0.08, top=0.86, wspace=0.42)
+    viz.show_iwe(axes[0], data["identity"], title="IWE, identity warp (no motion)")
+    viz.show_iwe(axes[1], data["estimate"], title=f"IWE, estimate (J = {data['value']:.3f})")
+    viz.show_flow(axes[2], data["flow"], unit="px/s", title=f"Flow of the estimate ({data['warp']})")
+    fig.suptitle(data["title"], fontsize=10)
     _save_figure(fig, path, dpi=90)
-    plt.close(fig)
+
+
+def _window_figure(path: Path, row, prob, res) -> None:
+    _draw_window_figure(path, _window_figure_data(row, prob, res))
 
 
 def _write_window_flow(path: Path, row, prob, res) -> None:
@@ -213,27 +235,126 @@ def _write_window_flow(path: Path, row, prob, res) -> None:
     write_flow(path, flow, unit="px", **meta)
 
 
-def _parameters_figure(path: Path, result) -> None:
-    import matplotlib
+def _parameters_figure_data(result) -> dict:
+    return {
+        "t": result.t_mid,
+        "theta": result.theta,
+        "fwl": [w.fwl for w in result.windows],
+        "names": result.param_names,
+        "units": result.units,
+        "warp": result.warp,
+    }
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    P = len(result.param_names)
-    fig, axes = plt.subplots(P + 1, 1, figsize=(8, 1.8 * (P + 1)), sharex=True, constrained_layout=True)
-    t = result.t_mid
-    theta = result.theta
-    for i, (name, unit) in enumerate(zip(result.param_names, result.units, strict=True)):
+def _draw_parameters_figure(path: Path, data: dict) -> None:
+    P = len(data["names"])
+    fig = _figure(8, 1.8 * (P + 1))
+    axes = fig.subplots(P + 1, 1, sharex=True)
+    fig.subplots_adjust(left=0.14, right=0.97, bottom=0.3 / (P + 1), top=1 - 0.25 / (P + 1), hspace=0.15)
+    t, theta = data["t"], data["theta"]
+    for i, (name, unit) in enumerate(zip(data["names"], data["units"], strict=True)):
         axes[i].plot(t, theta[:, i], ".-")
         axes[i].set_ylabel(f"{name} [{unit}]")
         axes[i].grid(alpha=0.3)
-    axes[P].plot(t, [w.fwl for w in result.windows], ".-", color="C1")
+    axes[P].plot(t, data["fwl"], ".-", color="C1")
     axes[P].set_ylabel("FWL")
     axes[P].set_xlabel("time (window middle) [s]")
     axes[P].grid(alpha=0.3)
-    axes[0].set_title(f"{result.warp} estimates per window")
+    axes[0].set_title(f"{data['warp']} estimates per window")
     _save_figure(fig, path, dpi=90)
-    plt.close(fig)
+
+
+def _parameters_figure(path: Path, result) -> None:
+    _draw_parameters_figure(path, _parameters_figure_data(result))
+
+
+_DRAW = {"window": _draw_window_figure, "parameters": _draw_parameters_figure}
+
+
+def _figure_worker(conn) -> None:
+    """The figure process: import matplotlib at once (while the estimate runs), then draw each
+    ``(kind, path, data)`` it receives until None; send back the list of errors."""
+    import matplotlib.backends.backend_agg  # noqa: F401 - the import is the point: it runs in parallel
+    import matplotlib.figure  # noqa: F401
+
+    errors = []
+    while True:
+        job = conn.recv()
+        if job is None:
+            break
+        kind, path, data = job
+        try:
+            _DRAW[kind](path, data)
+        except Exception as exc:  # reported by the parent, which then draws nothing more
+            errors.append(f"{path}: {type(exc).__name__}: {exc}")
+    conn.send(errors)
+    conn.close()
+
+
+class FigureWriter:
+    """Draws the command's figures in a child process where the platform can fork and Taichi has not
+    started yet (else in this process).
+
+    matplotlib's import and the drawing took 1.2 s of CPU time of a 38,000-event run whose estimate
+    takes about as long: forked before the backend starts (no Taichi thread exists yet), the child
+    imports matplotlib on the other core while the problem is built and solved, and draws each figure
+    while the results are written. :meth:`close` waits for it and raises CliError if a figure failed.
+    """
+
+    def __init__(self) -> None:
+        import multiprocessing
+
+        from cmax_taichi.core import backend
+
+        self._conn = self._process = None
+        self._errors: list[str] = []  # of the figures drawn in this process
+        # fork only a process without Taichi's thread pool (a thread holding a lock at the fork would
+        # leave it held in the child): the command forks before it starts the backend
+        if "fork" not in multiprocessing.get_all_start_methods() or backend.is_initialized():
+            return
+        ctx = multiprocessing.get_context("fork")
+        sys.stdout.flush()  # the child flushes its copy of the buffers when it ends: empty them first
+        sys.stderr.flush()
+        parent, child = ctx.Pipe()
+        self._process = ctx.Process(target=_figure_worker, args=(child,), daemon=True)
+        self._process.start()
+        child.close()
+        self._conn = parent
+
+    def draw(self, kind: str, path: Path, data: dict) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.send((kind, path, data))
+                return
+            except OSError:  # the child is gone: draw here from now on
+                self._conn = None
+        try:
+            _DRAW[kind](path, data)
+        except Exception as exc:  # one error line at close(), as from the child
+            self._errors.append(f"{path}: {type(exc).__name__}: {exc}")
+
+    def close(self) -> None:
+        from cmax_taichi.cli import CliError
+
+        errors, self._errors = self._errors, []
+        if self._conn is not None:
+            conn, self._conn = self._conn, None
+            try:
+                conn.send(None)
+                errors += conn.recv()
+            except (OSError, EOFError):
+                errors.append("the figure process ended before drawing every figure")
+            conn.close()
+            self._process.join(timeout=60)
+        if errors:
+            raise CliError("figures: " + "; ".join(errors))
+
+    def abandon(self) -> None:
+        """Stop the child without waiting for its figures (the run failed)."""
+        if self._process is not None and self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout=5)
+        self._conn = None
 
 
 def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
@@ -374,16 +495,23 @@ def run(args: argparse.Namespace) -> int:
     if inputs and not inputs[0].exists():
         raise CliError(f"{inputs[0]}: no such file or folder")
     out_folders = _output_folders(args, inputs)  # refuses, before any work, an OUT that would touch inputs
-    common.init_backend(args.arch, args.precision)
-    unique = list(dict.fromkeys(out_folders))  # the flow folder may be OUT itself
-    with contextlib.ExitStack() as stack:
-        for f in unique:
-            stack.enter_context(f)  # lock, checks, staging
-        folder, flow_folder = out_folders[0], (out_folders[-1] if args.flow_out is not None else None)
-        written = _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliError)
-        final = []
-        for f in unique:
-            final += f.commit()  # every file moved into place whole, now that the run is complete
+    figures = FigureWriter()  # before the backend starts: see FigureWriter
+    try:
+        common.init_backend(args.arch, args.precision)
+        unique = list(dict.fromkeys(out_folders))  # the flow folder may be OUT itself
+        with contextlib.ExitStack() as stack:
+            for f in unique:
+                stack.enter_context(f)  # lock, checks, staging
+            folder, flow_folder = out_folders[0], (out_folders[-1] if args.flow_out is not None else None)
+            written = _estimate_one(
+                args, regs, folder, flow_folder, process, area_scale, cm, CliError, figures
+            )
+            final = []
+            for f in unique:
+                final += f.commit()  # every file moved into place whole, now that the run is complete
+    except BaseException:
+        figures.abandon()
+        raise
     if written["flows"]:
         flow_dir = out_folders[-1].out
         final = [p for p in final if p.parent != flow_dir or not p.name.startswith("flow_")]
@@ -417,9 +545,11 @@ def _output_folders(args: argparse.Namespace, inputs: list[Path]) -> list:
     return folders
 
 
-def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliError) -> dict:  # noqa: N803
+def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliError, figures) -> dict:  # noqa: N803
     """Estimate the one recording (or example) of ``args`` into the staging folder of ``folder``
-    (and ``flow_folder``); prints the summary; returns ``{"flows": number of flow files}``."""
+    (and ``flow_folder``), its figures drawn by ``figures`` (a FigureWriter, closed here: every figure
+    is in the staging folder on return); prints the summary; returns ``{"flows": number of flow
+    files}``."""
     from cmax_taichi import io
 
     example = None
@@ -448,7 +578,8 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
             if example is not None:
                 area_scales.append((area_scale(prob, res.theta), area_scale(prob, example.truth)))
             if figures_left[0] > 0:
-                _window_figure(folder.path(f"figures/window_{row.index:04d}.png"), row, prob, res)
+                data = _window_figure_data(row, prob, res)
+                figures.draw("window", folder.path(f"figures/window_{row.index:04d}.png"), data)
                 figures_left[0] -= 1
             if flow_folder is not None:
                 name = f"flow_{row.index:04d}.{args.flow_format}"
@@ -464,7 +595,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
     result.to_json(folder.path("results.json"))
     result.to_hdf5(folder.path("results.h5"))
     if len(result.windows) > 1:
-        _parameters_figure(folder.path("figures/parameters.png"), result)
+        figures.draw("parameters", folder.path("figures/parameters.png"), _parameters_figure_data(result))
     theta = result.theta
     print(f"{len(result.windows)} window(s) of {path}, warp {result.warp}, objective {args.objective}")
     for i, (name, unit) in enumerate(zip(result.param_names, result.units, strict=True)):
@@ -486,6 +617,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
         print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
     if example is not None:
         _report_example(example, result, area_scales, regs, folder.path("truth.json"))
+    figures.close()
     return {"flows": flows[0]}
 
 

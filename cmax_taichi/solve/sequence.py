@@ -360,7 +360,7 @@ def process(
     n_events: int = 30000,
     duration: float | None = None,
     stride: int | float | None = None,
-    method: str = "adam",
+    method: str = "bfgs",
     warm_start: bool = True,
     compute_fwl: bool = True,
     max_windows: int | None = None,
@@ -399,7 +399,8 @@ def process(
         events are counted as not estimated.
     method : str
         Local optimizer of :func:`~cmax_taichi.maximize` after a global search (the first window, and
-        every window without ``warm_start`` or after a tracking loss).
+        every window without ``warm_start`` or after a tracking loss); default ``"bfgs"``, which with
+        the default coarse-to-fine search solves a first window in at most 150 evaluations.
     warm_start : bool
         Refine the previous window's estimate (``maximize(init="warm", method=warm_method)``: the
         previous estimate and the identity are the candidates, a few quasi-Newton steps follow); the
@@ -586,14 +587,7 @@ def process(
                         value_fwl = res.value  # the estimate's problem is the FWL problem
                     else:
                         if fprob is None:
-                            fprob = fwl_problem(
-                                prob.events,  # already undistorted: the same events as the estimate
-                                model,
-                                camera=camera,
-                                blur_sigma=prob.blur_sigma,
-                                t_ref=popts.get("t_ref", "first"),
-                                polarity=prob.polarity,
-                            )
+                            fprob = _fwl_problem(prob, model, camera, popts.get("t_ref", "first"))
                         else:
                             fprob.set_events(prob.events)
                         value_fwl = fprob.value(res.theta)
@@ -626,6 +620,22 @@ def process(
     result.events = ledger.as_dict()
     ledger.warn(desc["source"], n_events if duration is None else None, max_windows, stacklevel=2)
     return result
+
+
+def _fwl_problem(prob: ContrastMaximization, model, camera: Camera | None, t_ref) -> ContrastMaximization:
+    """The problem whose J is the FWL of ``prob``'s window (the same, already undistorted, events).
+
+    For a variance problem with regularizers on the fused path: the same regularizers at weight 0, so
+    that it runs on the estimate's compiled kernel (the weights are data); a problem without them would
+    compile a kernel of its own on the first window (about a second of front end and code generation).
+    """
+    options = dict(camera=camera, blur_sigma=prob.blur_sigma, t_ref=t_ref, polarity=prob.polarity)
+    if prob.regularizer_weights and prob.path == "fused" and prob.objective.name == "variance":
+        zero = {name: 0.0 for name in prob.regularizer_weights}
+        return ContrastMaximization(
+            prob.events, warp=model, objective="variance", regularizers=zero, **options
+        )
+    return fwl_problem(prob.events, model, **options)
 
 
 def _solve_window(
