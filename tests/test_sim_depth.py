@@ -323,4 +323,4 @@ def test_docs_depth_example_runs():
     namespace: dict = {}
     exec(compile(code, str(page), "exec"), namespace)  # noqa: S102 - our own docs
     assert namespace["gt"].shape == (2, 260, 346) and namespace["speed"].shape == (2, 260, 346)
-    assert np.isfinite(namespace["xw"]).mean() > 0.99
+    assert np.isfinite(namespace["xw"]).mean() > 0.98  # noise events (0.1 Hz per pixel) have no surface
