@@ -74,21 +74,19 @@ def mvsec_window(n: int = N_EVENTS) -> dict:
 
 
 def depth_window(name: str, n: int = N_EVENTS) -> dict:
-    """A depth preset's window: the last ``n`` events before its end, its exact displacement."""
+    """A depth preset's window (``sm.depth_example``): the last ``n`` events before its end, its exact
+    displacement."""
     from cmax_taichi import sim as sm
 
-    preset = sm.DEPTH_PRESETS[name]
-    t0, t1 = 0.02, 0.02 + preset.window
-    rec = sm.simulate_depth(name, duration=t1 + 0.01)
-    window = rec.events(t0, float(np.nextafter(t1, np.inf)))
-    events = _slice(window, max(len(window) - n, 0))
+    example = sm.depth_example(name)
+    window = example.events
     return {
         "name": name,
-        "events": events,
-        "camera": rec.camera,
+        "events": _slice(window, max(len(window) - n, 0)),
+        "camera": example.camera,
         "score_events": window,
-        "gt": rec.flow(t0, t1),
-        "dt": t1 - t0,
+        "gt": example.flow,
+        "dt": example.t1 - example.t0,
     }
 
 

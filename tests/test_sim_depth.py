@@ -115,10 +115,13 @@ def test_the_nearest_surface_is_drawn_and_followed_whatever_the_layer_order():
 
 @pytest.fixture(scope="module")
 def planes():
-    """The issue-22 scene: 'planes', 346x260, simulated over its first 0.13 s."""
-    rec = sm.simulate_depth("planes", duration=0.13)
-    t0 = 0.02
-    return rec, t0, t0 + sm.DEPTH_PRESETS["planes"].window
+    """The issue-22 scene: 'planes', 346x260, its first window (depth_example)."""
+    example = sm.depth_example("planes")
+    rec, t0, t1 = example.recording, example.t0, example.t1
+    assert (t0, t1) == (0.02, 0.02 + sm.DEPTH_PRESETS["planes"].window)
+    np.testing.assert_array_equal(example.flow, rec.flow(t0, t1))
+    assert len(example.events) == len(example.labels) == len(rec.events(t0, np.nextafter(t1, 1.0)))
+    return rec, t0, t1
 
 
 def test_planes_preset_is_the_issue_test_case(planes):

@@ -29,7 +29,15 @@ to ``t_ref``), and for depth scenes ``depth(t)``. :meth:`SimulatedRecording.writ
 the MVSEC-like layout read by :func:`read_simulation` (and by the dataset readers).
 """
 
-from cmax_taichi.sim.depth import DEPTH_PRESETS, DepthPreset, depth_scene, plane_layer, simulate_depth
+from cmax_taichi.sim.depth import (
+    DEPTH_PRESETS,
+    DepthExample,
+    DepthPreset,
+    depth_example,
+    depth_scene,
+    plane_layer,
+    simulate_depth,
+)
 from cmax_taichi.sim.motions import DEFAULT_THETAS, Motion
 from cmax_taichi.sim.recording import SimulatedRecording, SimulationData, read_simulation
 from cmax_taichi.sim.rigid import PlaneMotion, RigidMotion
@@ -65,4 +73,6 @@ __all__ = [
     "DEPTH_PRESETS",
     "depth_scene",
     "simulate_depth",
+    "DepthExample",
+    "depth_example",
 ]

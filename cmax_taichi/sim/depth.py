@@ -24,12 +24,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cmax_taichi.core.events import Camera
+from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.sim.recording import SimulatedRecording
 from cmax_taichi.sim.rigid import STATIC, PlaneMotion, RigidMotion, orthonormal_axes
 from cmax_taichi.sim.scenes import Layer, Scene
 from cmax_taichi.sim.textures import default_camera, load_texture, resize_image
 
-__all__ = ["plane_layer", "rectangle_alpha", "DepthPreset", "DEPTH_PRESETS", "depth_scene", "simulate_depth"]
+__all__ = [
+    "plane_layer",
+    "rectangle_alpha",
+    "DepthPreset",
+    "DEPTH_PRESETS",
+    "depth_scene",
+    "simulate_depth",
+    "DepthExample",
+    "depth_example",
+]
 
 
 def rectangle_alpha(height: int, width: int) -> np.ndarray:
@@ -313,7 +323,7 @@ def simulate_depth(
     scale: float = 1.0,
     progress: bool = False,
     **overrides,
-):
+) -> SimulatedRecording:
     """Simulate depth preset ``name`` for ``duration`` s (default the preset's), seeded by ``seed``;
     keyword arguments override the preset's :class:`~cmax_taichi.sim.SimulatorConfig` fields.
 
@@ -335,3 +345,50 @@ def simulate_depth(
         warnings.simplefilter("ignore", RuntimeWarning)
         sim = Simulator(scene, SimulatorConfig(**settings), progress=progress)
     return sim.run(p.duration if duration is None else duration)
+
+
+@dataclass
+class DepthExample:
+    """One window of a depth preset with its exact ground truth (:func:`depth_example`).
+
+    Attributes
+    ----------
+    name : str
+    recording : SimulatedRecording
+        The whole simulation (ground truth at any time: ``flow``, ``velocity``, ``depth``).
+    t0, t1 : float
+        The window, s: ``[0.02, 0.02 + preset.window]`` (the sensor has settled from its start at rest).
+    events : Events
+        The events of ``[t0, t1]``.
+    flow : numpy.ndarray
+        (2, H, W) px: the exact displacement over the window of the point seen at each pixel at ``t0``
+        (MVSEC's convention), NaN where no surface is seen.
+    camera : Camera
+    """
+
+    name: str
+    recording: SimulatedRecording
+    t0: float
+    t1: float
+    events: Events
+    flow: np.ndarray
+    camera: Camera
+
+    @property
+    def labels(self) -> np.ndarray:
+        """The surface of each event of :attr:`events` (-1: noise)."""
+        return self.recording.label_slice(self.t0, float(np.nextafter(self.t1, np.inf)))
+
+
+def depth_example(name: str = "planes", seed: int = 0, **overrides) -> DepthExample:
+    """Simulate depth preset ``name`` (seeded) over its first window and return the window's events
+    with the exact displacement: the out-of-the-box test case of dense flow (``"planes"``: 346x260,
+    5-15 px over the window, the flow varying by a factor of 2.4 across the image). Keyword arguments
+    override :class:`~cmax_taichi.sim.SimulatorConfig` fields."""
+    if name not in DEPTH_PRESETS:
+        raise ValueError(f"unknown depth scene {name!r}; valid depth scenes: {', '.join(DEPTH_PRESETS)}")
+    t0 = 0.02
+    t1 = t0 + DEPTH_PRESETS[name].window
+    rec = simulate_depth(name, duration=t1 + 0.01, seed=seed, **overrides)
+    events = rec.events(t0, float(np.nextafter(t1, np.inf)))
+    return DepthExample(name, rec, t0, t1, events, rec.flow(t0, t1), rec.camera)
