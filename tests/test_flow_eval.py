@@ -327,6 +327,13 @@ def test_evaluate_scores_flow_against_the_simulator(tmp_path):
     assert rows[0]["AEE"] < 0.1
     with open_recording(h5, format="mvsec", sensor_size=rec.sensor_size) as mv:
         err = metrics.score_flow(mv, np.zeros_like(truth), t0, t1)
+        # the simulator's files carry MVSEC's frame times: dt = 1 and dt = 2 frame windows
+        frames = mv.frame_times()
+        np.testing.assert_allclose(frames, np.arange(len(frames)) / 40.0)
+        assert mv.eval_windows(1)[0] == (frames[1], frames[2]) and mv.eval_windows(2)[0] == (
+            frames[1],
+            frames[3],
+        )
     assert rows[1]["AEE"] == pytest.approx(err["AEE"]) and err["AEE"] > 1.0
     assert err["n_events"] == len(rec.events(t0, float(np.nextafter(t1, np.inf))))
 
