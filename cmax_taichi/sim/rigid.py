@@ -133,11 +133,8 @@ class PlaneMotion:
     camera: RigidMotion = field(default_factory=RigidMotion)
     surface: RigidMotion = field(default_factory=RigidMotion)
 
-    #: not a warp model of the core: the simulator's writer and ``theta_at`` say so
+    #: not a warp model of the core (``SimulatedRecording.warp`` is None; ``theta_at`` says why)
     warp = None
-    windowed = False
-    forward = False
-    segment = None
 
     def __post_init__(self) -> None:
         n = np.asarray(_vec3(self.normal, "normal"))
