@@ -4,14 +4,19 @@
 Each sub-command module defines ``NAME``, ``HELP`` and ``add_arguments(parser)`` / ``run(args) -> int``,
 and is listed explicitly in ``COMMAND_MODULES``. Errors a user can cause (bad paths, unknown formats,
 bad values) are raised as :class:`CliError` or ValueError / OSError / KeyError and printed as one line
-with exit code 2, never a traceback.
+with exit code 2, never a traceback. Warnings (events not estimated, ...) are printed as one line each,
+``cmax-taichi COMMAND: warning: ...``. Ctrl-C ends a command with exit code 130 and SIGTERM with 143,
+both the same way (the outputs are left as they were: see :mod:`cmax_taichi.io.outputs`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import signal
 import sys
+import warnings
 
 #: explicit list of sub-command modules (cmax_taichi.cli.<name>)
 COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce", "bench")
@@ -19,6 +24,35 @@ COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce", "benc
 
 class CliError(Exception):
     """An error caused by the user's input: printed as one line, exit code 2."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that it unwinds as Ctrl-C does (exit code 143)."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def _command_signals_and_warnings(command: str):
+    """For the length of a command: SIGTERM handled as SIGINT is, and each warning as one line."""
+    previous_term = None
+    with contextlib.suppress(ValueError):  # not the main thread: leave the signals alone
+        previous_term = signal.signal(signal.SIGTERM, _raise_terminated)
+    previous_show = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message).replace("\n", " ")
+        print(f"cmax-taichi {command}: warning: {text}", file=file or sys.stderr)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous_show
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,7 +79,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args._run(args) or 0)
+        with _command_signals_and_warnings(args.command):
+            return int(args._run(args) or 0)
+    except Terminated:
+        print("cmax-taichi: terminated (SIGTERM)", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("cmax-taichi: interrupted", file=sys.stderr)
         return 130
