@@ -2,7 +2,8 @@
 the same windows as ours, its time and its accuracy.
 
     python benchmarks/reference_flow.py --reference /work/peers/event_based_optical_flow \\
-        [--threads 1 2] [--repeats 1] [--windows mvsec planes] [--ours MODULE:FUNCTION] [--out DIR]
+        [--threads 1 2] [--repeats 1] [--windows mvsec planes] [--ours MODULE:FUNCTION] \\
+        [--global mitrokhin4:divergence=10,deformation=10] [--out DIR]
 
 The reference is a separate checkout with its own environment (``REF/.venv/bin/python`` with torch
 2.13 CPU and its requirements, or ``--python``); nothing of it is imported here: each run starts
@@ -21,6 +22,7 @@ Windows (the same events for every method):
   window's end; its flow (px/s) times the window length against the exact displacement, on the pixels
   with at least one event of the window (AEE, 3PE, %Out).
 
+``--global WARP[:REG=W,...]`` adds our best global warp (maximized on the same events) as a baseline.
 ``--ours MODULE:FUNCTION`` adds our dense solver: ``FUNCTION(events, camera) -> (2, H, W)`` flow in px/s
 (x, y) at the first event's time, called on the same events, timed the same way (wall and CPU time
 of the call). Writes ``OUT/reference_flow.json`` (every run), ``OUT/reference_flow.md`` (the table) and
@@ -140,6 +142,24 @@ def run_ours(spec: str, events, camera) -> tuple[np.ndarray, dict]:
     return flow, {"wall_s": time.perf_counter() - wall0, "cpu_s": _cpu_seconds() - cpu0}
 
 
+def run_global(spec: str, events, camera, dt: float) -> tuple[np.ndarray, dict]:
+    """Our best global warp as a flow baseline: ``WARP[:NAME=WEIGHT,...]`` (e.g.
+    ``mitrokhin4:divergence=10,deformation=10``), maximized on ``events``; the flow is its displacement
+    over ``dt`` divided by ``dt`` (px/s), so that it is scored like the others."""
+    import cmax_taichi as cm
+
+    warp, _, regs = spec.partition(":")
+    weights = {k: float(v) for k, v in (item.split("=") for item in regs.split(",") if item)} or None
+    cpu0, wall0 = _cpu_seconds(), time.perf_counter()
+    prob = cm.ContrastMaximization(events, warp=warp, camera=camera, regularizers=weights)
+    result = cm.maximize(prob)
+    flow = prob.dense_flow(result.theta, dt=dt) / dt
+    report = {"wall_s": time.perf_counter() - wall0, "cpu_s": _cpu_seconds() - cpu0}
+    report["theta"] = [float(v) for v in result.theta]
+    report["params_finest"] = report["params_total"] = prob.model.n_params
+    return flow, report
+
+
 def fwl_of_flow(events, flow: np.ndarray) -> float:
     """``Var(IWE) / Var(IWE(0))`` of the events warped by a dense flow (px/s) to the first event's time:
     ``x' = x - (t - t_0) u(round(x))``, bilinear votes, Gaussian blur 1 px (the NumPy reference IWE)."""
@@ -214,7 +234,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--ours", default=None, metavar="MODULE:FUNCTION", help="our dense solver, to run beside"
     )
-    parser.add_argument("--no-reference", action="store_true", help="run only --ours")
+    parser.add_argument(
+        "--global",
+        dest="global_warps",
+        action="append",
+        default=[],
+        metavar="WARP[:REG=W,...]",
+        help="also our best global warp, e.g. mitrokhin4:divergence=10,deformation=10 (repeatable)",
+    )
+    parser.add_argument("--no-reference", action="store_true", help="run only --ours / --global")
     parser.add_argument(
         "--no-profiler", action="store_true", help="the reference without the cProfile wrapper of its release"
     )
@@ -237,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
         window = mvsec_window() if name == "mvsec" else depth_window(name)
         events = window["events"]
         methods = ([] if args.no_reference else ["reference"]) + (["ours"] if args.ours else [])
+        methods += [f"global {spec}" for spec in args.global_warps]
+        dt = window.get("dt", float(events.t[-1] - events.t[0]))
         for method in methods:
             for threads in args.threads if method == "reference" else [None]:
                 for k in range(args.repeats):
@@ -244,8 +274,10 @@ def main(argv: list[str] | None = None) -> int:
                         flow, report = run_reference(
                             reference, python, events, threads, seed=k, profiler=not args.no_profiler
                         )
-                    else:
+                    elif method == "ours":
                         flow, report = run_ours(args.ours, events, window["camera"])
+                    else:
+                        flow, report = run_global(method.split(" ", 1)[1], events, window["camera"], dt)
                     run = {
                         "window": name,
                         "method": method,
@@ -258,7 +290,8 @@ def main(argv: list[str] | None = None) -> int:
                     }
                     runs.append(run)
                     tag = f"{threads}t" if threads is not None else "own"
-                    np.savez(args.out / f"flow_{name}_{method}_{tag}_{k}.npz", flow=flow, unit="px/s")
+                    label = method.split(":")[0].replace(" ", "_")
+                    np.savez(args.out / f"flow_{name}_{label}_{tag}_{k}.npz", flow=flow, unit="px/s")
                     print(_table([run]).splitlines()[-1], flush=True)
     (args.out / "reference_flow.json").write_text(json.dumps(runs, indent=1, default=float))
     table = _table(runs)
