@@ -65,3 +65,12 @@ def test_score_of_a_window_with_ground_truth(harness):
     assert out["AEE_zero_flow"] == pytest.approx(np.hypot(20.0, 12.0))
     pred[0] += 30.0  # 3 px too fast over the window: not above 3 px
     assert harness.score(window, pred)["AEE"] == pytest.approx(3.0)
+
+
+def test_global_baseline_recovers_a_translation(harness):
+    events = _translating_events()
+    flow, report = harness.run_global("translation2", events, None, 0.1)
+    assert flow.shape == (2, 48, 64)
+    np.testing.assert_allclose(flow[0], 200.0, rtol=0.05)  # 60 points, 20k events: a few px/s
+    np.testing.assert_allclose(flow[1], -120.0, rtol=0.05)
+    assert report["params_total"] == 2 and report["cpu_s"] > 0
