@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax_taichi.io._files import check_regular
+
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> samples per pixel
 
@@ -57,7 +59,7 @@ def read_png(path: str | Path) -> np.ndarray:
     ValueError
         Not a PNG, truncated or corrupt data, or an unsupported kind (interlaced, palette, < 8 bits).
     """
-    path = Path(path)
+    path = check_regular(path)  # a FIFO or a device is refused, never read
     data = path.read_bytes()
     if not data.startswith(SIGNATURE):
         raise ValueError(f"{path}: not a PNG file")

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax_taichi.io._files import check_regular
+
 __all__ = [
     "DSEC_FLOW_LIMIT",
     "FLOW_FORMATS",
@@ -87,7 +89,7 @@ def read_flo(path: str | os.PathLike) -> np.ndarray:
     Raises ValueError naming the file for a wrong magic number, an implausible size or a file whose
     length does not match its size (truncated).
     """
-    path = Path(path)
+    path = check_regular(path)  # a FIFO or a device is refused, never read
     with path.open("rb") as f:
         head = f.read(12)
         if len(head) < 12:
@@ -126,7 +128,7 @@ def write_flow_npz(path: str | os.PathLike, flow, **metadata) -> Path:
 
 def read_flow_npz(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     """Read a file of :func:`write_flow_npz`: ``(flow (2, H, W) float32, metadata dict)``."""
-    path = Path(path)
+    path = check_regular(path)  # a FIFO or a device is refused, never read
     try:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
