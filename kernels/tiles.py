@@ -9,9 +9,11 @@ touches a few ten thousand pixels of a 1280x720 sensor. The image is cut into **
 ``x0 = SEG (32 j + b) .. x0 + 3`` of row ``y``.
 
 * The splat calls :func:`TileOps.mark` for every footprint it votes: the segments of its top-left row
-  holding its columns ``ix, ix + 1`` (clipped into the image; a check before the ``atomic_or``, so an
-  already set bit costs one load). The footprint's second row is added by the dilation below.
-* ``F0``, the touched segments: the marks of row ``y`` or ``y - 1``.
+  ``iy`` (``-1 .. H - 1``, kept in mark row ``iy + 1``) holding its columns ``ix, ix + 1`` (clipped into
+  the image; a check before the ``atomic_or``, so an already set bit costs one load). The footprint's
+  second row is added when ``F0`` is built.
+* ``F0``, the touched segments: row ``y`` holds the footprints whose top row is ``y`` or ``y - 1`` (mark
+  rows ``y + 1`` and ``y``).
 * A **region** ``(kx, ry)`` is ``F0`` dilated by ``kx`` segments along x and ``ry`` rows along y: the
   pixels within ``SEG kx`` columns and ``ry`` rows of a touched one. A pass reaching ``r`` pixels along
   x needs ``kx = ceil(r / SEG)`` (:func:`reach`); along y the dilation is exact. Region 0 is always
@@ -72,7 +74,7 @@ class TileFields:
         self.n_words = -(-self.n_segments // WORD)
         self.kxs = tuple(sorted({kx for kx, _ in regions}))  # distinct x dilations (build_x)
         R, NW = len(regions), self.n_words
-        self.marks = ti.field(ti.u32, shape=(H, NW))  # set by the splat; cleared by build_y
+        self.marks = ti.field(ti.u32, shape=(H + 1, NW))  # row iy + 1: set by the splat; cleared by build_y
         self.xmask = ti.field(ti.u32, shape=(len(self.kxs), H, NW))  # F0 dilated along x
         self.masks = ti.field(ti.u32, shape=(R, H, NW))  # the regions of the last build
         self.old = ti.field(ti.u32, shape=(max(len(self.history), 1), H, NW))  # regions of the call before
@@ -87,7 +89,7 @@ class TileFields:
     def nbytes(self) -> int:
         """Bytes held by the mask and list fields."""
         R, H, NW = len(self.regions), self.height, self.n_words
-        total = 4 * H * NW * (1 + len(self.kxs) + R + max(len(self.history), 1)) + 4 * R * (H + 1)
+        total = 4 * NW + 4 * H * NW * (1 + len(self.kxs) + R + max(len(self.history), 1)) + 4 * R * (H + 1)
         if self.lists is not None:
             total += 4 * R * (H + 1 + H * self.n_segments + 1)
         return total
@@ -113,10 +115,10 @@ def first_pixel(j, w):
 
 def make_mark(width: int, height: int):
     """``mark(tf, ix, iy)``: mark the footprint with top-left corner ``(ix, iy)`` (px; ``-1 .. W - 1``,
-    ``-1 .. H - 1``) in ``tf.marks``: the segments of row ``max(iy, 0)`` holding columns ``ix`` and
+    ``-1 .. H - 1``) in ``tf.marks``: the segments of mark row ``iy + 1`` holding columns ``ix`` and
     ``ix + 1`` clipped into the image (the footprint's second row comes with ``F0``). Atomic, after
     a load that skips bits already set."""
-    W = int(width)
+    W, H = int(width), int(height)
 
     @ti.func
     def set_bits(tf: ti.template(), y, j, bits):
@@ -125,7 +127,7 @@ def make_mark(width: int, height: int):
 
     @ti.func
     def mark(tf: ti.template(), ix, iy):
-        y = ti.max(iy, 0)
+        y = ti.min(ti.max(iy, -1), H - 1) + 1
         s0 = ti.max(ix, 0) // SEG
         s1 = ti.min(ix + 1, W - 1) // SEG
         j0 = s0 // WORD
@@ -186,12 +188,11 @@ class TileOps:
 
         @ti.func
         def touched(tf: ti.template(), y, j):
-            """Word ``j`` of ``F0`` in row ``y``: marks of rows ``y`` and ``y - 1``."""
+            """Word ``j`` of ``F0`` in row ``y``: the footprints whose top row is ``y`` (mark row
+            ``y + 1``) or ``y - 1`` (mark row ``y``)."""
             w = ti.u32(0)
             if 0 <= j < NW:
-                w = tf.marks[y, j]
-                if y > 0:
-                    w |= tf.marks[y - 1, j]
+                w = tf.marks[y + 1, j] | tf.marks[y, j]
             return w
 
         @ti.func
@@ -247,7 +248,9 @@ class TileOps:
                         px += row_pixels(w, j)
                     tf.rowpx[ri, y] = px
             for j in range(NW):
-                tf.marks[y, j] = ti.u32(0)
+                tf.marks[y + 1, j] = ti.u32(0)
+                if y == 0:
+                    tf.marks[0, j] = ti.u32(0)
 
         @ti.func
         def stale(tf: ti.template(), h: ti.template(), y, j):
