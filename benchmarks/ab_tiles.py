@@ -6,7 +6,10 @@ two versions of the library on one machine (docs/performance.md, "Image work tha
     where the edges are) and stores them, so that every version times the same events;
 ``python benchmarks/ab_tiles.py time PATH.npz [--rows SUBSTRING ...] [--repeats N] [--json OUT]``
     times ``value_and_grad`` of every stored window (medians of ``N`` calls after three warm-up calls,
-    wall time and CPU time of the process, both threads: ``getrusage``), one line per row.
+    wall time and CPU time of the process, both threads: ``getrusage``), one line per row;
+``python benchmarks/ab_tiles.py million [--rows SUBSTRING ...] [--repeats N] [--json OUT]``
+    the same for the benchmark's synthetic 1,000,000-event windows (``lab/bench_impls.make_window``)
+    on the four sensors, three warps (mitrokhin4 with both regularizers).
 
 Run ``time`` with each version's own environment (``.venv/bin/python`` of its checkout: the editable
 install maps ``cmax_taichi.kernels`` to the checkout it was installed from), alternating.
@@ -53,8 +56,6 @@ def _windows(path: str) -> int:
             rec = simulate(scene, 0.02, contrast_threshold=0.5, log_eps=0.02, seed=1)
             cam = rec.camera
             for n in (1000, 5000):
-                if n == 1000 and name != "240x180":
-                    continue
                 k = len(rec.t) // 2  # a window from the middle of the recording
                 sl = slice(k, k + n)
                 key = f"{n}_{name}_{warp}_textured"
@@ -132,6 +133,54 @@ def _time(path: str, rows: list[str], repeats: int, json_out: str | None) -> int
     return 0
 
 
+def _time_rows(rows_of, rows: list[str], repeats: int, json_out: str | None) -> int:
+    results = []
+    for label, prob_vg, theta in rows_of(rows):
+        for _ in range(3):
+            prob_vg(theta)
+        wall, cpu = [], []
+        for _ in range(repeats):
+            c0, t0 = _cpu(), time.perf_counter()
+            prob_vg(theta)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(_cpu() - c0)
+        row = dict(
+            key=label,
+            wall_ms=float(np.median(wall)) * 1e3,
+            cpu_ms=float(np.median(cpu)) * 1e3,
+            load=os.getloadavg()[0],
+        )
+        results.append(row)
+        print(
+            f"{label:45s} wall {row['wall_ms']:8.3f} ms  cpu {row['cpu_ms']:8.3f} ms  load {row['load']:.1f}",
+            flush=True,
+        )
+    if json_out:
+        with open(json_out, "w") as fh:
+            json.dump(results, fh, indent=1)
+    return 0
+
+
+def _million(rows: list[str], repeats: int, json_out: str | None) -> int:
+    import cmax_taichi as cm
+    from cmax_taichi.lab import bench_impls
+
+    cm.init(precision="f64")
+
+    def rows_of(selected):
+        for sensor in SENSORS:
+            for warp, regs in CASES:
+                label = f"1000000_{sensor}_{warp}_{regs}"
+                if selected and not any(r in label for r in selected):
+                    continue
+                cfg = bench_impls.BenchConfig(1_000_000, sensor, warp, regs)
+                win = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+                impl = bench_impls.build_taichi(win, cfg)
+                yield label, impl.vg, np.asarray(bench_impls.THETAS[warp], dtype=np.float64)
+
+    return _time_rows(rows_of, rows, repeats, json_out)
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="python benchmarks/ab_tiles.py", description=__doc__.split("\n\n")[0]
@@ -144,9 +193,15 @@ def main(argv: list[str]) -> int:
     t.add_argument("--rows", nargs="*", default=[])
     t.add_argument("--repeats", type=int, default=50)
     t.add_argument("--json")
+    m = sub.add_parser("million")
+    m.add_argument("--rows", nargs="*", default=[])
+    m.add_argument("--repeats", type=int, default=15)
+    m.add_argument("--json")
     args = parser.parse_args(argv)
     if args.cmd == "windows":
         return _windows(args.path)
+    if args.cmd == "million":
+        return _million(args.rows, args.repeats, args.json)
     return _time(args.path, args.rows, args.repeats, args.json)
 
 
