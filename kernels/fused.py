@@ -265,7 +265,6 @@ def make_fused_kernels(
     masks = tf.masks
     SEG, NW = _t.SEG, tf.n_words
     in_image = tiles.in_image  # a column of a segment is in the image
-    partial = tiles.partial  # columns of a row's last segment beyond the image
     F0, RX, RXY = 0, 1, 2
     R_OBJ = 3 if sobel else RXY  # the region of the objective's pixel terms
 
@@ -381,75 +380,13 @@ def make_fused_kernels(
                 g[j] = ti.cast(gj, ti.f64)
         return g
 
-    @ti.func
-    def load_taps():
-        """The blur taps as a local vector (a field is loaded again after every store: LLVM cannot tell
-        the fields apart)."""
-        tv = ti.Vector([1.0 for _ in ti.static(range(2 * r_ + 1))])
-        if ti.static(r_ > 0):
-            for k in ti.static(range(2 * r_ + 1)):
-                tv[k] = f.taps[k]
-        return tv
+    seg = _t.SegmentPasses(W, H, r_)  # blurs, stores and clears of one segment
+    load_taps, blur_x_segment, blur_y_segment = seg.load_taps, seg.blur_x, seg.blur_y
+    store_segment, clear_segment, twice_taps = seg.store, seg.clear, seg.twice_taps
 
     @ti.func
-    def whole(x0):
-        """All pixels of the segment at ``x0`` are in the image (always, when the width is a multiple of
-        the segment)."""
-        inside = True
-        if ti.static(partial > 0):
-            inside = x0 + SEG <= W
-        return inside
-
-    @ti.func
-    def pixel_of(src: ti.template(), votes: ti.template(), c: ti.template(), y, x):
-        v = 0.0
-        if ti.static(votes):  # slice 0 of the vote field
-            v = src[0, y, x, c]
-        else:
-            v = src[y, x, c]
-        return v
-
-    @ti.func
-    def blur_x_segment(src: ti.template(), votes: ti.template(), c: ti.template(), y, x0, tv):
-        """``sum_k taps_k src[y, x + k, c]`` at the segment's pixels ``x0 .. x0 + SEG - 1`` (zero padding;
-        no bounds checks away from the borders, where the taps are vector loads)."""
-        v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-        if whole(x0) and x0 >= r_ and x0 + SEG - 1 + r_ < W:
-            for k in ti.static(range(-r_, r_ + 1)):
-                for p in ti.static(range(SEG)):
-                    v[p] += tv[k + r_] * pixel_of(src, votes, c, y, x0 + p + k)
-        else:
-            for k in ti.static(range(-r_, r_ + 1)):
-                for p in ti.static(range(SEG)):
-                    if 0 <= x0 + p + k < W and in_image(x0 + p):
-                        v[p] += tv[k + r_] * pixel_of(src, votes, c, y, x0 + p + k)
-        return v
-
-    @ti.func
-    def blur_y_segment(src: ti.template(), c: ti.template(), y, x0, tv):
-        """``sum_k taps_k src[y + k, x, c]`` at the segment's pixels (zero padding)."""
-        v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-        if whole(x0) and y >= r_ and y < H - r_:
-            for k in ti.static(range(-r_, r_ + 1)):
-                for p in ti.static(range(SEG)):
-                    v[p] += tv[k + r_] * src[y + k, x0 + p, c]
-        else:
-            for k in ti.static(range(-r_, r_ + 1)):
-                if 0 <= y + k < H:
-                    for p in ti.static(range(SEG)):
-                        if in_image(x0 + p):
-                            v[p] += tv[k + r_] * src[y + k, x0 + p, c]
-        return v
-
-    @ti.func
-    def store_segment(dst: ti.template(), c: ti.template(), y, x0, v):
-        if whole(x0):
-            for p in ti.static(range(SEG)):
-                dst[y, x0 + p, c] = v[p]
-        else:
-            for p in ti.static(range(SEG)):
-                if in_image(x0 + p):
-                    dst[y, x0 + p, c] = v[p]
+    def twice_blur_y_segment(wide, c: ti.template(), y, x0):
+        return seg.twice_blur_y(f.tmp, wide, c, y, x0)
 
     @ti.func
     def keep_image(grad):
@@ -459,43 +396,6 @@ def make_fused_kernels(
         if ti.static(not sobel):
             keep = grad & 2 != 0
         return keep
-
-    @ti.func
-    def twice_taps(y, tv):
-        """The taps of ``B_y^T B_y`` at row ``y`` (offsets ``-2 r .. 2 r``): the Gaussian convolved with
-        itself, less the products of the first blur's taps that fall outside the image."""
-        wide = ti.Vector([0.0 for _ in ti.static(range(4 * r_ + 1))])
-        if ti.static(r_ > 0):
-            for k1 in ti.static(range(-r_, r_ + 1)):
-                if 0 <= y + k1 < H:
-                    for k2 in ti.static(range(-r_, r_ + 1)):
-                        wide[k1 + k2 + 2 * r_] += tv[k1 + r_] * tv[k2 + r_]
-        else:
-            wide[0] = 1.0
-        return wide
-
-    @ti.func
-    def twice_blur_y_segment(wide, c: ti.template(), y, x0):
-        """``(B_y^T B_y tmp)[y, x, c]`` at the segment's pixels, with the taps of :func:`twice_taps`."""
-        v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-        if whole(x0) and y >= 2 * r_ and y < H - 2 * r_:
-            for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
-                for p in ti.static(range(SEG)):
-                    v[p] += wide[k + 2 * r_] * f.tmp[y + k, x0 + p, c]
-        else:
-            for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
-                if 0 <= y + k < H:
-                    for p in ti.static(range(SEG)):
-                        if in_image(x0 + p):
-                            v[p] += wide[k + 2 * r_] * f.tmp[y + k, x0 + p, c]
-        return v
-
-    @ti.func
-    def clear_segment(dst: ti.template(), y, x0):
-        for p in ti.static(range(SEG)):
-            if in_image(x0 + p):
-                for c in ti.static(range(dst.shape[2])):
-                    dst[y, x0 + p, c] = 0.0
 
     @ti.func
     def map_adjoints(y, x, msum):
@@ -590,7 +490,7 @@ def make_fused_kernels(
             f.part_map[y, 0] = msum
             for v in ti.static(range(RV)):
                 f.part_map[y, 1 + v] = psum[v]
-            tv = load_taps()
+            tv = load_taps(f.taps)
             for j in range(NW):
                 w = tiles.stale(tf, 0, y, j)  # tmp: in the previous call's Rx, not in this one's
                 while w != ti.u32(0):
@@ -614,7 +514,7 @@ def make_fused_kernels(
                         clear_segment(f.img, y, _t.first_pixel(j, w))
                         w = _t.drop_lowest(w)
             rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-            tv = load_taps()
+            tv = load_taps(f.taps)
             for j in range(NW):
                 w = masks[RXY, y, j]
                 while w != ti.u32(0):
@@ -754,7 +654,7 @@ def make_fused_kernels(
                     scale, offset = adjoint_fn(slots, c, n_pix)
                     c1[c] = scale / f.g0[None]
                     c0[c] = offset / f.g0[None] * tapsum
-                tv = load_taps()
+                tv = load_taps(f.taps)
                 wide = twice_taps(y, tv)
                 for j in range(NW):
                     w = masks[RX, y, j]
@@ -773,7 +673,7 @@ def make_fused_kernels(
             if grad & 1 != 0:
                 # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps
                 msum = red[i_m][None] if ti.static(R > 0) else 0.0
-                tv = load_taps()
+                tv = load_taps(f.taps)
                 for j in range(NW):
                     w = masks[F0, y, j]
                     while w != ti.u32(0):

@@ -374,3 +374,140 @@ def make_clear_kernel(tf: TileFields, region: int, images=(), rows=(), scalars=(
                 f[None] = 0.0
 
     return clear
+
+
+class SegmentPasses:
+    """The per-segment image operations of the fused kernel's row passes over ``(H, W, C)`` plane fields
+    (``fused._planes``): the separable blur's two 1-D passes, the blur along y applied twice (the
+    backward's ``B_y^T B_y``), stores and clears, at the :data:`SEG` pixels ``x0 .. x0 + SEG - 1`` of
+    row ``y``, with zero padding at the image's borders. Away from the borders the taps read whole
+    segments without bounds checks (vector loads).
+
+    Parameters
+    ----------
+    width, height : int
+        Image size, px.
+    radius : int
+        Blur footprint radius, px (0: no blur, one tap of 1).
+    """
+
+    def __init__(self, width: int, height: int, radius: int) -> None:
+        W, H, r_ = int(width), int(height), int(radius)
+        partial = SEG * (-(-W // SEG)) - W  # columns of a row's last segment beyond the image
+
+        @ti.func
+        def in_image(x):
+            inside = True
+            if ti.static(partial > 0):
+                inside = x < W
+            return inside
+
+        @ti.func
+        def whole(x0):
+            """All pixels of the segment at ``x0`` are in the image (always, when the width is a multiple
+            of the segment)."""
+            inside = True
+            if ti.static(partial > 0):
+                inside = x0 + SEG <= W
+            return inside
+
+        @ti.func
+        def load_taps(taps: ti.template()):
+            """The blur taps as a local vector (a field is loaded again after every store: LLVM cannot
+            tell the fields apart)."""
+            tv = ti.Vector([1.0 for _ in ti.static(range(2 * r_ + 1))])
+            if ti.static(r_ > 0):
+                for k in ti.static(range(2 * r_ + 1)):
+                    tv[k] = taps[k]
+            return tv
+
+        @ti.func
+        def pixel_of(src: ti.template(), votes: ti.template(), c: ti.template(), y, x):
+            v = 0.0
+            if ti.static(votes):  # slice 0 of the vote field
+                v = src[0, y, x, c]
+            else:
+                v = src[y, x, c]
+            return v
+
+        @ti.func
+        def blur_x(src: ti.template(), votes: ti.template(), c: ti.template(), y, x0, tv):
+            """``sum_k taps_k src[y, x + k, c]`` at the segment's pixels (``votes``: ``src`` is the
+            vote field, read in its slice 0)."""
+            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
+            if whole(x0) and x0 >= r_ and x0 + SEG - 1 + r_ < W:
+                for k in ti.static(range(-r_, r_ + 1)):
+                    for p in ti.static(range(SEG)):
+                        v[p] += tv[k + r_] * pixel_of(src, votes, c, y, x0 + p + k)
+            else:
+                for k in ti.static(range(-r_, r_ + 1)):
+                    for p in ti.static(range(SEG)):
+                        if 0 <= x0 + p + k < W and in_image(x0 + p):
+                            v[p] += tv[k + r_] * pixel_of(src, votes, c, y, x0 + p + k)
+            return v
+
+        @ti.func
+        def blur_y(src: ti.template(), c: ti.template(), y, x0, tv):
+            """``sum_k taps_k src[y + k, x, c]`` at the segment's pixels."""
+            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
+            if whole(x0) and y >= r_ and y < H - r_:
+                for k in ti.static(range(-r_, r_ + 1)):
+                    for p in ti.static(range(SEG)):
+                        v[p] += tv[k + r_] * src[y + k, x0 + p, c]
+            else:
+                for k in ti.static(range(-r_, r_ + 1)):
+                    if 0 <= y + k < H:
+                        for p in ti.static(range(SEG)):
+                            if in_image(x0 + p):
+                                v[p] += tv[k + r_] * src[y + k, x0 + p, c]
+            return v
+
+        @ti.func
+        def store(dst: ti.template(), c: ti.template(), y, x0, v):
+            if whole(x0):
+                for p in ti.static(range(SEG)):
+                    dst[y, x0 + p, c] = v[p]
+            else:
+                for p in ti.static(range(SEG)):
+                    if in_image(x0 + p):
+                        dst[y, x0 + p, c] = v[p]
+
+        @ti.func
+        def twice_taps(y, tv):
+            """The taps of ``B_y^T B_y`` at row ``y`` (offsets ``-2 r .. 2 r``): the Gaussian convolved
+            with itself, less the products of the first blur's taps that fall outside the image."""
+            wide = ti.Vector([0.0 for _ in ti.static(range(4 * r_ + 1))])
+            if ti.static(r_ > 0):
+                for k1 in ti.static(range(-r_, r_ + 1)):
+                    if 0 <= y + k1 < H:
+                        for k2 in ti.static(range(-r_, r_ + 1)):
+                            wide[k1 + k2 + 2 * r_] += tv[k1 + r_] * tv[k2 + r_]
+            else:
+                wide[0] = 1.0
+            return wide
+
+        @ti.func
+        def twice_blur_y(src: ti.template(), wide, c: ti.template(), y, x0):
+            """``(B_y^T B_y src)[y, x, c]`` at the segment's pixels, with the taps of :func:`twice_taps`."""
+            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
+            if whole(x0) and y >= 2 * r_ and y < H - 2 * r_:
+                for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
+                    for p in ti.static(range(SEG)):
+                        v[p] += wide[k + 2 * r_] * src[y + k, x0 + p, c]
+            else:
+                for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
+                    if 0 <= y + k < H:
+                        for p in ti.static(range(SEG)):
+                            if in_image(x0 + p):
+                                v[p] += wide[k + 2 * r_] * src[y + k, x0 + p, c]
+            return v
+
+        @ti.func
+        def clear(dst: ti.template(), y, x0):
+            for p in ti.static(range(SEG)):
+                if in_image(x0 + p):
+                    for c in ti.static(range(dst.shape[2])):
+                        dst[y, x0 + p, c] = 0.0
+
+        self.load_taps, self.blur_x, self.blur_y, self.store = load_taps, blur_x, blur_y, store
+        self.twice_taps, self.twice_blur_y, self.clear = twice_taps, twice_blur_y, clear
