@@ -150,6 +150,22 @@ def _read_gy(src: ti.template(), c, y, x):
     return src[y, x, 2 * c + 1]
 
 
+def _composed_warp_terms(warp_fn, det_fn, param_jac):
+    """``warp_terms`` of a model that declares none: its ``warp``, ``det`` and ``param_jac`` side by side."""
+
+    has_det = det_fn is not None
+
+    @ti.func
+    def warp_terms(p, dt, th, ctx):
+        jx, ddet, ddiv = param_jac(p, dt, th, ctx)
+        d = 1.0 + 0.0 * dt
+        if ti.static(has_det):
+            d = det_fn(p, dt, th, ctx)
+        return warp_fn(p, dt, th, ctx), d, jx, ddet, ddiv
+
+    return warp_terms
+
+
 def make_fused_kernels(
     fields: FusedFields,
     warp_fn,
@@ -177,6 +193,9 @@ def make_fused_kernels(
     param_jac=None,
     quantity_kinds: tuple = (),
     constant: tuple = (),
+    det_fn=None,
+    warp_terms=None,
+    positive_det: bool = True,
 ):
     """Build the kernel ``run`` closed over ``fields`` (see the module docstring).
 
@@ -192,6 +211,12 @@ def make_fused_kernels(
     ``quantity_kinds`` names each quantity "div" or "absdet". ``constant[r]`` says quantity ``r``
     is the same for every event: its map is that value
     wherever ``C > 0``, so ``R_r = s_r P_r(q_r)`` (``sum m > 0``) and nothing is voted for it.
+    ``det_fn`` is the model's ``det`` (the "absdet" quantities are its absolute value, and where
+    ``positive_det`` is False ``d|det|/dtheta = sign(det) ddet``). ``warp_terms(p, dt, th, ctx) ->
+    (warp, det, jx, ddet, ddiv)`` is the model's optional joint evaluation (e.g.
+    ``kernels/warps/rotation3.py``: one rotation of the ray serves all five); without it the kernels
+    compose it from ``warp_fn``, ``det_fn`` and ``param_jac``. The event loops use only what they need
+    of it (the rest is dead code to the compiler).
     """
     if n_params > MAX_PARAMS:
         raise ValueError(f"the fused pipeline takes at most {MAX_PARAMS} parameters")
@@ -206,6 +231,10 @@ def make_fused_kernels(
     if len(constant) != R:
         raise ValueError("constant needs one flag per quantity")
     voted = tuple(r for r in range(R) if not constant[r])  # voted quantity -> its regularizer
+    if det_fn is None and any(quantity_kinds[r] == "absdet" for r in voted):
+        raise ValueError("a voted 'absdet' quantity needs the model's det (det_fn)")
+    if warp_terms is None:
+        warp_terms = _composed_warp_terms(warp_fn, det_fn, param_jac)
     # CPU: images of fewer than 512 rows are reduced in one band, in row order, so that J and its
     # reductions are the same from run to run (Taichi's default CPU scheduling ran them serially too);
     # taller images in bands of about H / (2 threads) rows, a power of two; a GPU keeps its default
@@ -263,11 +292,14 @@ def make_fused_kernels(
         return ti.Vector([e[0], e[1]]), e[2], b, ch
 
     @ti.func
-    def quantities(p, dt, theta, c):
-        """The voted quantities of one event."""
+    def quantities(p, dt, theta, c, det):
+        """The voted quantities of one event (``det``: its determinant, from ``warp_terms``)."""
         vals = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
         for v in ti.static(range(RV)):
-            vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
+            if ti.static(quantity_kinds[voted[v]] == "absdet"):
+                vals[v] = ti.abs(det)
+            else:
+                vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
         return vals
 
     @ti.func
@@ -282,8 +314,9 @@ def make_fused_kernels(
         p, dt, b, ch = event(e)
         # everything that depends on theta only (trigonometry) must be computed unconditionally at
         # the top of the event loop, or LLVM cannot hoist it out of the loop
-        q = warp_fn(p, dt, theta, c)
-        vals = quantities(p, dt, theta, c)
+        terms = warp_terms(p, dt, theta, c)  # its Jacobians are dead code here
+        q = terms[0]
+        vals = quantities(p, dt, theta, c, terms[1])
         if _b.in_window(q, W, H):
             ix, iy, ax, ay = _b.bilinear_footprint(q)
             ab = ti.abs(b)
@@ -317,9 +350,15 @@ def make_fused_kernels(
     def event_grad(e, theta, c):
         """dJ/dtheta contribution of one event (hand-written, float64)."""
         p, dt, b, ch = event(e)
-        q = warp_fn(p, dt, theta, c)
-        vals = quantities(p, dt, theta, c)
-        jx, ddet, ddiv = param_jac(p, dt, theta, c)  # unconditionally: see splat_event
+        terms = warp_terms(p, dt, theta, c)  # unconditionally: see splat_event
+        q = terms[0]
+        vals = quantities(p, dt, theta, c, terms[1])
+        jx = terms[2]
+        ddet = terms[3]
+        ddiv = terms[4]
+        if ti.static(not positive_det and "absdet" in quantity_kinds):  # noqa: SIM102 - compile-time if
+            if terms[1] < 0.0:  # d|det| = -d det where det < 0
+                ddet = -ddet
         g = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
         if _b.in_window(q, W, H):
             ix, iy, ax, ay = _b.bilinear_footprint(q)
@@ -340,7 +379,7 @@ def make_fused_kernels(
                 for v in ti.static(range(RV)):
                     if ti.static(quantity_kinds[voted[v]] == "div"):
                         gj += gv[v] * ddiv[j]
-                    else:  # |det| = det: the built-in determinants are >= 0
+                    else:  # d|det|/dtheta (signed above where the model's det may be negative)
                         gj += gv[v] * ddet[j]
                 g[j] = ti.cast(gj, ti.f64)
         return g

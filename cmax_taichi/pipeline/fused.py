@@ -90,24 +90,6 @@ def regularizer_gap(reg: Regularizer) -> str:
     return ""
 
 
-def _abs_det_param_jac(model: WarpModel):
-    """``model.param_jac`` with ``d|det|/d theta = sign(det) d det/d theta`` in place of ``d det/d theta``
-    (for a model that does not declare ``positive_det``); one Taichi function per model."""
-    key = "abs_det_param_jac"
-    if key not in model._fallbacks:
-        param_jac, det = model.param_jac, model.det
-
-        @ti.func
-        def signed(p, dt, th, ctx):
-            jx, ddet, ddiv = param_jac(p, dt, th, ctx)
-            if det(p, dt, th, ctx) < 0.0:  # d|det| = -d det where det < 0
-                ddet = -ddet
-            return jx, ddet, ddiv
-
-        model._fallbacks[key] = signed
-    return model._fallbacks[key]
-
-
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
     """The pixel row of each event as the smallest integer type (int16 sorts by radix), clipped into
     the image (events outside it keep their place among the rows at the border)."""
@@ -178,9 +160,6 @@ class FusedPipeline:
         self.n_params = P
         # the declared capabilities (for_problem checked that they are there)
         kinds = tuple(r.kind for r in regs)
-        param_jac = model.param_jac
-        if "absdet" in kinds and not model.positive_det:
-            param_jac = _abs_det_param_jac(model)
         constant = tuple(k in model.constant_quantities for k in kinds)
         n_voted = len(regs) - sum(constant)
 
@@ -255,9 +234,12 @@ class FusedPipeline:
                 split_polarity=split,
                 shared_count=shared,
                 real=real,
-                param_jac=param_jac,
+                param_jac=model.param_jac,
                 quantity_kinds=kinds,
                 constant=constant,
+                det_fn=model.det,
+                warp_terms=model.warp_terms,
+                positive_det=model.positive_det,
             )
         self._run_k = self._ws.kernels[kkey]
 

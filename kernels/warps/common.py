@@ -6,6 +6,8 @@ Signatures of a model's functions (see ``__init__.py``): ``warp(p, dt, th, ctx) 
 ``param_jac(p, dt, th, ctx) -> (jx, ddet, ddiv)``.
 """
 
+import math
+
 import taichi as ti
 
 # Below these magnitudes the closed forms divide ~0 by ~0: switch to Taylor series.
@@ -13,6 +15,67 @@ SERIES_EPS = 1e-4
 # A rotated ray with z below this is behind the camera: the event is sent far outside the image.
 MIN_RAY_Z = 1e-6
 OUTSIDE = -1.0e7
+
+
+# --- truncated Taylor series in place of per-event trigonometry ------------------------------------
+def float_epsilon() -> float:
+    """Machine epsilon of the float type the kernels compile with now (Taichi's ``default_fp``: f32 or
+    f64); read inside ``ti.static`` when a kernel compiles, so one source serves both precisions."""
+    return 2.0**-52 if ti.lang.impl.current_cfg().default_fp == ti.f64 else 2.0**-23
+
+
+def taylor_terms(coefficient, u_max: float, floor: float) -> tuple[float, ...]:
+    """The coefficients ``c_0 .. c_{K-1}`` of an alternating series ``sum_k c_k u^k`` (``coefficient(k)``
+    gives ``c_k``, with ``|c_k| u^k`` decreasing for ``0 <= u <= u_max``), truncated at the smallest ``K``
+    whose first omitted term ``|c_K| u_max^K`` is at most ``float_epsilon() / 8`` times ``floor`` (a lower
+    bound of the series' value on ``[0, u_max]``): the truncation error of an alternating series is at
+    most its first omitted term, so the polynomial is exact to an eighth of the precision in use."""
+    tol = float_epsilon() / 8.0 * floor
+    k = 1
+    while abs(coefficient(k)) * u_max**k > tol:
+        k += 1
+    return tuple(float(coefficient(j)) for j in range(k))
+
+
+def taylor_error(coefficient, n_terms: int, u_max: float) -> float:
+    """The bound ``|c_K| u_max^K`` on the truncation error of ``n_terms`` terms (see :func:`taylor_terms`)."""
+    return abs(coefficient(n_terms)) * u_max**n_terms
+
+
+@ti.func
+def _pair(c: ti.template(), m: ti.template(), v):
+    return ti.static(c[2 * m]) + ti.static(c[2 * m + 1]) * v
+
+
+@ti.func
+def polynomial(coefficients: ti.template(), v):
+    """``sum_k c_k v^k`` for a tuple of at least two Python floats (unrolled): Horner's rule in ``v^2``
+    over the pairs ``c_2m + c_2m+1 v``, which halves the chain of dependent multiply-adds (the event
+    loops that call it are bound by that latency, not by the arithmetic)."""
+    c = ti.static(coefficients)
+    n_pairs = ti.static(len(c) // 2)
+    v2 = v * v
+    out = _pair(c, n_pairs - 1, v)
+    if ti.static(len(c) % 2 == 1):
+        out = out + v2 * ti.static(c[len(c) - 1])
+    for m in ti.static(range(n_pairs - 2, -1, -1)):
+        out = _pair(c, m, v) + v2 * out
+    return out
+
+
+def polynomial_derivative(coefficients: tuple[float, ...]) -> tuple[float, ...]:
+    """The coefficients of ``d/du sum_k c_k u^k`` (at least one)."""
+    return tuple(k * c for k, c in enumerate(coefficients) if k > 0) or (0.0,)
+
+
+def _factorial_series(offset: int):
+    """``c_k = (-1)^k / (2k + offset)!``: ``offset = 1`` gives ``sin(phi) / phi``, ``offset = 2``
+    ``(1 - cos(phi)) / phi^2`` as series in ``u = phi^2``."""
+    return lambda k: (-1.0) ** k / math.factorial(2 * k + offset)
+
+
+SIN_OVER_PHI = _factorial_series(1)
+ONE_MINUS_COS_OVER_PHI2 = _factorial_series(2)
 
 
 @ti.func
