@@ -1,4 +1,4 @@
-"""rotation3 evaluates Rodrigues' coefficients without the maths library (``kernels/warps/rotation3.py``):
+"""rotation3 and se2 evaluate Rodrigues' coefficients without the maths library (``common.rodrigues``):
 Taylor polynomials of the half angle up to ``phi = pi / 2``, a reduction modulo ``pi / 2`` beyond. These
 tests hold the error bound that docs/FORMULAS.md states, in f64 and f32, across every angle the default
 search box allows (and far beyond it), against the exact rotation of the float64 reference, and the
@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 import taichi as ti
-from cmax_taichi.kernels.warps import rotation3
+from cmax_taichi.kernels.warps import common, rotation3, se2
 from cmax_taichi.kernels.warps.common import SIN_OVER_PHI, float_epsilon, taylor_error
 
 import cmax_taichi as cm
@@ -37,7 +37,7 @@ def _box_phi_max() -> float:
 
 def _angles(phi_max: float) -> np.ndarray:
     """Angles (rad) from 0 through the series' range, its edge and the reduction, to ``phi_max``."""
-    edge = 2.0 * rotation3.HALF_ANGLE_MAX
+    edge = 2.0 * common.HALF_ANGLE_MAX
     dense = np.linspace(0.0, phi_max, 4001)
     special = [0, 1e-12, 1e-6, 1e-3, 0.1, edge * (1 - 1e-12), edge, edge * (1 + 1e-12), math.pi, 2 * math.pi]
     return np.unique(np.concatenate([dense, np.array(special)]))
@@ -56,7 +56,7 @@ def _coefficients(u: np.ndarray) -> np.ndarray:
     @ti.kernel
     def run(u_in: ti.types.ndarray(), out: ti.types.ndarray()):
         for i in range(u_in.shape[0]):
-            s1, s2, d1, d2 = rotation3._rodrigues(u_in[i])
+            s1, s2, d1, d2 = common.rodrigues(u_in[i])
             out[0, i] = s1
             out[1, i] = s2
             out[2, i] = d1
@@ -85,7 +85,7 @@ def test_coefficients_within_the_stated_bound(precision):
         assert angles.max() > 3 * math.pi  # several reductions
         s1, s2, _, _ = _coefficients(angles**2)
         phi, sin, vers = _exact(angles**2)
-        small = phi <= 2.0 * rotation3.HALF_ANGLE_MAX
+        small = phi <= 2.0 * common.HALF_ANGLE_MAX
         nz = phi > 0
         s1_exact = np.where(nz, sin / np.where(nz, phi, 1), 1.0)
         s2_exact = np.where(nz, vers / np.where(nz, phi, 1) ** 2, 0.5)
@@ -105,8 +105,8 @@ def test_series_truncation_is_below_the_precision():
     """The truncation bound of ``common.taylor_terms`` (first omitted term) is under an eighth of the
     machine epsilon on the whole series range, in f64 (the precision of the tests' other backend)."""
     use_precision("f64")
-    terms = rotation3.sinc_terms()
-    v_max = rotation3.HALF_ANGLE_MAX**2
+    terms = common.sinc_terms()
+    v_max = common.HALF_ANGLE_MAX**2
     assert taylor_error(SIN_OVER_PHI, len(terms), v_max) <= float_epsilon() / 8
 
 
@@ -189,4 +189,42 @@ def _warp_kernel(x, y, dt, w) -> np.ndarray:
             out[2, i] = rotation3.det(p, ev[2, i], theta, cv)
 
     run(np.stack([x, y, dt]).astype(npr), np.asarray(w, npr), np.asarray(ctx, npr), out)
+    return out.to_numpy().astype(np.float64)
+
+
+@pytest.mark.parametrize("precision", ["f64", "f32"])
+def test_se2_against_the_exact_reference(precision):
+    """se2's exponential takes the same coefficients: positions against the float64 reference (exact
+    complex exponential) for |w| dt from 0 to 20 rad (the default search box allows 1 rad): within
+    1e-10 px (f64) / 2e-3 px (f32) on a 240x180 sensor."""
+    use_precision(precision)
+    try:
+        rng = np.random.default_rng(4)
+        n = 4000
+        x, y = rng.uniform(0, 239, n), rng.uniform(0, 179, n)
+        dt = rng.uniform(0, DURATION, n)
+        for w_dt in (1e-3, 0.5, 1.0, 20.0):
+            theta = np.array([300.0, -200.0, w_dt / DURATION])
+            out = _se2_kernel(x, y, dt, theta)
+            xw, yw, _, _ = reference.warp_events("se2", x, y, dt, theta, center=(119.5, 89.5))
+            tol = 1e-10 if precision == "f64" else 2e-3
+            assert float(np.max(np.hypot(out[0] - xw, out[1] - yw))) <= tol
+    finally:
+        use_precision("f64")
+
+
+def _se2_kernel(x, y, dt, theta) -> np.ndarray:
+    real, npr = _real()
+    out = ti.ndarray(real, shape=(2, x.size))
+
+    @ti.kernel
+    def run(ev: ti.types.ndarray(), th: ti.types.ndarray(), out: ti.types.ndarray()):
+        t = ti.Vector([th[0], th[1], th[2]])
+        cv = ti.Vector([119.5, 89.5, 1.0, 1.0, DURATION])
+        for i in range(ev.shape[1]):
+            q = se2.warp(ti.Vector([ev[0, i], ev[1, i]]), ev[2, i], t, cv)
+            out[0, i] = q[0]
+            out[1, i] = q[1]
+
+    run(np.stack([x, y, dt]).astype(npr), np.asarray(theta, npr), out)
     return out.to_numpy().astype(np.float64)

@@ -19,41 +19,12 @@ differentiate exactly the same expressions (the polynomials' own derivatives). T
 docs/FORMULAS.md ("rotation3"); ``tests/test_rotation_series.py`` holds it in f32 and f64.
 """
 
-import math
-
 import taichi as ti
 
-from .common import (
-    MIN_RAY_Z,
-    ONE_MINUS_COS_OVER_PHI2,
-    OUTSIDE,
-    SIN_OVER_PHI,
-    polynomial,
-    polynomial_derivative,
-    taylor_terms,
-)
+from .common import MIN_RAY_Z, OUTSIDE, rodrigues
 
 #: per-event quantities that do not depend on the event (see ``__init__.py``)
 CONSTANT_QUANTITIES = ()
-
-#: the half angle ``h = phi / 2`` enters the series up to ``HALF_ANGLE_MAX`` (``phi <= pi / 2``); beyond
-#: it is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]``
-HALF_ANGLE_MAX = math.pi / 4
-#: lower bounds of ``sin(r) / r`` and ``(1 - cos r) / r^2`` on ``|r| <= pi / 4``: the truncation error of
-#: their series is bounded relative to them
-_SINC_FLOOR = math.sin(HALF_ANGLE_MAX) / HALF_ANGLE_MAX
-_VERSINE_FLOOR = (1.0 - math.cos(HALF_ANGLE_MAX)) / HALF_ANGLE_MAX**2
-
-
-def sinc_terms() -> tuple[float, ...]:
-    """Taylor coefficients (in ``v = r^2``) of ``sin(r) / r`` for the precision in use."""
-    return taylor_terms(SIN_OVER_PHI, HALF_ANGLE_MAX**2, _SINC_FLOOR)
-
-
-def versine_terms() -> tuple[float, ...]:
-    """Taylor coefficients (in ``v = r^2``) of ``(1 - cos r) / r^2`` for the precision in use."""
-    return taylor_terms(ONE_MINUS_COS_OVER_PHI2, HALF_ANGLE_MAX**2, _VERSINE_FLOOR)
-
 
 @ti.func
 def _reciprocal(f):
@@ -67,55 +38,6 @@ def _reciprocal(f):
 def _ray(p, ctx):
     """The calibrated ray ``((x - c_x) / f_x, (y - c_y) / f_y, 1)``."""
     return ti.Vector([(p[0] - ctx[0]) * _reciprocal(ctx[2]), (p[1] - ctx[1]) * _reciprocal(ctx[3]), 1.0])
-
-
-@ti.func
-def _rodrigues(u):
-    """``(s1, s2, ds1/du, ds2/du)`` with ``s1 = sin(phi) / phi``, ``s2 = (1 - cos(phi)) / phi^2`` at
-    ``u = phi^2``, from the half angle ``h = phi / 2``.
-
-    ``h <= pi / 4``: ``s1 = S(v) (1 - v C(v))``, ``s2 = S(v)^2 / 2`` with ``v = h^2 = u / 4`` and the
-    Taylor polynomials ``S`` of ``sin(h) / h`` and ``C`` of ``(1 - cos h) / h^2`` (no square root, no
-    division). Beyond (a branch: a square root, a ``floor``, a division): ``h = k pi / 2 + r`` with
-    ``|r| <= pi / 4``, ``sin(r) = r S(r^2)``, ``cos(r) = 1 - r^2 C(r^2)``, and
-    ``sin(h) cos(h) = (-1)^k sin(r) cos(r)``, ``sin(h)^2 = sin(r)^2`` (k even) or ``cos(r)^2`` (k odd).
-    The slopes are the derivatives of exactly these expressions (``dr/du = dh/du = 1 / (8 h)``; k is
-    piecewise constant, and ``floor`` has a zero adjoint in Taichi's reverse mode). No call into the
-    maths library, so that LLVM can if-convert the branch and vectorize the gradient gather.
-    """
-    v = 0.25 * u
-    big = v > HALF_ANGLE_MAX * HALF_ANGLE_MAX
-    r = 0.0 * u
-    k = 0.0 * u
-    ih = 0.0 * u
-    if big:
-        h = 0.5 * ti.sqrt(u)
-        k = ti.floor(h * (2.0 / math.pi) + 0.5)
-        r = h - k * (0.5 * math.pi)
-        ih = 1.0 / h
-        v = r * r
-    S = polynomial(ti.static(sinc_terms()), v)
-    C = polynomial(ti.static(versine_terms()), v)
-    dS = polynomial(ti.static(polynomial_derivative(sinc_terms())), v)
-    dC = polynomial(ti.static(polynomial_derivative(versine_terms())), v)
-    cr = 1.0 - v * C  # cos(r)
-    dcr_dv = -(C + v * dC)
-    # a = +-sin(h) / h and b = +-cos(h) (one sign), and their u-derivatives
-    a = S
-    b = cr
-    da = 0.25 * dS
-    db = 0.25 * dcr_dv
-    if big:
-        dr = 0.125 * ih  # dr/du = dh/du
-        sr = r * S
-        dsr = (S + 2.0 * v * dS) * dr
-        dcr = 2.0 * r * dcr_dv * dr
-        odd = k - 2.0 * ti.floor(0.5 * k) > 0.5  # sin(h) = +-cos(r), cos(h) = -+sin(r)
-        a = ti.select(odd, cr, sr) * ih
-        b = ti.select(odd, -sr, cr)
-        da = ti.select(odd, dcr, dsr) * ih - a * ih * dr
-        db = ti.select(odd, -dsr, dcr)
-    return a * b, 0.5 * a * a, da * b + a * db, a * da
 
 
 @ti.func
@@ -143,7 +65,7 @@ def warp_terms(p, dt, th, ctx):
     X = _ray(p, ctx)
     w = _omega(th)
     dt2 = dt * dt
-    s1, s2, d1, d2 = _rodrigues(dt2 * w.dot(w))
+    s1, s2, d1, d2 = rodrigues(dt2 * w.dot(w))
     wX = w.cross(X)
     wwX = w.cross(wX)
     c1 = dt * s1
