@@ -47,30 +47,31 @@ def _real():
     return (ti.f64, np.float64) if cm.backend_info().precision == "f64" else (ti.f32, np.float32)
 
 
-def _coefficients(u: np.ndarray) -> np.ndarray:
-    """``(s1, s2, ds1/du, ds2/du)`` of the kernel at ``u = phi^2`` (rounded to the precision in use), as
-    float64 ``(4, N)``."""
+def _coefficients(phi: np.ndarray) -> np.ndarray:
+    """``(s1, s2, ds1/du, ds2/du)`` of the kernel at the angles ``phi`` (rounded to the precision in use;
+    ``u = phi^2`` in that precision), as float64 ``(4, N)``."""
     real, npr = _real()
-    out = ti.ndarray(real, shape=(4, u.size))
+    out = ti.ndarray(real, shape=(4, phi.size))
 
     @ti.kernel
-    def run(u_in: ti.types.ndarray(), out: ti.types.ndarray()):
-        for i in range(u_in.shape[0]):
-            s1, s2, d1, d2 = common.rodrigues(u_in[i])
+    def run(phi_in: ti.types.ndarray(), out: ti.types.ndarray()):
+        for i in range(phi_in.shape[0]):
+            a = phi_in[i]
+            s1, s2, d1, d2 = common.rodrigues(a * a, ti.Vector([a]))
             out[0, i] = s1
             out[1, i] = s2
             out[2, i] = d1
             out[3, i] = d2
 
-    run(u.astype(npr), out)
+    run(phi.astype(npr), out)
     return out.to_numpy().astype(np.float64)
 
 
-def _exact(u: np.ndarray):
-    """``(phi, sin(phi), 1 - cos(phi))`` at the angle the kernel sees (``u`` rounded to the precision in
-    use), in extended precision."""
-    phi = np.sqrt(u.astype(_real()[1]).astype(np.longdouble))
-    return phi, np.sin(phi), 2 * np.sin(phi / 2) ** 2
+def _exact(phi: np.ndarray):
+    """``(phi, sin(phi), 1 - cos(phi))`` at the angle the kernel sees (``phi`` rounded to the precision
+    in use), in extended precision."""
+    p = phi.astype(_real()[1]).astype(np.longdouble)
+    return p, np.sin(p), 2 * np.sin(p / 2) ** 2
 
 
 @pytest.mark.parametrize("precision", ["f64", "f32"])
@@ -83,8 +84,8 @@ def test_coefficients_within_the_stated_bound(precision):
         eps = float_epsilon()
         angles = _angles(max(4.0 * _box_phi_max(), 40.0))
         assert angles.max() > 3 * math.pi  # several reductions
-        s1, s2, _, _ = _coefficients(angles**2)
-        phi, sin, vers = _exact(angles**2)
+        s1, s2, _, _ = _coefficients(angles)
+        phi, sin, vers = _exact(angles)
         small = phi <= 2.0 * common.HALF_ANGLE_MAX
         nz = phi > 0
         s1_exact = np.where(nz, sin / np.where(nz, phi, 1), 1.0)
@@ -97,6 +98,22 @@ def test_coefficients_within_the_stated_bound(precision):
         bound = 4 * eps * (1 + phi.astype(np.float64))
         assert np.all(err_sin <= bound), float((err_sin / bound).max())
         assert np.all(err_vers <= bound * np.maximum(1, phi)), float((err_vers / bound).max())
+    finally:
+        use_precision("f64")
+
+
+@pytest.mark.parametrize("precision", ["f64", "f32"])
+def test_huge_angles_stay_finite(precision):
+    """Beyond ~1e7 rad (f32) the rounding of phi exceeds pi: the reduction keeps no digit, but the values
+    stay finite and bounded up to the largest float (u = phi^2 overflows f32 from 1.8e19)."""
+    use_precision(precision)
+    try:
+        top = 3e38 if precision == "f32" else 1e300
+        phi = np.geomspace(1e6, top, 60)
+        out = _coefficients(phi)
+        assert np.all(np.isfinite(out))
+        phi32 = phi.astype(_real()[1]).astype(np.float64)
+        assert np.all(np.abs(phi32 * out[0]) <= 1 + 1e-6) and np.all(phi32 * (phi32 * out[1]) <= 2 + 1e-6)
     finally:
         use_precision("f64")
 
@@ -117,9 +134,9 @@ def test_slopes_are_the_derivatives_of_the_coefficients():
     phi = np.concatenate([np.linspace(0.01, 1.5, 40), np.linspace(1.6, 30.0, 80)])
     u = phi**2
     step = 1e-6 * np.maximum(u, 1.0)
-    _, _, d1, d2 = _coefficients(u)
-    hi = _coefficients(u + step)
-    lo = _coefficients(u - step)
+    _, _, d1, d2 = _coefficients(phi)
+    hi = _coefficients(np.sqrt(u + step))
+    lo = _coefficients(np.sqrt(u - step))
     fd1 = (hi[0] - lo[0]) / (2 * step)
     fd2 = (hi[1] - lo[1]) / (2 * step)
     np.testing.assert_allclose(d1, fd1, rtol=1e-6, atol=1e-9)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl as ti_impl
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
@@ -88,6 +89,49 @@ def regularizer_gap(reg: Regularizer) -> str:
             "gradient run on the generic autodiff chain"
         )
     return ""
+
+
+class _DirectLaunch:
+    """One compiled Taichi kernel launched through its C++ launch context.
+
+    ``Kernel.__call__`` of Taichi 1.7.4 spends ~60-80 us of Python per launch of the fused kernel
+    (12 arguments: template mapping, type checks and conversion of each, the compiled-kernel lookup);
+    the kernel itself runs in tens of us for a small window. After one ordinary call has compiled it,
+    this holds the compiled kernel and one launch context: a call sets the arguments that changed and
+    launches (a few us). Taichi internals (the version is pinned in pyproject.toml): where they differ,
+    :meth:`make` returns None and the ordinary call serves. Valid while Taichi runs the program it was
+    made in (:meth:`valid`: a reset or re-initialisation makes a new one).
+    """
+
+    def __init__(self, kernel, args: tuple) -> None:
+        primal = kernel._primal
+        key = primal.ensure_compiled(*args)
+        self._t_kernel = primal.compiled_kernels[key]
+        prog = self._prog = ti_impl.get_runtime().prog
+        self._data = prog.compile_kernel(prog.config(), prog.get_device_caps(), self._t_kernel)
+        self.ctx = self._t_kernel.make_launch_context()
+        self._out, self._out_address = None, 0
+
+    @classmethod
+    def make(cls, kernel, args: tuple) -> _DirectLaunch | None:
+        try:
+            return cls(kernel, args)
+        except (AttributeError, KeyError, TypeError, RuntimeError):
+            return None
+
+    def valid(self) -> bool:
+        return ti_impl.get_runtime().prog is self._prog
+
+    def set_arrays(self, events, out: np.ndarray) -> None:
+        """The array arguments ``ev`` (a Taichi ndarray) and ``out`` (a NumPy array), before every launch:
+        a launch replaces them in the context with device pointers."""
+        self.ctx.set_arg_ndarray((1,), events.arr)
+        if self._out is not out:
+            self._out, self._out_address = out, int(out.ctypes.data)
+        self.ctx.set_arg_external_array_with_shape((11,), self._out_address, out.nbytes, out.shape, 0)
+
+    def launch(self) -> None:
+        self._prog.launch_kernel(self._data, self.ctx)
 
 
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
@@ -247,6 +291,7 @@ class FusedPipeline:
         self._sensor = (W, H)
         self._theta = np.zeros(MAX_PARAMS)
         self._out = np.zeros(2 + P)  # J, G_raw, dJ/dtheta
+        self._launcher: _DirectLaunch | None = None
         self._event_buffer = None
         self.load_window(problem, vote_w)
 
@@ -319,13 +364,36 @@ class FusedPipeline:
 
     def _run(self, theta: np.ndarray, grad: int) -> np.ndarray:
         self._load()
+        launcher = self._launcher
+        if launcher is not None and launcher.valid():
+            ctx = launcher.ctx
+            ctx.set_arg_int((0,), self.n_events)
+            for j, v in enumerate(theta.tolist()):  # the other parameter slots stay 0
+                ctx.set_arg_float((2 + j,), v)
+            ctx.set_arg_int((10,), grad)
+            launcher.set_arrays(self.events, self._out)
+            launcher.launch()
+            return self._out
         args = self._theta
         args[: theta.size] = theta
-        with backend.per_thread_loops():  # one slice per thread on the CPU
-            self._run_k(self.n_events, self.events, *args.tolist(), grad, self._out)
+        call = (self.n_events, self.events, *args.tolist(), grad, self._out)
+        with backend.per_thread_loops():  # one slice per thread on the CPU (read when it compiles)
+            self._run_k(*call)
+            # the next calls launch the compiled kernel directly, with every argument set once here
+            # (inside: Taichi's look-up of the compiled kernel is keyed by the configuration too)
+            self._launcher = _DirectLaunch.make(self._run_k, call)
+        if self._launcher is not None:
+            ctx = self._launcher.ctx
+            for j, v in enumerate(call[2:10]):
+                ctx.set_arg_float((2 + j,), v)
         return self._out
 
     # --- evaluation ------------------------------------------------------------------------------
+    def launch_ready(self) -> bool:
+        """Whether the next call launches the compiled kernel directly (compiled, and Taichi still runs
+        the program it was compiled in)."""
+        return self._launcher is not None and self._launcher.valid()
+
     def value(self, theta: np.ndarray) -> float:
         """J at ``theta`` (float64 array of the model's length)."""
         return float(self._run(theta, 0)[0])

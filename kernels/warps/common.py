@@ -97,9 +97,21 @@ def versine_terms() -> tuple[float, ...]:
 
 
 @ti.func
-def rodrigues(u):
+def _norm(vec):
+    """``|vec|`` scaled by its largest component, so that the squares neither overflow nor underflow
+    (``vec != 0``)."""
+    m = ti.abs(vec[0])
+    for i in ti.static(range(1, vec.n)):
+        m = ti.max(m, ti.abs(vec[i]))
+    scaled = vec / m
+    return m * ti.sqrt(scaled.dot(scaled))
+
+
+@ti.func
+def rodrigues(u, rot):
     """``(s1, s2, ds1/du, ds2/du)`` with ``s1 = sin(phi) / phi``, ``s2 = (1 - cos(phi)) / phi^2`` at
-    ``u = phi^2``, from the half angle ``h = phi / 2``.
+    ``u = phi^2 = |rot|^2`` (``rot``: the rotation vector, ``dt w``; ``u`` computed by the caller as a
+    smooth function of theta, since reverse mode differentiates it), from the half angle ``h = phi / 2``.
 
     ``h <= pi / 4``: ``s1 = S(v) (1 - v C(v))``, ``s2 = S(v)^2 / 2`` with ``v = h^2 = u / 4`` and the
     Taylor polynomials ``S`` of ``sin(h) / h`` and ``C`` of ``(1 - cos h) / h^2`` (no square root, no
@@ -107,8 +119,11 @@ def rodrigues(u):
     ``|r| <= pi / 4``, ``sin(r) = r S(r^2)``, ``cos(r) = 1 - r^2 C(r^2)``, and
     ``sin(h) cos(h) = (-1)^k sin(r) cos(r)``, ``sin(h)^2 = sin(r)^2`` (k even) or ``cos(r)^2`` (k odd).
     The slopes are the derivatives of exactly these expressions (``dr/du = dh/du = 1 / (8 h)``; k is
-    piecewise constant, and ``floor`` has a zero adjoint in Taichi's reverse mode). No call into the
-    maths library, so that LLVM can if-convert the branch and vectorize the gradient gather. Shared by
+    piecewise constant, and ``floor`` has a zero adjoint in Taichi's reverse mode). The branch takes
+    ``h`` as the scaled norm of ``rot`` (``u`` overflows f32 from ``phi ~ 1.8e19``) and clamps ``r``
+    into ``[-pi/4, pi/4]`` (beyond ``phi ~ 1e7`` in f32, ``1e15`` in f64, the rounding of ``phi`` exceeds
+    pi and the reduction keeps no digit: the values stay finite, as bounded as sin and cos). No call into
+    the maths library, so that LLVM can if-convert the branch and vectorize the gradient gather. Shared by
     ``rotation3`` (the rotation of a ray by ``phi = |w| dt``) and ``se2`` (the planar rotation
     ``e^{i theta}`` and ``(e^{i theta} - 1) / (i theta)`` of its exponential).
     """
@@ -118,9 +133,9 @@ def rodrigues(u):
     k = 0.0 * u
     ih = 0.0 * u
     if big:
-        h = 0.5 * ti.sqrt(u)
+        h = 0.5 * _norm(rot)
         k = ti.floor(h * (2.0 / math.pi) + 0.5)
-        r = h - k * (0.5 * math.pi)
+        r = ti.min(ti.max(h - k * (0.5 * math.pi), -HALF_ANGLE_MAX), HALF_ANGLE_MAX)
         ih = 1.0 / h
         v = r * r
     S = polynomial(ti.static(sinc_terms()), v)

@@ -65,7 +65,7 @@ def warp_terms(p, dt, th, ctx):
     X = _ray(p, ctx)
     w = _omega(th)
     dt2 = dt * dt
-    s1, s2, d1, d2 = rodrigues(dt2 * w.dot(w))
+    s1, s2, d1, d2 = rodrigues(dt2 * w.dot(w), dt * w)
     wX = w.cross(X)
     wwX = w.cross(wX)
     c1 = dt * s1

@@ -6,13 +6,14 @@ v_y)`` and ``E(z) = (e^z - 1) / z``. On the imaginary axis ``e^{i theta} = (1 - 
 and ``E(i theta) = s1 + i theta s2`` with rotation3's Rodrigues coefficients ``s1 = sin(theta) /
 theta``, ``s2 = (1 - cos theta) / theta^2`` at ``theta^2`` (``common.rodrigues``: truncated series exact
 to the precision in use, no maths-library call per event, so the fused gather vectorizes), and
-``E'(i theta) = (s2 + 2 theta^2 ds2/du) - i 2 theta ds1/du`` (``E' = -i dE/dtheta``). ``sim2`` keeps the
+``E'(i theta) = (s2 + 2 theta^2 ds2/du) - i 2 theta ds1/du`` (``E' = -i dE/dtheta``; beyond the
+series' range the equal ``(e^z - E) / z``, which does not overflow). ``sim2`` keeps the
 general complex exponential of ``common.py`` (its real part ``e^{-dt s}`` is an ``exp`` per event).
 """
 
 import taichi as ti
 
-from .common import _cmul, _rel, _unit_det, _zero_div, _zero_vec, rodrigues
+from .common import HALF_ANGLE_MAX, _cmul, _rel, _unit_det, _zero_div, _zero_vec, rodrigues
 
 #: per-event quantities that do not depend on the event (see ``__init__.py``)
 CONSTANT_QUANTITIES = ("div", "absdet")
@@ -23,10 +24,15 @@ def warp_terms(p, dt, th, ctx):
     """``(warp, det, jx, ddet, ddiv)`` of one event from one evaluation of the exponential."""
     theta = -dt * th[2]
     u = theta * theta
-    s1, s2, d1, d2 = rodrigues(u)
-    ez = ti.Vector([1.0 - u * s2, theta * s1])  # e^{i theta}
+    s1, s2, d1, d2 = rodrigues(u, ti.Vector([theta]))
+    ez = ti.Vector([1.0 - theta * (theta * s2), theta * s1])  # e^{i theta} (no theta^2: it overflows)
     E = ti.Vector([s1, theta * s2])  # (e^{i theta} - 1) / (i theta)
-    Ep = ti.Vector([s2 + 2.0 * u * d2, -2.0 * theta * d1])  # E'(i theta)
+    Ep = ti.Vector([s2 + 2.0 * u * d2, -2.0 * theta * d1])  # E'(i theta) from the series' slopes
+    if ti.abs(theta) > 2.0 * HALF_ANGLE_MAX:
+        # the reduced side: E' = (e^z - E) / z (no cancellation here; u = theta^2 overflows f32 from
+        # |theta| ~ 1.8e19, and u ds2/du with it)
+        D = (ez - E) / theta
+        Ep = ti.Vector([D[1], -D[0]])
     vel = ti.Vector([-dt * th[0], -dt * th[1]])
     rot = _cmul(ez, _rel(p, ctx))
     q = rot + _cmul(E, vel)
