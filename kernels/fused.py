@@ -4,10 +4,11 @@ Why: the chain of small kernels of ``iwe.py`` / ``objectives.py`` / ``maps.py`` 
 Taichi's reverse mode spends its time in atomics (compare-and-swap loops for float adds on the CPU,
 ~15 ns each: every scatter, every transposed blur, every reduction into a 0-D *vector* field, which
 Taichi does not make thread-local) and in kernel launches (~10-40 us each from Python). Here one
-kernel ``run(n, ev, a0..a7, grad, out)`` holds every stage as its own task (Taichi runs the
+kernel ``run(n, ev, params, grad, out)`` holds every stage as its own task (Taichi runs the
 top-level loops of a kernel one after the other, each in parallel):
 
-1. serial: theta into 0-D fields, reductions cleared;
+1. serial: theta and the window's constants (``params``, :func:`params_layout`) into 0-D fields,
+   reductions cleared;
 2. splat: each event is warped and votes bilinearly into the IWE channels, the count ``C`` and the
    map numerators ``N_r`` of ``acc[s, y, x, k]``. On the CPU the events are split into one chunk per
    thread ``s``, each voting with plain loads and stores into its own slice ``s``; on a GPU one
@@ -25,7 +26,8 @@ top-level loops of a kernel one after the other, each in parallel):
    ``dJ/dtheta = sum_k sum_corners d/dtheta [beta_k (b_k adj_ch + |b_k| adj_C + |b_k| sum_r q_rk adj_r)]``
    with ``adj`` held fixed, using the closed-form parameter Jacobians each model declares
    (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop);
-8. serial: ``out = (J, G_raw, dJ/dtheta)``.
+8. serial: ``out = (J, G_raw, dJ/dtheta, J with G0 = G_raw)`` (the last: at the identity, the
+   normalised J of every later evaluation there).
 
 Each accumulation buffer is cleared by the pass that consumes it: no call launches a fill, and
 nothing is allocated per call. Warps without closed-form parameter Jacobians (user models) take the
@@ -41,7 +43,16 @@ import taichi as ti
 
 from . import blocks as _b
 
-MAX_PARAMS = 8  # theta travels as 8 scalar kernel arguments (cheaper than one vector argument)
+MAX_PARAMS = 8  # theta's slots in ``params``
+
+
+def params_layout(n_regs: int) -> dict:
+    """Where each value sits in the kernel's float64 ``params`` array (a NumPy array the driver fills:
+    one argument in place of a launch per field write): ``theta`` (``MAX_PARAMS`` slots), ``ctx``
+    (``cx, cy, fx, fy, T``), ``g0``, ``lam`` (``lambda_r`` then ``s_r``); ``size`` the length."""
+    n_lam = max(2 * n_regs, 1)
+    return {"theta": 0, "ctx": MAX_PARAMS, "g0": MAX_PARAMS + 5, "lam": MAX_PARAMS + 6,
+            "n_lam": n_lam, "size": MAX_PARAMS + 6 + n_lam}  # fmt: skip
 QUANTITY_KINDS = ("div", "absdet")  # per-event quantities the hand-written backward differentiates
 
 
@@ -257,6 +268,8 @@ def make_fused_kernels(
     i_w, i_ch = 3, (4 if weighted else 3)
     ev_type = ti.types.ndarray(dtype=ti.types.vector(k_ev, real), ndim=1)
     out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
+    lay = params_layout(R)
+    p_theta, p_ctx, p_g0, p_lam, n_lam = lay["theta"], lay["ctx"], lay["g0"], lay["lam"], lay["n_lam"]
     tap_x_votes = _b.make_tap_sum(_read_slice0, r_, 1, W, H)
     tap_x = _b.make_tap_sum(_b.read_hwc, r_, 1, W, H)
     tap_y = _b.make_tap_sum(_b.read_hwc, r_, 0, W, H)
@@ -419,22 +432,19 @@ def make_fused_kernels(
     def run(
         n: ti.i32,
         ev: ev_type,
-        a0: real,
-        a1: real,
-        a2: real,
-        a3: real,
-        a4: real,
-        a5: real,
-        a6: real,
-        a7: real,
+        params: out_type,
         grad: ti.i32,
         out: out_type,
     ):
-        # --- 1. serial: theta, cleared reductions ------------------------------------------------
-        args = ti.Vector([a0, a1, a2, a3, a4, a5, a6, a7])
+        # --- 1. serial: theta, the window's constants, cleared reductions -----------------------------
         for j in ti.static(range(P)):
-            f.thv[None][j] = args[j]
+            f.thv[None][j] = ti.cast(params[p_theta + j], real)
             gsum[j][None] = 0.0
+        for j in ti.static(range(5)):
+            f.ctx[None][j] = ti.cast(params[p_ctx + j], real)
+        for j in ti.static(range(n_lam)):
+            f.lam[None][j] = ti.cast(params[p_lam + j], real)
+        f.g0[None] = ti.cast(params[p_g0], real)
         for j in ti.static(range(len(red))):
             red[j][None] = 0.0
         # --- 2. splat ----------------------------------------------------------------------------
@@ -643,5 +653,12 @@ def make_fused_kernels(
         out[1] = ti.cast(f.graw[None], ti.f64)
         for j in ti.static(range(P)):
             out[2 + j] = gsum[j][None]
+        # J as if G0 were this G: at the identity, the J of every later evaluation there (the same
+        # operations as stage 5, in the same order), so that the driver need not evaluate it again
+        jself = f.graw[None] / f.graw[None]
+        if ti.static(R > 0):
+            for r in ti.static(range(R)):
+                jself -= f.lam[None][r] * f.rvals[r]
+        out[2 + P] = ti.cast(jself, ti.f64)
 
     return run

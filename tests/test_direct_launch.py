@@ -79,3 +79,25 @@ def test_a_reset_backend_is_refused_after_direct_launches():
         prob.value_and_grad(theta)
     with pytest.raises(RuntimeError, match="built before the Taichi backend was reset"):
         prob.value(theta)
+
+
+@pytest.mark.parametrize("normalize", [True, False])
+@pytest.mark.parametrize("warp,regs", CASES, ids=[c[0] for c in CASES])
+def test_identity_value_known_from_the_set_up(warp, regs, normalize):
+    """The window's set-up evaluates the identity (G0): value(0) then returns the J that the kernel gives
+    there, bit for bit, without a launch; also after set_events."""
+    x, y, t, p = edge_events(400)
+    events = cm.Events(x, y, t, p, SENSOR)
+    prob = cm.ContrastMaximization(events, warp=warp, regularizers=regs, camera=CAMERA, normalize=normalize)
+    zero = np.zeros(prob.model.n_params)
+    for seed in (None, 7):
+        if seed is not None:
+            x, y, t, p = edge_events(600, seed=seed)
+            prob.set_events(cm.Events(x, y, t, p, SENSOR))
+        memo = prob.value(zero)
+        known, prob._identity_value = prob._identity_value, None
+        try:
+            assert prob.value(zero) == memo
+            assert prob.value_and_grad(zero)[0] == pytest.approx(memo, rel=1e-14)
+        finally:
+            prob._identity_value = known

@@ -110,7 +110,6 @@ class _DirectLaunch:
         prog = self._prog = ti_impl.get_runtime().prog
         self._data = prog.compile_kernel(prog.config(), prog.get_device_caps(), self._t_kernel)
         self.ctx = self._t_kernel.make_launch_context()
-        self._out, self._out_address = None, 0
 
     @classmethod
     def make(cls, kernel, args: tuple) -> _DirectLaunch | None:
@@ -122,16 +121,30 @@ class _DirectLaunch:
     def valid(self) -> bool:
         return ti_impl.get_runtime().prog is self._prog
 
-    def set_arrays(self, events, out: np.ndarray) -> None:
-        """The array arguments ``ev`` (a Taichi ndarray) and ``out`` (a NumPy array), before every launch:
-        a launch replaces them in the context with device pointers."""
-        self.ctx.set_arg_ndarray((1,), events.arr)
-        if self._out is not out:
-            self._out, self._out_address = out, int(out.ctypes.data)
-        self.ctx.set_arg_external_array_with_shape((11,), self._out_address, out.nbytes, out.shape, 0)
+    def set_array(self, index: int, array) -> None:
+        """Array argument ``index``: a Taichi ndarray, or a :class:`_HostArray`. Before every launch: a
+        launch replaces the arrays in the context with device pointers."""
+        if isinstance(array, _HostArray):
+            self.ctx.set_arg_external_array_with_shape((index,), array.address, array.nbytes, array.shape, 0)
+        else:
+            self.ctx.set_arg_ndarray((index,), array.arr)
 
     def launch(self) -> None:
         self._prog.launch_kernel(self._data, self.ctx)
+
+
+class _HostArray:
+    """A C-contiguous NumPy array passed to a kernel as an external array (on the CPU, Taichi reads it in
+    place: no copy), with what the launch context needs (its address, size, shape without the vector
+    dimension)."""
+
+    def __init__(self, array: np.ndarray, vector: bool = False) -> None:
+        if not array.flags.c_contiguous:
+            raise ValueError("a kernel's host array must be C-contiguous")
+        self.array = array
+        self.address = int(array.ctypes.data)
+        self.nbytes = array.nbytes
+        self.shape = array.shape[:-1] if vector else array.shape
 
 
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
@@ -289,46 +302,59 @@ class FusedPipeline:
 
         self._weighted, self._split, self._atomic = weighted, split, atomic
         self._sensor = (W, H)
-        self._theta = np.zeros(MAX_PARAMS)
-        self._out = np.zeros(2 + P)  # J, G_raw, dJ/dtheta
+        self._layout = kfused.params_layout(len(regs))
+        self._params = _HostArray(np.zeros(self._layout["size"]))  # theta and the window's constants
+        self._out = _HostArray(np.zeros(3 + P))  # J, G_raw, dJ/dtheta, J with G0 = G_raw
         self._launcher: _DirectLaunch | None = None
-        self._event_buffer = None
+        self._event_buffer = None  # GPU: the pooled device buffer of the events
+        self._packed = None
+        self._taps = None
         self.load_window(problem, vote_w)
 
     def can_take(self, problem, vote_w: np.ndarray | None) -> bool:
         """Whether :meth:`load_window` can serve ``problem``'s new window with these fields and kernels
-        (same options; the same sensor, event capacity bucket and use of vote weights)."""
+        (same options: the same sensor and use of vote weights; on a GPU also the same event capacity
+        bucket of the device buffer)."""
         return (
             (problem.width, problem.height) == self._sensor
             and (vote_w is not None) == self._weighted
-            and workspace.capacity_for(problem.n_events) == self._event_buffer.capacity
+            and (
+                self._event_buffer is None
+                or workspace.capacity_for(problem.n_events) == self._event_buffer.capacity
+            )
         )
 
     def load_window(self, problem, vote_w: np.ndarray | None) -> None:
-        """Take ``problem``'s current window: its constants and events (uploaded at the next run)."""
-        # constants, uploaded whenever another problem used the shared fields in between
-        setup = problem.setup  # pipeline/setup.py: the same constants as the generic chain's
-        self._ctx = setup.ctx
-        self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
-        self._lam = setup.lam
-        self._g0 = 1.0
-        self.n_events = problem.n_events
+        """Take ``problem``'s current window: its constants and events.
 
-        # the events as one ndarray of (x, y, dt[, w][, channel]) vectors
+        The window's constants go into ``params`` (read by the kernel at each launch); the events are
+        packed into a host array: on the CPU the kernel reads that array in place (no upload, no device
+        copy), on a GPU it is uploaded into a pooled device buffer at the next run.
+        """
+        setup = problem.setup  # pipeline/setup.py: the same constants as the generic chain's
+        lay, params = self._layout, self._params.array
+        params[lay["ctx"] : lay["ctx"] + 5] = setup.ctx
+        lam = setup.lam
+        params[lay["lam"] : lay["lam"] + len(lam)] = lam
+        params[lay["g0"]] = 1.0
+        taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
+        if self._packed is None or not np.array_equal(taps, self._taps):  # the same blur: no upload
+            self._ws.release()
+        self._taps = taps
+        self.n_events = n = problem.n_events
+
+        # the events as (x, y, dt[, w][, channel]) vectors
         ev = problem.events
         cols = [ev.x, ev.y, ev.t - problem.t_ref]
         if self._weighted:
             cols.append(vote_w)
         if self._split:
             cols.append((ev.p < 0).astype(np.float64))
-        # a pooled buffer (workspace.event_buffer: vector ndarrays are never freed), padded to its
-        # capacity; the kernel reads the first n_events, and the upload happens when another problem
-        # (or another window of this one) used the buffer in between
-        if self._event_buffer is None or self._event_buffer.capacity != workspace.capacity_for(self.n_events):
-            self._event_buffer = workspace.event_buffer(backend.real(), len(cols), self.n_events)
-            self._packed = np.zeros((self._event_buffer.capacity, len(cols)), dtype=backend.numpy_real())
-        else:
-            self._packed[self.n_events :] = 0.0
+        capacity = workspace.capacity_for(n)  # host arrays by powers of two too: few reallocations
+        if self._packed is None or self._packed.shape[0] != capacity:
+            self._packed = np.zeros((capacity, len(cols)), dtype=backend.numpy_real())
+        elif self._atomic:
+            self._packed[n:] = 0.0  # the device buffer is uploaded whole
         # the events ordered by their pixel row (a stable radix sort: time order within a row), so that
         # consecutive events vote into, and gather the adjoints from, the same few rows of the images,
         # which stay in the L1 cache: 10-30% less CPU time per call at 1M events (docs/performance.md).
@@ -336,57 +362,55 @@ class FusedPipeline:
         # (on the CPU only: on a GPU, neighbouring events would contend for the same atomic adds)
         order = slice(None) if self._atomic else np.argsort(_row_keys(ev.y, self._sensor[1]), kind="stable")
         for j, col in enumerate(cols):
-            self._packed[: self.n_events, j] = col[order]
-        self.events = self._event_buffer.array
+            self._packed[:n, j] = col[order]
+        if self._atomic:
+            # a pooled device buffer (workspace.event_buffer: vector ndarrays are never freed), padded to
+            # its capacity; uploaded when another problem (or window) used it in between
+            if self._event_buffer is None or self._event_buffer.capacity != capacity:
+                self._event_buffer = workspace.event_buffer(backend.real(), len(cols), n)
+            self._event_buffer.release()
+            self.events = self._event_buffer.array
+        else:
+            self.events = _HostArray(self._packed[:n], vector=True)
         self.event_bytes = self._packed.nbytes
-        self._event_buffer.release()
-        self._ws.release()
 
     # --- state -----------------------------------------------------------------------------------
     def set_g0(self, g0: float) -> None:
         """Divide G by ``g0`` in J from now on."""
-        self._g0 = float(g0)
-        self._ws.release()  # upload again at the next call
+        self._params.array[self._layout["g0"]] = float(g0)
 
     def _load(self) -> None:
-        self._event_buffer.load(self, self._packed)
+        if self._event_buffer is not None:
+            self._event_buffer.load(self, self._packed)
         ws = self._ws
         if ws.owned_by(self):
             return
-        f = self.fields
-        f.ctx[None] = self._ctx
         if self._taps is not None:
-            f.taps.from_numpy(self._taps)
-        if self._lam:
-            f.lam[None] = self._lam
-        f.g0[None] = self._g0
+            self.fields.taps.from_numpy(self._taps)
         ws.take(self)
 
     def _run(self, theta: np.ndarray, grad: int) -> np.ndarray:
         self._load()
+        params = self._params.array
+        params[: theta.size] = theta  # the other parameter slots stay 0
         launcher = self._launcher
         if launcher is not None and launcher.valid():
             ctx = launcher.ctx
             ctx.set_arg_int((0,), self.n_events)
-            for j, v in enumerate(theta.tolist()):  # the other parameter slots stay 0
-                ctx.set_arg_float((2 + j,), v)
-            ctx.set_arg_int((10,), grad)
-            launcher.set_arrays(self.events, self._out)
+            launcher.set_array(1, self.events)
+            launcher.set_array(2, self._params)
+            ctx.set_arg_int((3,), grad)
+            launcher.set_array(4, self._out)
             launcher.launch()
-            return self._out
-        args = self._theta
-        args[: theta.size] = theta
-        call = (self.n_events, self.events, *args.tolist(), grad, self._out)
+            return self._out.array
+        events = self.events.array if isinstance(self.events, _HostArray) else self.events
+        call = (self.n_events, events, params, grad, self._out.array)
         with backend.per_thread_loops():  # one slice per thread on the CPU (read when it compiles)
             self._run_k(*call)
-            # the next calls launch the compiled kernel directly, with every argument set once here
+            # the next calls launch the compiled kernel directly
             # (inside: Taichi's look-up of the compiled kernel is keyed by the configuration too)
             self._launcher = _DirectLaunch.make(self._run_k, call)
-        if self._launcher is not None:
-            ctx = self._launcher.ctx
-            for j, v in enumerate(call[2:10]):
-                ctx.set_arg_float((2 + j,), v)
-        return self._out
+        return self._out.array
 
     # --- evaluation ------------------------------------------------------------------------------
     def launch_ready(self) -> bool:
@@ -406,7 +430,16 @@ class FusedPipeline:
     def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """``(J, dJ/dtheta)`` at ``theta``: one kernel launch."""
         out = self._run(theta, 1)
-        return float(out[0]), out[2:].copy()
+        return float(out[0]), out[2 : 2 + self.n_params].copy()
+
+    def self_normalized_value(self) -> float:
+        """J of the last evaluation as if G0 were its own G: evaluated at the identity, the normalised J
+        that every later evaluation there gives (bit for bit: the kernel's own operations)."""
+        return float(self._out.array[2 + self.n_params])
+
+    def event_array(self) -> np.ndarray:
+        """The packed events of the window as the kernel reads them, ``(n_events, columns)`` (tests)."""
+        return self._packed[: self.n_events]
 
     def image(self) -> np.ndarray:
         """The blurred IWE of the last evaluation, (C, H, W) float64."""

@@ -247,7 +247,8 @@ class ContrastMaximization:
         self.G0 = 1.0
         if self._fused is not None:
             self._fused.set_g0(1.0)
-        g0 = self._forward(np.zeros(self.model.n_params))[1]
+        self._identity_value = None
+        j0, g0 = self._forward(np.zeros(self.model.n_params))
         if not (math.isfinite(g0) and g0 > 0):
             raise ValueError(
                 f"the identity warp's {self.objective.name} is {g0}: the events give a flat image "
@@ -256,6 +257,8 @@ class ContrastMaximization:
         self.G0 = g0 if self.normalize else 1.0
         self._identity_objective = g0
         if self._fused is not None:
+            # J at the identity is known now: the optimizers' evaluation of it there costs nothing
+            self._identity_value = self._fused.self_normalized_value() if self.normalize else j0
             self._fused.set_g0(self.G0)
 
     # --- fields and kernels ----------------------------------------------------------------------
@@ -489,6 +492,8 @@ class ContrastMaximization:
             self._check_alive()
         theta = _check_theta(theta, self.model.n_params, self.model.name, limit=self._theta_limit)
         if fused is not None:
+            if self._identity_value is not None and not any(theta.tolist()):
+                return self._identity_value  # computed with G0 by the window's set-up
             value = fused.value(theta)
         else:
             value = self._forward(theta)[0]
