@@ -143,9 +143,10 @@ def uniform_window(n: int, sensor: tuple[int, int], seed: int = 0):
 def window(kind: str, n: int, sensor: tuple[int, int], seed: int = 0, *, stream_events: int | None = None,
            log: Callable[[str], None] = print):  # fmt: skip
     """``n`` events of a window of ``kind`` (:data:`WINDOW_KINDS`). Textured windows are the first ``n``
-    events of the sensor's stream of ``stream_events`` (default ``n``) events."""
+    events of the sensor's one stream of ``stream_events`` (default ``n``) events (``seed`` seeds the
+    other kinds only: every N shares the stream)."""
     if kind == "textured":
-        x, y, t, p = textured_stream(sensor, max(n, stream_events or n), seed, log=log)
+        x, y, t, p = textured_stream(sensor, max(n, stream_events or n), 0, log=log)
         return x[:n], y[:n], t[:n], p[:n]
     if kind == "uniform":
         return uniform_window(n, sensor, seed)
