@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import importlib.util
 import math
+import signal
 import sys
 from pathlib import Path
 
@@ -274,6 +275,11 @@ _DRAW = {"window": _draw_window_figure, "parameters": _draw_parameters_figure}
 def _figure_worker(conn) -> None:
     """The figure process: import matplotlib at once (while the estimate runs), then draw each
     ``(kind, path, data)`` it receives until None; send back the list of errors."""
+    # The fork inherited the command's SIGTERM handler (raise in the main thread): the parent, which
+    # owns the outputs, decides; this child ends quietly when terminated and ignores the terminal's
+    # Ctrl-C (the parent handles it and terminates the child).
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import matplotlib.backends.backend_agg  # noqa: F401 - the import is the point: it runs in parallel
     import matplotlib.figure  # noqa: F401
 
