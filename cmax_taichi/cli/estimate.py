@@ -619,7 +619,9 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
     events = result.events
     if events.get("total"):
         left = events["total"] - events["estimated"]
-        note = f"; {left} not estimated ({len(result.skipped)} window(s) not estimated)" if left else ""
+        counted = {k: v for k, v in events.items() if k not in ("total", "estimated", "windows") and v}
+        reasons = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counted.items())
+        note = f"; {left} not estimated ({reasons}; {len(result.skipped)} window(s) skipped)" if left else ""
         print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
     if example is not None:
         _report_example(example, result, area_scales, regs, folder.path("truth.json"))
