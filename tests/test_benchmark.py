@@ -167,6 +167,34 @@ def test_stage_profiler_prints_every_task(tmp_path):
     assert bad.returncode == 2 and "--sensor must be one of" in bad.stderr
 
 
+def test_call_overhead_times_every_part(tmp_path):
+    """benchmarks/call_overhead.py (the fixed cost per call in docs/performance.md) launches the library's
+    kernel both ways, with its current signature, and reports every part of a call."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "overhead.json"
+    proc = subprocess.run(
+        [sys.executable, "benchmarks/call_overhead.py", "--repeats", "50", "--json", str(out)],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = json.loads(out.read_text())
+    assert set(rows) == {"2 events 16x12", "1000 events 240x180"}
+    for row in rows.values():
+        for name in ("value_and_grad", "value", "kernel, ordinary call (Kernel.__call__)",
+                     "kernel, C++ launch (no Python)"):  # fmt: skip
+            median, fastest, cpu = row[name]
+            assert 0 < fastest <= median and cpu > 0, (name, row[name])
+        assert "python work (value_and_grad - C++ launch)" in row
+
+
 def test_cli_refuses_a_gpu_arch_that_falls_back_to_the_cpu(tmp_path, capsys):
     """`cmax-taichi bench --arch cuda` without CUDA: one error, no CPU timing sold as a GPU one."""
     import cmax_taichi as cm
