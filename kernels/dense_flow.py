@@ -121,7 +121,8 @@ class DenseFlowFields:
         self.taps = ti.field(real, shape=2 * radius + 1)
         self.nodes = ti.Vector.field(2, real, shape=max_nodes)  # node flow, px/s
         self.grid = ti.Vector.field(4, real, shape=())  # nx, ny, 1 / sx, 1 / sy
-        self.refs = ti.Vector.field(2 * R, real, shape=())  # offsets o_r (s), then weights omega_r
+        self.ref_off = ti.field(real, shape=R)  # offsets o_r of the reference times, s
+        self.ref_w = ti.field(real, shape=R)  # weights omega_r (sum 1)
         self.lam = ti.Vector.field(max(n_regs * (1 + R), 1), real, shape=())  # lambda_q, then s_qr
         self.g0 = ti.field(real, shape=())
         n_slots = n_reduction_slots(R, C, objective_slots, n_regs)
@@ -291,7 +292,7 @@ def make_dense_flow_kernels(
         return vals, det
 
     @ti.func
-    def ref_slots(r: ti.template()):
+    def ref_slots(r):
         return ti.Vector([f.red[r * C * SL + k] for k in ti.static(range(C * SL))])
 
     @ti.func
@@ -302,14 +303,14 @@ def make_dense_flow_kernels(
             f.acc[s, iy, ix, k] = f.acc[s, iy, ix, k] + v
 
     @ti.func
-    def splat_event(s, e, gp, refs):
+    def splat_event(s, e, gp):
         p, dt, b, ch = event(e)
         n00, stride, a, bb = grid_cell(p, gp)
         u, du_dx, du_dy = interpolate(f.nodes, n00, stride, a, bb, gp)
         div = du_dx[0] + du_dy[1]
         ab = ti.abs(b)
-        for r in ti.static(range(R)):
-            dtr = dt - refs[r]
+        for r in range(R):  # a runtime loop: unrolled, every reference multiplied the code to compile
+            dtr = dt - f.ref_off[r]
             q = p - dtr * u
             if _b.in_window(q, W, H):
                 vals, _ = quantities(div, du_dx, du_dy, dtr)
@@ -327,7 +328,7 @@ def make_dense_flow_kernels(
                                     vote(s, iy + dy, ix + dx, r * KR + i_num + v, ab * w * vals[v])
 
     @ti.func
-    def corner_terms(iy, ix, r: ti.template(), ch, b, vals):
+    def corner_terms(iy, ix, r, ch, b, vals):
         """The adjoint gathered at one pixel for reference r: ``(b adj_ch + |b| adj_C + |b| sum_q q adj_q,
         |b| adj_q)``."""
         ab = ti.abs(b)
@@ -349,7 +350,7 @@ def make_dense_flow_kernels(
             f.gnode[s, nd] = f.gnode[s, nd] + g
 
     @ti.func
-    def event_grad(s, e, gp, refs):
+    def event_grad(s, e, gp):
         """dJ/dU of one event, scattered into its four nodes."""
         p, dt, b, ch = event(e)
         n00, stride, a, bb = grid_cell(p, gp)
@@ -358,8 +359,8 @@ def make_dense_flow_kernels(
         gu = ti.Vector([0.0, 0.0])  # dJ/du
         gdx = ti.Vector([0.0, 0.0])  # dJ/d(du/dx)
         gdy = ti.Vector([0.0, 0.0])  # dJ/d(du/dy)
-        for r in ti.static(range(R)):
-            dtr = dt - refs[r]
+        for r in range(R):
+            dtr = dt - f.ref_off[r]
             q = p - dtr * u
             if _b.in_window(q, W, H):
                 vals, det = quantities(div, du_dx, du_dy, dtr)
@@ -396,7 +397,7 @@ def make_dense_flow_kernels(
         add_node(s, n00 + stride + 1, ti.cast(w11 * gu + bb * ix_ * gdx + a * iy_ * gdy, ti.f64))
 
     @ti.func
-    def blur_x_votes(y, k: ti.template(), ic: ti.template()):
+    def blur_x_votes(y, k, ic):
         """tmp[y, :, ic] = blur along x of channel k of the summed votes (zero padding)."""
         for x in range(W):
             acc = 0.0
@@ -407,7 +408,7 @@ def make_dense_flow_kernels(
             f.tmp[y, x, ic] = acc
 
     @ti.func
-    def blur_x_adjoint(y, ic: ti.template(), k: ti.template()):
+    def blur_x_adjoint(y, ic, k):
         """adj[y, :, k] = the (symmetric, so self-transposed) blur along x of tmp[y, :, ic]."""
         for x in range(W):
             acc = 0.0
@@ -418,7 +419,7 @@ def make_dense_flow_kernels(
             f.adj[y, x, k] = acc
 
     @ti.func
-    def blur_y_at(src: ti.template(), c: ti.template(), y, x, interior):
+    def blur_y_at(src: ti.template(), c, y, x, interior):
         acc = 0.0
         if ti.static(r_ > 0):
             if interior:
@@ -432,7 +433,6 @@ def make_dense_flow_kernels(
     @ti.func
     def assemble(out: ti.template()):
         """J from the reduced sums (serial): H, dJ/dG_r, the regularizers and their slopes; into out."""
-        refs = f.refs[None]
         g0 = f.g0[None]
         inv_sum = 0.0
         ok = 1
@@ -444,7 +444,7 @@ def make_dense_flow_kernels(
             f.graw[r] = g
             out[2 + r] = ti.cast(g, ti.f64)
             if g > 0.0:
-                inv_sum += refs[R + r] * g0 / g
+                inv_sum += f.ref_w[r] * g0 / g
             else:
                 ok = 0
         hval = 0.0
@@ -453,7 +453,7 @@ def make_dense_flow_kernels(
         for r in ti.static(range(R)):
             f.coef[r] = 0.0
             if ok == 1 and inv_sum > 0.0:  # dH/dG_r = omega_r G0 / (G_r sum)^2
-                f.coef[r] = refs[R + r] * g0 / (f.graw[r] * f.graw[r] * inv_sum * inv_sum)
+                f.coef[r] = f.ref_w[r] * g0 / (f.graw[r] * f.graw[r] * inv_sum * inv_sum)
         jval = hval
         for v in ti.static(range(Q)):
             rv = 0.0
@@ -463,8 +463,8 @@ def make_dense_flow_kernels(
                 s_vr = f.lam[None][Q + v * R + r]
                 rr = _b.scaled_penalty(ratio, s_vr, ti.static(one_sided[v]))
                 slope = _b.scaled_penalty_slope(ratio, s_vr, ti.static(one_sided[v]))
-                f.rw[v * R + r] = f.lam[None][v] * refs[R + r] * slope
-                rv += refs[R + r] * rr
+                f.rw[v * R + r] = f.lam[None][v] * f.ref_w[r] * slope
+                rv += f.ref_w[r] * rr
                 out[2 + R + Q + v * R + r] = ti.cast(rr, ti.f64)
             jval -= f.lam[None][v] * rv
             out[2 + R + v] = ti.cast(rv, ti.f64)
@@ -476,35 +476,35 @@ def make_dense_flow_kernels(
         # --- 1. splat -------------------------------------------------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):
-                splat_event(0, ev[i], f.grid[None], f.refs[None])
+                splat_event(0, ev[i], f.grid[None])
         else:
             ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
                 lo, hi = slice_events(s, n)
                 gp_s = f.grid[None]
-                refs_s = f.refs[None]
                 for i in range(lo, hi):
-                    splat_event(s, ev[i], gp_s, refs_s)
+                    splat_event(s, ev[i], gp_s)
         # --- 2. rows: sum the slices, blur along x, per-row map sums ---------------------------------
+        # (references and channels are runtime loops: unrolled, each multiplied the code to compile)
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             if ti.static(S > 1):
-                for x in range(W):
-                    for k in ti.static(range(R * KR)):
+                for k in range(R * KR):
+                    for x in range(W):
                         v = f.acc[0, y, x, k]
                         for s in ti.static(range(1, S)):
                             v += f.acc[s, y, x, k]
                             f.acc[s, y, x, k] = 0.0
                         f.acc[0, y, x, k] = v
-            for ic in ti.static(range(IC)):
-                k = ti.static((ic // C) * KR + ic % C)
+            for ic in range(IC):
+                k = (ic // C) * KR + ic % C
                 if ti.static(r_ > 0):
                     blur_x_votes(y, k, ic)
                 else:
                     for x in range(W):
                         f.tmp[y, x, ic] = f.acc[0, y, x, k]
             if ti.static(Q > 0):
-                for r in ti.static(range(R)):
+                for r in range(R):
                     msum = 0.0
                     psum = ti.Vector([0.0 for _ in ti.static(range(Q))])
                     for x in range(W):
@@ -517,48 +517,44 @@ def make_dense_flow_kernels(
                     f.rowred[y, MB + r * (1 + Q)] = msum
                     for v in ti.static(range(Q)):
                         f.rowred[y, MB + r * (1 + Q) + 1 + v] = psum[v]
-            for x in range(W):  # clear what no later pass reads (the backward clears the maps)
-                for r in ti.static(range(R)):
-                    for c in ti.static(range(C)):
-                        if ti.static(shared_count and c == i_cnt):
-                            if grad == 0:
-                                f.acc[0, y, x, r * KR + c] = 0.0
-                        else:
-                            f.acc[0, y, x, r * KR + c] = 0.0
-                    if ti.static(Q > 0):  # noqa: SIM102 - compile-time if
-                        if grad == 0:
-                            for k in ti.static(range(i_cnt, KR)):
-                                f.acc[0, y, x, r * KR + k] = 0.0
+            # clear what no later pass reads (the backward clears the maps and a shared count)
+            for k in range(R * KR):
+                c = k % KR
+                keep = 0  # maps channels, and the count where it shares IWE channel 0
+                if c >= C:
+                    keep = 1
+                if ti.static(shared_count):  # noqa: SIM102 - compile-time if
+                    if c == i_cnt:
+                        keep = 1
+                if grad == 0 or keep == 0:
+                    for x in range(W):
+                        f.acc[0, y, x, k] = 0.0
         # --- 3. rows: blur along y, per-row objective sums ----------------------------------------------
         ti.loop_config(block_dim=row_block)
         for y in range(H):
-            rsum = ti.Vector([0.0 for _ in ti.static(range(IC * SL))])
             interior = y >= r_ and y < H - r_
-            for x in range(W):
-                for ic in ti.static(range(IC)):
+            for ic in range(IC):
+                rsum = ti.Vector([0.0 for _ in ti.static(range(SL))])
+                for x in range(W):
                     v = blur_y_at(f.tmp, ic, y, x, interior)
                     f.img[y, x, ic] = v
                     if ti.static(not sobel):
-                        terms = pixel_fn(v, 0.0, 0.0)
-                        for k in ti.static(range(SL)):
-                            rsum[SL * ic + k] += terms[k]
-            if ti.static(not sobel):
-                for k in ti.static(range(IC * SL)):
-                    f.rowred[y, k] = rsum[k]
+                        rsum += pixel_fn(v, 0.0, 0.0)
+                if ti.static(not sobel):
+                    for k in ti.static(range(SL)):
+                        f.rowred[y, SL * ic + k] = rsum[k]
         if ti.static(sobel):
             ti.loop_config(block_dim=row_block)
             for y in range(H):
-                rsum = ti.Vector([0.0 for _ in ti.static(range(IC * SL))])
-                for x in range(W):
-                    for ic in ti.static(range(IC)):
+                for ic in range(IC):
+                    rsum = ti.Vector([0.0 for _ in ti.static(range(SL))])
+                    for x in range(W):
                         gx, gy = sobel_fn(f.img, ic, y, x)
                         f.sobel[y, x, 2 * ic] = gx
                         f.sobel[y, x, 2 * ic + 1] = gy
-                        terms = pixel_fn(f.img[y, x, ic], gx, gy)
-                        for k in ti.static(range(SL)):
-                            rsum[SL * ic + k] += terms[k]
-                for k in ti.static(range(IC * SL)):
-                    f.rowred[y, k] = rsum[k]
+                        rsum += pixel_fn(f.img[y, x, ic], gx, gy)
+                    for k in ti.static(range(SL)):
+                        f.rowred[y, SL * ic + k] = rsum[k]
         # --- 4. the row sums in row order, then J ----------------------------------------------------------
         for j in range(n_slots):
             total = 0.0
@@ -571,8 +567,8 @@ def make_dense_flow_kernels(
             ti.loop_config(block_dim=row_block)
             for y in range(H):
                 if grad != 0:
-                    for x in range(W):
-                        for ic in ti.static(range(IC)):
+                    for ic in range(IC):
+                        for x in range(W):
                             f.ibar[y, x, ic] = sobel_t(f.sobel, ic, y, x)
         ti.loop_config(block_dim=row_block)
         for y in range(H):
@@ -584,10 +580,10 @@ def make_dense_flow_kernels(
                 for k in ti.static(range(-r_, r_ + 1)):
                     if 0 <= y + k < H:
                         tapsum += f.taps[k + r_] if ti.static(r_ > 0) else 1.0
-                for r in ti.static(range(R)):
+                for r in range(R):
                     slots = ref_slots(r)
                     for c in ti.static(range(C)):
-                        ic = ti.static(r * C + c)
+                        ic = r * C + c
                         scale, offset = adjoint_fn(slots, c, n_pix)
                         c1 = f.coef[r] * scale
                         c0 = f.coef[r] * offset * tapsum
@@ -598,15 +594,15 @@ def make_dense_flow_kernels(
                             else:
                                 acc = blur_y_at(f.img, ic, y, x, interior)
                             f.tmp[y, x, ic] = c1 * acc + c0
-                for ic in ti.static(range(IC)):
-                    k = ti.static((ic // C) * KR + ic % C)
+                for ic in range(IC):
+                    k = (ic // C) * KR + ic % C
                     if ti.static(r_ > 0):
                         blur_x_adjoint(y, ic, k)
                     else:
                         for x in range(W):
                             f.adj[y, x, k] = f.tmp[y, x, ic]
                 if ti.static(Q > 0):
-                    for r in ti.static(range(R)):
+                    for r in range(R):
                         base = MB + r * (1 + Q)
                         msum = f.red[base]
                         for x in range(W):
@@ -636,16 +632,15 @@ def make_dense_flow_kernels(
         if ti.static(atomic_scatter):
             for i in range(n):
                 if grad != 0:
-                    event_grad(0, ev[i], f.grid[None], f.refs[None])
+                    event_grad(0, ev[i], f.grid[None])
         else:
             ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
                 if grad != 0:
                     lo, hi = slice_events(s, n)
                     gp_s = f.grid[None]
-                    refs_s = f.refs[None]
                     for i in range(lo, hi):
-                        event_grad(s, ev[i], gp_s, refs_s)
+                        event_grad(s, ev[i], gp_s)
         # --- 7. nodes (grad): the slices in slice order -----------------------------------------------------
         for nd in range(n_nodes):
             if grad != 0:

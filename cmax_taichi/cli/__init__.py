@@ -14,7 +14,7 @@ import importlib
 import sys
 
 #: explicit list of sub-command modules (cmax_taichi.cli.<name>)
-COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce", "bench")
+COMMAND_MODULES = ("info", "estimate", "flow", "evaluate", "segment", "reproduce", "bench")
 
 
 class CliError(Exception):

@@ -391,7 +391,8 @@ class DenseFlowProblem:
         self._lam = [self.regularizer_weights[r.name] for r in regs] + [
             r.scale(self.duration, o) for r in regs for o in self.orientations
         ]
-        self._refs = [fr * self.duration for fr in self.fractions] + list(self.reference_weights)
+        self._ref_off = np.array([fr * self.duration for fr in self.fractions], dtype=backend.numpy_real())
+        self._ref_w = np.array(self.reference_weights, dtype=backend.numpy_real())
         self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
         ev = setup.events
         cols = [ev.x, ev.y, ev.t - self.t_first]
@@ -483,7 +484,8 @@ class DenseFlowProblem:
         if self._ws.owned_by(self):
             return
         f.grid[None] = self._grid_vec
-        f.refs[None] = self._refs
+        f.ref_off.from_numpy(self._ref_off)
+        f.ref_w.from_numpy(self._ref_w)
         if self._lam:
             f.lam[None] = self._lam
         if self._taps is not None:
