@@ -120,7 +120,7 @@ class DenseFlowFields:
         self.ibar = ti.field(real, shape=(H, W, IC) if sobel else (1, 1, 1))
         self.taps = ti.field(real, shape=2 * radius + 1)
         self.nodes = ti.Vector.field(2, real, shape=max_nodes)  # node flow, px/s
-        self.grid = ti.Vector.field(4, real, shape=())  # nx, ny, 1 / sx, 1 / sy
+        self.grid = ti.Vector.field(6, real, shape=())  # nx, ny, 1 / sx, 1 / sy, origin x, origin y
         self.ref_off = ti.field(real, shape=R)  # offsets o_r of the reference times, s
         self.ref_w = ti.field(real, shape=R)  # weights omega_r (sum 1)
         self.lam = ti.Vector.field(max(n_regs * (1 + R), 1), real, shape=())  # lambda_q, then s_qr
@@ -169,12 +169,13 @@ def _read_gy(src: ti.template(), c, y, x):
 @ti.func
 def grid_cell(p, gp):
     """``(n00, stride, a, b)``: the index of the cell's top-left node, the node row length and the local
-    coordinates of position ``p`` (px) on the grid ``gp = (nx, ny, 1/sx, 1/sy)``. Positions outside the
-    grid (undistorted events just off the sensor) use the nearest border cell (linear extrapolation)."""
+    coordinates of position ``p`` (px of the image) on the grid ``gp = (nx, ny, 1/sx, 1/sy, ox, oy)`` whose
+    node (0, 0) sits at ``(ox, oy)``. Positions outside the grid (undistorted events just off the sensor)
+    use the nearest border cell (linear extrapolation)."""
     nx = ti.cast(gp[0], ti.i32)
     ny = ti.cast(gp[1], ti.i32)
-    fx = p[0] * gp[2]
-    fy = p[1] * gp[3]
+    fx = (p[0] - gp[4]) * gp[2]
+    fy = (p[1] - gp[5]) * gp[3]
     i = ti.min(ti.max(ti.cast(ti.floor(fx), ti.i32), 0), nx - 1)
     j = ti.min(ti.max(ti.cast(ti.floor(fy), ti.i32), 0), ny - 1)
     stride = nx + 1

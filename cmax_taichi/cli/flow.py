@@ -73,9 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     model.add_argument(
         "--references",
-        default="first",
+        default="middle",
         help="reference time(s) of the IWE: first | middle | last | multi (the reference's multi-focal "
-        "first + middle x2 + last) (default first)",
+        "first + middle x2 + last) (default middle)",
     )
     defaults = ", ".join(f"{k}={v:g}" for k, v in _defaults().items())
     model.add_argument(
@@ -88,6 +88,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     model.add_argument("--no-reg", action="store_true", help="no regularizer at all (shows the collapse)")
     model.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the IWE, px (default 1)")
+    model.add_argument(
+        "--padding",
+        type=int,
+        default=None,
+        metavar="PX",
+        help="margin of the IWE around the sensor, px (default 5%% of the larger sensor side)",
+    )
     win = parser.add_argument_group("windows")
     win.add_argument(
         "--window", type=int, default=30000, metavar="N", help="events per window (default 30000)"
@@ -165,6 +172,8 @@ def _check(args: argparse.Namespace) -> None:
         raise CliError(f"--max-windows must be at least 1, got {args.max_windows}")
     if args.levels < 1:
         raise CliError(f"--levels must be at least 1, got {args.levels}")
+    if args.padding is not None and args.padding < 0:
+        raise CliError(f"--padding must be a whole number of px >= 0, got {args.padding}")
     if not (math.isfinite(args.blur) and args.blur >= 0):
         raise CliError(f"--blur must be a finite number of px >= 0, got {args.blur}")
 
@@ -288,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
         references=args.references,
         regularizers=regs,
         blur_sigma=args.blur,
+        padding=args.padding,
     )
     out = Path(args.out)
     flow_dir, fig_dir = out / "flow", out / "figures"
@@ -371,6 +381,7 @@ def run(args: argparse.Namespace) -> int:
         "references": args.references,
         "regularizers": regs,
         "blur": args.blur,
+        "padding": args.padding,
     }
     (out / "summary.json").write_text(json.dumps(info, indent=2) + "\n")
     written += [flow_dir / f"flow_*.{args.flow_format} ({len(windows)} files)", out / "flow_timestamps.txt"]

@@ -192,6 +192,11 @@ class DenseFlowProblem:
     polarity : {"ignore", "signed", "split"}
     weights : array_like, optional
         Per-event vote weights.
+    padding : int
+        Margin of the IWEs around the sensor, px: events warped up to this far outside the sensor still
+        vote. Without it, an expanding flow that carries texture out of the image loses those events
+        from the IWE, which biases the estimate near the borders towards less motion (0 = the sensor's
+        image, as :class:`~cmax_taichi.ContrastMaximization`).
     """
 
     def __init__(
@@ -208,11 +213,15 @@ class DenseFlowProblem:
         normalize: bool = True,
         polarity: str = "ignore",
         weights: Sequence[float] | np.ndarray | None = None,
+        padding: int = 0,
     ) -> None:
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
         if polarity not in POLARITY_MODES:
             raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
+        if isinstance(padding, bool) or not isinstance(padding, (int, np.integer)) or padding < 0:
+            raise ValueError(f"padding must be a whole number of px >= 0, got {padding!r}")
+        self.padding = int(padding)
         backend.ensure_initialized()
         self.fractions, self.reference_weights = resolve_references(references, reference_weights)
         map_regs, self.smoothness_weights = split_regularizers(regularizers)
@@ -273,7 +282,8 @@ class DenseFlowProblem:
         )
 
     def _build(self, setup: ProblemSetup) -> None:
-        W, H, C = setup.width, setup.height, setup.n_channels
+        P = self.padding
+        W, H, C = setup.width + 2 * P, setup.height + 2 * P, setup.n_channels  # the image of the kernels
         R, Q = len(self.fractions), len(self.regularizers)
         obj = self.objective.fused
         slots = self.objective.slots_per_channel
@@ -395,7 +405,7 @@ class DenseFlowProblem:
         self._ref_w = np.array(self.reference_weights, dtype=backend.numpy_real())
         self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
         ev = setup.events
-        cols = [ev.x, ev.y, ev.t - self.t_first]
+        cols = [ev.x + self.padding, ev.y + self.padding, ev.t - self.t_first]
         if self._weighted:
             cols.append(setup.vote_weights)
         if self._split:
@@ -465,7 +475,14 @@ class DenseFlowProblem:
             )
         self.grid = grid
         sx, sy = grid.spacing
-        self._grid_vec = [float(grid.nx), float(grid.ny), 1.0 / sx, 1.0 / sy]
+        self._grid_vec = [
+            float(grid.nx),
+            float(grid.ny),
+            1.0 / sx,
+            1.0 / sy,
+            float(self.padding),
+            float(self.padding),
+        ]
         self._ws.release()
 
     def _check_alive(self) -> None:
@@ -553,15 +570,18 @@ class DenseFlowProblem:
         """``G0``: the raw objective of the unwarped events (1 where ``normalize=False``)."""
         return self._g0
 
-    def iwe(self, nodes, reference: int = 0) -> np.ndarray:
-        """The blurred IWE of reference ``reference`` at node flow ``nodes``: (H, W), (2, H, W) split."""
+    def iwe(self, nodes, reference: int = 0, padded: bool = False) -> np.ndarray:
+        """The blurred IWE of reference ``reference`` at node flow ``nodes``: (H, W), (2, H, W) split; with
+        ``padded`` the whole image of the kernels (``padding`` px more on every side)."""
         if not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(self.fractions)):
             raise ValueError(f"reference must be an index in 0..{len(self.fractions) - 1}, got {reference!r}")
         U = self.grid.check_nodes(nodes)
         self._launch(U, 0)
-        C = self.n_channels
+        C, P = self.n_channels, self.padding
         img = self.fields.img.to_numpy().astype(np.float64)[..., reference * C : (reference + 1) * C]
         img = np.moveaxis(img, -1, 0)
+        if not padded and P:
+            img = img[:, P : P + self.height, P : P + self.width]
         return img[0] if C == 1 else img
 
     def flow(self, nodes, dt: float | None = None) -> np.ndarray:

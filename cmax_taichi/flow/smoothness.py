@@ -111,6 +111,45 @@ def quadratic(D: np.ndarray, grid: FlowGrid) -> tuple[float, np.ndarray]:
     return _from_strains(D, grid, lambda e: e * e, lambda e: 2.0 * e)
 
 
+def curvature(D: np.ndarray, grid: FlowGrid) -> tuple[float, np.ndarray]:
+    """Mean squared second derivative of the displacement field (the Frobenius norm of its Hessian,
+    ``D_xx^2 + 2 D_xy^2 + D_yy^2``, by second differences on the grid), times the squared larger sensor
+    side so that it is dimensionless: 0 for every affine field (translation, expansion, rotation,
+    shear), so it does not bias a flow towards rigid motion, while a local contraction or fold (a bump
+    of the flow) costs in proportion to its curvature."""
+    sx, sy = grid.spacing
+    L2 = float(max(grid.width, grid.height)) ** 2
+    grad = np.zeros_like(D)
+    value = 0.0
+    terms = []
+    if grid.nx >= 2:
+        terms.append(("xx", (D[:, 2:] - 2 * D[:, 1:-1] + D[:, :-2]) / (sx * sx), 1.0))
+    if grid.ny >= 2:
+        terms.append(("yy", (D[2:] - 2 * D[1:-1] + D[:-2]) / (sy * sy), 1.0))
+    terms.append(("xy", (D[1:, 1:] - D[1:, :-1] - D[:-1, 1:] + D[:-1, :-1]) / (sx * sy), 2.0))
+    for kind, c, w in terms:
+        n = c.size
+        value += w * L2 * float(np.sum(c * c)) / n
+        g = 2.0 * w * L2 * c / n
+        if kind == "xx":
+            g = g / (sx * sx)
+            grad[:, 2:] += g
+            grad[:, 1:-1] -= 2 * g
+            grad[:, :-2] += g
+        elif kind == "yy":
+            g = g / (sy * sy)
+            grad[2:] += g
+            grad[1:-1] -= 2 * g
+            grad[:-2] += g
+        else:
+            g = g / (sx * sy)
+            grad[1:, 1:] += g
+            grad[1:, :-1] -= g
+            grad[:-1, 1:] -= g
+            grad[:-1, :-1] += g
+    return value, grad
+
+
 def register_builtin_smoothness(registry: Registry[Smoothness]) -> None:
     registry.register(
         "total_variation",
@@ -123,6 +162,14 @@ def register_builtin_smoothness(registry: Registry[Smoothness]) -> None:
     registry.register(
         "quadratic",
         Smoothness("quadratic", quadratic, "mean squared strain of the displacement field (Tikhonov)"),
+    )
+    registry.register(
+        "curvature",
+        Smoothness(
+            "curvature",
+            curvature,
+            "mean squared second derivative of the displacement field (0 for every affine flow)",
+        ),
     )
 
 

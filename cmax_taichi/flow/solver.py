@@ -31,10 +31,36 @@ from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.flow.grid import FlowGrid
 from cmax_taichi.flow.problem import DenseEvaluation, DenseFlowProblem, resolve_references
 
-__all__ = ["DEFAULT_REGULARIZERS", "DenseFlowEstimator", "FlowResult", "LevelReport", "estimate_flow"]
+__all__ = [
+    "DEFAULT_OPTIONS",
+    "DEFAULT_REGULARIZERS",
+    "DenseFlowEstimator",
+    "FlowResult",
+    "LevelReport",
+    "auto_scales",
+    "estimate_flow",
+]
 
-#: the weights of :func:`estimate_flow` unless given (docs/flow.md, "Choosing the weights")
-DEFAULT_REGULARIZERS = {"divergence": 1.0, "deformation": 1.0, "total_variation": 0.1}
+#: the weights of :class:`DenseFlowEstimator` unless given (docs/flow.md, "Choosing the weights"): the
+#: paper's two penalties against a global collapse, the curvature prior against a local one
+DEFAULT_REGULARIZERS = {"divergence": 1.0, "deformation": 1.0, "curvature": 0.1}
+#: the share of the larger sensor side that pads the IWEs by default (``padding=None``)
+AUTO_PADDING = 0.05
+#: the options of :class:`DenseFlowEstimator` that are not its grid and levels, as it defaults them
+DEFAULT_OPTIONS = {
+    "objective": "gradient_magnitude",
+    "references": "middle",
+    "regularizers": DEFAULT_REGULARIZERS,
+    "blur_sigma": 1.0,
+    "padding": None,
+}
+
+
+def auto_scales(levels: int) -> tuple[int, ...]:
+    """The image downsampling of each level (coarsest first) when not given: ``min(4, 2^(levels - 1 - k))``,
+    e.g. (4, 4, 2, 1) for 4 levels: the coarse grids do not need the full image, whose cost per
+    evaluation is 4 to 16 times theirs."""
+    return tuple(min(4, 2 ** (levels - 1 - k)) for k in range(levels))
 
 
 @dataclass(frozen=True)
@@ -194,8 +220,8 @@ class DenseFlowEstimator:
     levels : int
         Grids of the run: the cells halve ``levels - 1`` times from the finest (default 4).
     scales : sequence of int, optional
-        Image downsampling per level (coarsest first, each >= 1); default full resolution for every
-        level. The global search runs at the first level's scale.
+        Image downsampling per level (coarsest first, each >= 1); default :func:`auto_scales`. The global
+        search runs at the first level's scale.
     objective, references, reference_weights, blur_sigma, normalize, polarity
         As for :class:`~cmax_taichi.flow.DenseFlowProblem`.
     regularizers : mapping, optional
@@ -208,6 +234,10 @@ class DenseFlowEstimator:
     search_range : float
         Half-width of the global search, px of displacement over the window (default a quarter of the
         larger sensor side).
+    padding : int, optional
+        Margin of the IWEs around the sensor, px of the full-resolution image (see
+        :class:`~cmax_taichi.flow.DenseFlowProblem`); default :data:`AUTO_PADDING` of the larger sensor
+        side.
     """
 
     def __init__(
@@ -217,7 +247,7 @@ class DenseFlowEstimator:
         levels: int = 4,
         scales: Sequence[int] | None = None,
         objective: str = "gradient_magnitude",
-        references="first",
+        references="middle",
         reference_weights: Sequence[float] | None = None,
         regularizers: Mapping[str, float] | None = None,
         camera: Camera | None = None,
@@ -226,12 +256,13 @@ class DenseFlowEstimator:
         polarity: str = "ignore",
         max_iter: int | Sequence[int] = 40,
         search_range: float | None = None,
+        padding: int | None = None,
     ) -> None:
         self._grid_arg = grid
         self.levels = levels
         if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
             raise ValueError(f"levels must be an integer >= 1, got {levels!r}")
-        self.scales = tuple([1] * levels if scales is None else scales)
+        self.scales = tuple(auto_scales(levels) if scales is None else scales)
         if len(self.scales) != levels or not all(
             isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 1 for s in self.scales
         ):
@@ -256,6 +287,13 @@ class DenseFlowEstimator:
         if search_range is not None and not (math.isfinite(search_range) and search_range > 0):
             raise ValueError(f"search_range must be a positive number of px, got {search_range!r}")
         self.search_range = search_range
+        if padding is not None and (
+            isinstance(padding, bool) or not isinstance(padding, (int, np.integer)) or padding < 0
+        ):
+            raise ValueError(
+                f"padding must be a whole number of px >= 0 (or None: automatic), got {padding!r}"
+            )
+        self.padding = None if padding is None else int(padding)
         self._problems: dict[int, DenseFlowProblem] = {}
         self._sensor: tuple[int, int] | None = None
         self.pyramid: list[FlowGrid] = []
@@ -303,7 +341,11 @@ class DenseFlowEstimator:
                 key=lambda g: g.n_nodes,
                 default=self._grid_at(self.pyramid[0], scale),
             )
-            prob = DenseFlowProblem(scaled, finest, camera=None, **self.problem_options)
+            full = self.padding
+            if full is None:
+                full = round(AUTO_PADDING * max(events.sensor_size))
+            pad = math.ceil(full / scale)
+            prob = DenseFlowProblem(scaled, finest, camera=None, padding=pad, **self.problem_options)
             self._problems[scale] = prob
         else:
             prob.set_events(scaled)
@@ -445,20 +487,22 @@ class DenseFlowEstimator:
             const[...] = d / T
             return prob.value(const)
 
-        # three rounds of a 9 x 9 grid, each a third of the previous span around the best point
-        centre = np.zeros(2)
-        best_d, best_j = centre.copy(), value(centre)
-        half = reach_s
-        for _ in range(3):
-            steps = np.linspace(-half, half, 9)
+        # a 9 x 9 grid over +-reach, then a 5 x 5 grid of a quarter of its step around the best point
+        # (the coarsest level's L-BFGS-B refines from there); about 100 evaluations of J, no gradients
+        best_d, best_j = np.zeros(2), value(np.zeros(2))
+        centre, half = best_d.copy(), reach_s
+        for points in (9, 5):
+            steps = np.linspace(-half, half, points)
             for dy in steps:
                 for dx in steps:
+                    if dx == 0.0 and dy == 0.0 and points == 9:
+                        continue  # the identity, evaluated above
                     d = centre + (dx, dy)
                     j = value(d)
                     if j > best_j:
                         best_j, best_d = j, d
             centre = best_d.copy()
-            half /= 4.0
+            half = (steps[1] - steps[0]) / 2.0
         U = np.zeros(grid.shape)
         U[...] = best_d / (np.array([kx, ky]) * T)
         return U, n
