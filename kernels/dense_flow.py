@@ -52,6 +52,9 @@ import taichi as ti
 from . import blocks as _b
 
 QUANTITY_KINDS = ("div", "absdet")
+#: node-gradient copies per CPU thread: consecutive events add into different copies, so that events of
+#: one cell (all of them on a coarse grid) do not wait on each other's read-modify-write of the same nodes
+NODE_COPIES = 4
 
 
 def channel_layout(n_channels: int, n_regs: int, shared_count: bool) -> tuple[int, int, int]:
@@ -91,6 +94,9 @@ class DenseFlowFields:
         Allocate the Sobel images.
     max_nodes : int
         Node capacity (the finest grid of a coarse-to-fine run).
+    atomic : bool
+        The event passes add atomically into one copy of the node gradients (GPU); else each CPU thread
+        has :data:`NODE_COPIES` copies of its own.
     """
 
     def __init__(
@@ -108,6 +114,7 @@ class DenseFlowFields:
         objective_slots: int,
         sobel: bool,
         max_nodes: int,
+        atomic: bool = False,
     ) -> None:
         W, H, C, R = width, height, n_channels, n_refs
         self.block = channel_layout(C, n_regs, shared_count)[2]
@@ -135,7 +142,8 @@ class DenseFlowFields:
         # backends misalign an f64 placed among f32 fields (docs/GPU.md, kernels/fused.py)
         self.gnode = ti.Vector.field(2, ti.f64)
         tree = ti.FieldsBuilder()
-        tree.dense(ti.ij, (n_slices, max_nodes)).place(self.gnode)
+        copies = 1 if atomic else n_slices * NODE_COPIES
+        tree.dense(ti.ij, (copies, max_nodes)).place(self.gnode)
         self.f64_tree = tree.finalize()
         self.max_nodes = max_nodes
 
@@ -304,7 +312,7 @@ def make_dense_flow_kernels(
             f.acc[s, iy, ix, k] = f.acc[s, iy, ix, k] + v
 
     @ti.func
-    def splat_event(s, e, gp):
+    def splat_event(s, e, gp, maps):
         p, dt, b, ch = event(e)
         n00, stride, a, bb = grid_cell(p, gp)
         u, du_dx, du_dy = interpolate(f.nodes, n00, stride, a, bb, gp)
@@ -322,11 +330,12 @@ def make_dense_flow_kernels(
                         if _b.corner_in_image(ix, iy, dx, dy, W, H):
                             w = wx * wy
                             vote(s, iy + dy, ix + dx, r * KR + ch, b * w)
-                            if ti.static(Q > 0):
-                                if ti.static(not shared_count):
-                                    vote(s, iy + dy, ix + dx, r * KR + i_cnt, ab * w)
-                                for v in ti.static(range(Q)):
-                                    vote(s, iy + dy, ix + dx, r * KR + i_num + v, ab * w * vals[v])
+                            if ti.static(Q > 0):  # noqa: SIM102 - compile-time if
+                                if maps != 0:
+                                    if ti.static(not shared_count):
+                                        vote(s, iy + dy, ix + dx, r * KR + i_cnt, ab * w)
+                                    for v in ti.static(range(Q)):
+                                        vote(s, iy + dy, ix + dx, r * KR + i_num + v, ab * w * vals[v])
 
     @ti.func
     def corner_terms(iy, ix, r, ch, b, vals):
@@ -432,7 +441,7 @@ def make_dense_flow_kernels(
         return acc
 
     @ti.func
-    def assemble(out: ti.template()):
+    def assemble(out: ti.template(), maps):
         """J from the reduced sums (serial): H, dJ/dG_r, the regularizers and their slopes; into out."""
         g0 = f.g0[None]
         inv_sum = 0.0
@@ -462,8 +471,11 @@ def make_dense_flow_kernels(
                 base = MB + r * (1 + Q)
                 ratio = _b.support_ratio(f.red[base + 1 + v], f.red[base])
                 s_vr = f.lam[None][Q + v * R + r]
-                rr = _b.scaled_penalty(ratio, s_vr, ti.static(one_sided[v]))
-                slope = _b.scaled_penalty_slope(ratio, s_vr, ti.static(one_sided[v]))
+                rr = 0.0
+                slope = 0.0
+                if maps != 0:  # else the flow is constant: div = 0, det = 1, every map its neutral value
+                    rr = _b.scaled_penalty(ratio, s_vr, ti.static(one_sided[v]))
+                    slope = _b.scaled_penalty_slope(ratio, s_vr, ti.static(one_sided[v]))
                 f.rw[v * R + r] = f.lam[None][v] * f.ref_w[r] * slope
                 rv += f.ref_w[r] * rr
                 out[2 + R + Q + v * R + r] = ti.cast(rr, ti.f64)
@@ -473,18 +485,20 @@ def make_dense_flow_kernels(
         out[1] = ti.cast(hval, ti.f64)
 
     @ti.kernel
-    def run(n: ti.i32, ev: ev_type, n_nodes: ti.i32, grad: ti.i32, out: out_type, gout: out_type):
+    def run(
+        n: ti.i32, ev: ev_type, n_nodes: ti.i32, grad: ti.i32, maps: ti.i32, out: out_type, gout: out_type
+    ):
         # --- 1. splat -------------------------------------------------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):
-                splat_event(0, ev[i], f.grid[None])
+                splat_event(0, ev[i], f.grid[None], maps)
         else:
             ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
                 lo, hi = slice_events(s, n)
                 gp_s = f.grid[None]
                 for i in range(lo, hi):
-                    splat_event(s, ev[i], gp_s)
+                    splat_event(s, ev[i], gp_s, maps)
         # --- 2. rows: sum the slices, blur along x, per-row map sums ---------------------------------
         # (references and channels are runtime loops: unrolled, each multiplied the code to compile)
         ti.loop_config(block_dim=row_block)
@@ -510,11 +524,12 @@ def make_dense_flow_kernels(
                     psum = ti.Vector([0.0 for _ in ti.static(range(Q))])
                     for x in range(W):
                         cnt = f.acc[0, y, x, r * KR + i_cnt]
-                        if cnt > 0.0:
+                        if cnt > 0.0 and maps != 0:
                             m = _b.support_weight(cnt)
                             msum += m
+                            inv_cnt = 1.0 / cnt
                             for v in ti.static(range(Q)):
-                                psum[v] += m * penalty_fns[v](f.acc[0, y, x, r * KR + i_num + v] / cnt)
+                                psum[v] += m * penalty_fns[v](f.acc[0, y, x, r * KR + i_num + v] * inv_cnt)
                     f.rowred[y, MB + r * (1 + Q)] = msum
                     for v in ti.static(range(Q)):
                         f.rowred[y, MB + r * (1 + Q) + 1 + v] = psum[v]
@@ -562,7 +577,7 @@ def make_dense_flow_kernels(
             for y in range(H):
                 total += f.rowred[y, j]
             f.red[j] = total
-        assemble(out)
+        assemble(out, maps)
         # --- 5. rows (grad): adjoint images -------------------------------------------------------------
         if ti.static(sobel):
             ti.loop_config(block_dim=row_block)
@@ -606,6 +621,12 @@ def make_dense_flow_kernels(
                     for r in range(R):
                         base = MB + r * (1 + Q)
                         msum = f.red[base]
+                        inv_msum = 0.0
+                        if msum > 0.0:
+                            inv_msum = 1.0 / msum
+                        # per regularizer, loaded once per row: lambda omega slope / sum m and the ratio
+                        wrs = ti.Vector([f.rw[v * R + r] * inv_msum for v in ti.static(range(Q))])
+                        ratios = ti.Vector([f.red[base + 1 + v] * inv_msum for v in ti.static(range(Q))])
                         for x in range(W):
                             cnt = f.acc[0, y, x, r * KR + i_cnt]
                             dc = 0.0
@@ -614,15 +635,14 @@ def make_dense_flow_kernels(
                             if cnt > 0.0 and msum > 0.0:
                                 m = _b.support_weight(cnt)
                                 dm = _b.support_weight_grad(cnt)
+                                inv_cnt = 1.0 / cnt
                                 for v in ti.static(range(Q)):
-                                    wr = f.rw[v * R + r]
-                                    avg = f.acc[0, y, x, r * KR + i_num + v] / cnt
+                                    avg = f.acc[0, y, x, r * KR + i_num + v] * inv_cnt
                                     pen = penalty_fns[v](avg)
                                     dpen = penalty_grads[v](avg)
-                                    ratio = f.red[base + 1 + v] / msum
                                     # d(sum m P / sum m)/dC = (dm P + m P' d(avg)/dC - ratio dm) / sum m
-                                    dc -= wr * (dm * pen - m * dpen * avg / cnt - ratio * dm) / msum
-                                    f.adj[y, x, r * KR + i_num + v] = -wr * m * dpen / (cnt * msum)
+                                    dc -= wrs[v] * (dm * pen - m * dpen * avg * inv_cnt - ratios[v] * dm)
+                                    f.adj[y, x, r * KR + i_num + v] = -wrs[v] * m * dpen * inv_cnt
                             if ti.static(shared_count):
                                 f.adj[y, x, r * KR + i_cnt] += dc
                             else:
@@ -641,13 +661,13 @@ def make_dense_flow_kernels(
                     lo, hi = slice_events(s, n)
                     gp_s = f.grid[None]
                     for i in range(lo, hi):
-                        event_grad(s, ev[i], gp_s)
+                        event_grad(s * NODE_COPIES + ((i - lo) & (NODE_COPIES - 1)), ev[i], gp_s)
         # --- 7. nodes (grad): the slices in slice order -----------------------------------------------------
         for nd in range(n_nodes):
             if grad != 0:
                 g = f.gnode[0, nd]
                 f.gnode[0, nd] = ti.Vector([0.0, 0.0], dt=ti.f64)
-                for s in ti.static(range(1, S)):
+                for s in ti.static(range(1, 1 if atomic_scatter else S * NODE_COPIES)):
                     g += f.gnode[s, nd]
                     f.gnode[s, nd] = ti.Vector([0.0, 0.0], dt=ti.f64)
                 gout[2 * nd] = g[0]

@@ -110,7 +110,8 @@ def test_flow_command_end_to_end(tmp_path, f64, scene):
     assert (out / "flow_timestamps.txt").read_text().count("\n") == 2
     assert (out / "figures" / "window_0000.png").is_file()
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["windows"] == 2 and summary["options"]["regularizers"] == {"deformation": 1.0, "curvature": 0.1}
+    assert summary["windows"] == 2
+    assert summary["options"]["regularizers"] == {"deformation": 1.0, "curvature": 0.1}
     assert main(["flow", str(path), "--reg", "smooth=1"]) == 2  # one clear error, no traceback
     assert main(["flow", "--out", str(out)]) == 2
 

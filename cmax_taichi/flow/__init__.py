@@ -12,6 +12,7 @@ from cmax_taichi.flow.problem import MULTI_REFERENCE, DenseEvaluation, DenseFlow
 from cmax_taichi.flow.sequence import FlowWindow, iter_flow
 from cmax_taichi.flow.smoothness import SMOOTHNESS, Smoothness, register_smoothness, smoothness_names
 from cmax_taichi.flow.solver import (
+    DEFAULT_OPTIONS,
     DEFAULT_REGULARIZERS,
     DenseFlowEstimator,
     FlowResult,
