@@ -142,8 +142,10 @@ def test_results_to_hdf5(tmp_path):
     with h5py.File(path, "r") as f:
         assert list(f.attrs["columns"]) == [
             "index", "t_start", "t_end", "n_events", "v_x", "v_y",
-            "value", "fwl", "iterations", "evaluations", "seconds", "converged",
+            "value", "fwl", "iterations", "evaluations", "seconds", "converged", "n_dropped", "status",
         ]  # fmt: skip
+        assert [s.decode() for s in f["status"][()]] == ["estimated"] * 3
+        np.testing.assert_array_equal(f["n_dropped"][()], [0, 0, 0])
         np.testing.assert_array_equal(f["index"][()], [0, 1, 2])
         np.testing.assert_array_equal(f["t_end"][()], [w.t_end for w in result.windows])
         np.testing.assert_array_equal(f["v_x"][()], result.theta[:, 0])
@@ -173,11 +175,14 @@ def test_estimate_writes_hdf5_and_flow_of_a_raw_file(tmp_path, capsys):
     assert "results.h5" in capsys.readouterr().out
     with (out / "results.csv").open() as fh:
         table = list(csv.DictReader(fh))
-    assert len(table) == 2
+    # two windows of 1000 events, then the partial tail's row (not estimated, counted)
+    assert [r["status"] for r in table] == ["estimated", "estimated", "partial_tail"]
     with h5py.File(out / "results.h5", "r") as f:
         np.testing.assert_array_equal(f["v_x"][()], [float(r["v_x [px/s]"]) for r in table])
         np.testing.assert_array_equal(f["t_start"][()], [float(r["t_start [s]"]) for r in table])
+        assert [s.decode() for s in f["status"][()]] == [r["status"] for r in table]
         assert f.attrs["setting_format"] == "raw" and f.attrs["setting_window_events"] == 1000
+    table = table[:2]  # the estimated windows have a flow file each
     for k, row in enumerate(table):
         flow, meta = read_flow_npz(out / "flow" / f"flow_{k:04d}.npz")
         assert flow.shape == (2, 48, 64) and meta["unit"] == "px" and meta["window"] == k

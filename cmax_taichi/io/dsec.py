@@ -27,6 +27,7 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
+from cmax_taichi.io._files import check_regular, is_present
 from cmax_taichi.io._flow import accumulate_flow
 from cmax_taichi.io._png import read_png
 from cmax_taichi.io.base import Recording, event_span
@@ -39,12 +40,12 @@ _MAX_US = 2**62  # microseconds; beyond, the int64 sums of times and offsets cou
 def _find_events_file(path: Path) -> Path:
     if path.is_dir():
         for candidate in (path / "events.h5", path / "events" / "left" / "events.h5"):
-            if candidate.is_file():
+            if is_present(candidate):
                 return candidate
         raise FileNotFoundError(f"{path}: no events.h5 (nor events/left/events.h5) in this folder")
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
-    return path
+    return check_regular(path)
 
 
 def _sequence_dirs(events_file: Path) -> list[Path]:
@@ -129,6 +130,8 @@ class DSECRecording(Recording):
         sequence, if present.
     flow_direction : {"forward", "backward"}
         Which flow of ``flow_dir`` to use.
+    sort, cache_dir
+        As for :class:`~.mvsec.MVSECRecording`: events out of order are refused unless ``sort=True``.
     """
 
     format = "dsec"
@@ -142,6 +145,8 @@ class DSECRecording(Recording):
         rectify: bool | None = None,
         flow_dir: str | os.PathLike | None = None,
         flow_direction: str = "forward",
+        sort: bool = False,
+        cache_dir: str | os.PathLike | None = None,
     ) -> None:
         self.events_file = _find_events_file(Path(path))
         ef = self.events_file
@@ -171,9 +176,9 @@ class DSECRecording(Recording):
             self._rectify_map = None
             map_file = ef.with_name("rectify_map.h5")
             if rectify is None:
-                rectify = map_file.is_file()
+                rectify = is_present(map_file)
             if rectify:
-                if not map_file.is_file():
+                if not is_present(map_file):
                     raise FileNotFoundError(f"{map_file}: rectify=True but there is no rectify_map.h5")
                 with _hdf5.open_h5(map_file) as mf:
                     rmap = _hdf5.read(
@@ -188,7 +193,7 @@ class DSECRecording(Recording):
             if camera is None:
                 for d in _sequence_dirs(ef):
                     for yaml in (d / "calibration" / "cam_to_cam.yaml", d / "cam_to_cam.yaml"):
-                        if camera is None and yaml.is_file():
+                        if camera is None and is_present(yaml):
                             camera = _yaml_camera(yaml, "camRect0" if rectify else "cam0")
             super().__init__(
                 ef,
@@ -200,6 +205,9 @@ class DSECRecording(Recording):
         self._flow_dir = self._locate_flow(flow_dir)
         self.flow_direction = flow_direction
         self._flow_index = None
+        if sort:
+            with _hdf5.closed_on_error(self._file):
+                self._sort_by_time(cache_dir)
 
     # --- events -----------------------------------------------------------------------------
     def _seconds(self, t_us, where: str = "") -> np.ndarray:
@@ -220,6 +228,9 @@ class DSECRecording(Recording):
 
     def _where(self, start: int, stop: int) -> str:
         return f"{self.events_file}: datasets 'events/x, y, t, p', rows {start}..{stop}"
+
+    def _where_time(self, row: int) -> str:
+        return f"{self.events_file}: dataset 'events/t', row {row}"
 
     def _columns(self, start: int, stop: int):
         ef = self.events_file

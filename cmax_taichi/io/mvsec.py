@@ -22,6 +22,7 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
+from cmax_taichi.io._files import check_regular
 from cmax_taichi.io._flow import NpzFrames, accumulate_flow
 from cmax_taichi.io.base import Recording, event_span
 
@@ -33,10 +34,10 @@ def _find_data_file(path: Path) -> Path:
         found = sorted(path.glob("*_data.hdf5"))
         if len(found) != 1:
             raise ValueError(f"{path}: expected one *_data.hdf5 file in this folder, found {len(found)}")
-        return found[0]
-    if not path.is_file():
+        return check_regular(found[0])
+    if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
-    return path
+    return check_regular(path)
 
 
 class MVSECRecording(Recording):
@@ -54,6 +55,11 @@ class MVSECRecording(Recording):
         Which DAVIS.
     gt_flow : path, optional
         The ``*_gt_flow_dist.npz`` file; default: the one beside ``path`` named after it, if present.
+    sort : bool
+        Events out of order are refused (naming the first row) unless ``sort=True``: then they are
+        decoded once into the event cache (``cache_dir=``), sorted by time, and read from there.
+    cache_dir : path, optional
+        Where ``sort=True`` keeps the sorted copy (default: the event cache, see :mod:`._cache`).
     """
 
     format = "mvsec"
@@ -66,6 +72,8 @@ class MVSECRecording(Recording):
         sensor_size: tuple[int, int] = SENSOR_SIZE,
         side: str = "left",
         gt_flow: str | os.PathLike | None = None,
+        sort: bool = False,
+        cache_dir: str | os.PathLike | None = None,
     ) -> None:
         self.data_file = _find_data_file(Path(path))
         self._file = _hdf5.open_h5(self.data_file)
@@ -83,7 +91,8 @@ class MVSECRecording(Recording):
             span = event_span(n, lambda i: _hdf5.read(self._ds, (i, 2), self.data_file))
             calib_key = f"davis/{side}/calibration"
             if camera is None and calib_key in self._file:
-                values = np.ravel(_hdf5.read(self._file[calib_key], (), self.data_file))
+                calib = _hdf5.numeric_dataset(self._file, calib_key, self.data_file, "calibration")
+                values = np.ravel(_hdf5.read(calib, (), self.data_file))
                 try:
                     camera = Camera.from_calib_line(values)
                 except ValueError as exc:
@@ -102,9 +111,15 @@ class MVSECRecording(Recording):
             raise FileNotFoundError(f"{gt_flow}: no such ground-truth flow file")
         self.gt_flow_file = Path(gt_flow) if gt_flow is not None else None
         self._gt = None
+        if sort:
+            with _hdf5.closed_on_error(self._file):
+                self._sort_by_time(cache_dir)
 
     def _where(self, start: int, stop: int) -> str:
         return f"{self.data_file}: dataset '{self._key}', rows {start}..{stop}"
+
+    def _where_time(self, row: int) -> str:
+        return f"{self.data_file}: dataset '{self._key}', column 2 (t), row {row}"
 
     def _columns(self, start: int, stop: int):
         rows = np.asarray(_hdf5.read(self._ds, np.s_[start:stop], self.data_file), dtype=np.float64)
