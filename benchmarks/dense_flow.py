@@ -75,12 +75,20 @@ def configs() -> dict:
     }
 
 
+_ESTIMATORS: dict = {}
+
+
 def ours(events, camera) -> np.ndarray:
     """Our dense flow of one window with the default options: ``(2, H, W)`` px/s at the first event's time
-    (the interface of ``benchmarks/reference_flow.py --ours``)."""
+    (the interface of ``benchmarks/reference_flow.py --ours``). The estimator is kept between calls (its
+    kernels compile once per process, as a sequence of windows uses them): run it with ``--repeats 2`` or
+    more, the first call includes the compilation."""
     from cmax_taichi.flow import DenseFlowEstimator
 
-    return DenseFlowEstimator((16, 16), levels=4, camera=camera).estimate(events).flow()
+    key = (events.sensor_size, repr(camera))
+    if key not in _ESTIMATORS:
+        _ESTIMATORS[key] = DenseFlowEstimator((16, 16), levels=4, camera=camera)
+    return _ESTIMATORS[key].estimate(events).flow()
 
 
 def run_row(name: str, config: str, repeats: int) -> dict:

@@ -91,8 +91,8 @@ def test_flow_command_end_to_end(tmp_path, f64, scene):
 
     ev = scene.events
     path = tmp_path / "events.txt"
+    (tmp_path / "calib.txt").write_text(f"100 100 59.5 44.5\n{SENSOR[0]} {SENSOR[1]}\n")  # no distortion
     with path.open("w") as f:
-        f.write(f"{SENSOR[0]} {SENSOR[1]}\n")
         for t, x, y, p in zip(ev.t, ev.x, ev.y, ev.p, strict=True):
             f.write(f"{t:.9f} {int(x)} {int(y)} {int(p > 0)}\n")
     out = tmp_path / "out"

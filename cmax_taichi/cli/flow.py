@@ -280,15 +280,19 @@ class _ExampleTruth:
 def run(args: argparse.Namespace) -> int:
     from cmax_taichi import io
     from cmax_taichi.cli import CliError
-    from cmax_taichi.flow.sequence import iter_flow, summary
     from cmax_taichi.flow.solver import DenseFlowEstimator
-    from cmax_taichi.io.writers import write_flow
-    from cmax_taichi.solve.sequence import ProgressBar
+    from cmax_taichi.io.outputs import OutputFolder
 
     regs = parse_regularizers(args.reg, args.no_reg)
     _check(args)
     if (args.path is None) == (args.example is None):
         raise CliError("give a recording PATH or --example NAME (one of them)")
+    inputs = [] if args.path is None else [Path(args.path)]
+    if args.path is not None and not inputs[0].exists():
+        raise CliError(f"{inputs[0]}: no such file or folder")
+    patterns = [f"flow/flow_*.{args.flow_format}", "flow_timestamps.txt", "results.csv", "summary.json"]
+    patterns.append("figures/window_*.png")
+    folder = OutputFolder(args.out, inputs=inputs, patterns=patterns, command="flow")
     common.init_backend(args.arch, args.precision)
     estimator = DenseFlowEstimator(
         tuple(args.grid),
@@ -299,13 +303,47 @@ def run(args: argparse.Namespace) -> int:
         blur_sigma=args.blur,
         padding=args.padding,
     )
+    with folder:
+        windows, info, truth = _estimate_into(args, estimator, folder, regs, io, CliError)
+        written = folder.commit()  # every file moved into place whole, now that the run is complete
     out = Path(args.out)
-    flow_dir, fig_dir = out / "flow", out / "figures"
-    try:
-        flow_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(f"--out: cannot create {flow_dir} ({exc.strerror or exc})") from None
-    windows, written = [], []
+    label = f"example {args.example}" if args.example is not None else str(args.path)
+    print(
+        f"{len(windows)} window(s) of {label}: grid {args.grid[0]}x{args.grid[1]} cells, {args.levels} levels"
+    )
+    print(
+        f"  time: {info['seconds']:.2f} s in all, {info['mean_seconds_after_first']:.3f} s per window after "
+        "the first (which compiles the kernels)"
+    )
+    if "metrics" in info:
+        m = info["metrics"]
+        print(
+            f"  against the ground truth ({info['scored_windows']} window(s)): AEE {m['AEE']:.3f} px, "
+            f"3PE {m['3PE']:.2f}%, %Out {m.get('outlier', float('nan')):.2f}%"
+        )
+        if args.example is not None:
+            zero = _zero_flow_error(truth, windows[0])
+            print(f"  (zero flow: AEE {zero:.3f} px)")
+    elif args.example is None:
+        print("  no flow ground truth in this recording: no metrics")
+    flows = [p for p in written if p.parent == out / "flow"]
+    others = [p for p in written if p.parent != out / "flow"]
+    shown = [str(out / "flow" / f"flow_*.{args.flow_format}") + f" ({len(flows)} files)"] + [
+        str(p) for p in others
+    ]
+    print("wrote: " + ", ".join(shown))
+    sys.stdout.flush()
+    return 0
+
+
+def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: N803
+    """Estimate every window into the staging folder of ``folder``; ``(windows, summary, truth)``."""
+    from cmax_taichi.flow.sequence import iter_flow, summary
+    from cmax_taichi.io.writers import write_flow
+    from cmax_taichi.solve.sequence import ProgressBar
+
+    truth = None
+    source = None
     if args.example is not None:
         events, truth, preset = _open_example(args.example)
         print(f"example {args.example!r}: {preset.description}")
@@ -315,10 +353,7 @@ def run(args: argparse.Namespace) -> int:
             _OneWindow(events, truth), estimator, n_events=len(events), max_windows=1, dt=args.dt
         )
     else:
-        path = Path(args.path)
-        if not path.exists():
-            raise CliError(f"{path}: no such file or folder")
-        source = io.open_recording(path, format=args.format)
+        source = io.open_recording(Path(args.path), format=args.format)
         estimator.camera = source.camera
         total = None
         if args.duration is None:
@@ -337,27 +372,28 @@ def run(args: argparse.Namespace) -> int:
     if args.max_windows is not None:
         total = args.max_windows if total is None else min(total, args.max_windows)
     bar = None if args.quiet else ProgressBar(total)
-    stamps = []
+    windows, stamps = [], []
     try:
-        with (out / "results.csv").open("w", newline="") as fcsv:
+        with folder.path("results.csv").open("w", newline="") as fcsv:
             writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
             writer.writeheader()
             for window in window_iter:
                 res = window.result
-                target = flow_dir / f"flow_{window.index:04d}.{args.flow_format}"
                 meta = {
                     "t_start": res.t_start,
                     "t_end": res.t_start + window.dt,
                     "unit": "px",
                     "window": window.index,
                 }
-                write_flow(target, window.displacement, **meta)
+                write_flow(
+                    folder.path(f"flow/flow_{window.index:04d}.{args.flow_format}"),
+                    window.displacement,
+                    **meta,
+                )
                 stamps.append((res.t_start, res.t_start + window.dt))
                 if window.index < args.figures:
-                    fig_dir.mkdir(exist_ok=True)
-                    _window_figure(fig_dir / f"window_{window.index:04d}.png", window, estimator)
+                    _window_figure(folder.path(f"figures/window_{window.index:04d}.png"), window, estimator)
                 writer.writerow(_row(window))
-                fcsv.flush()
                 window.events = None  # nothing of a window is kept but its summary
                 windows.append(window)
                 if bar is not None:
@@ -368,11 +404,11 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
-        if args.example is None:
+        if source is not None:
             source.close()
     if not windows:
         raise CliError("no window to estimate (fewer events than --window?)")
-    (out / "flow_timestamps.txt").write_text("".join(f"{a:.9f} {b:.9f}\n" for a, b in stamps))
+    folder.path("flow_timestamps.txt").write_text("".join(f"{a:.9f} {b:.9f}\n" for a, b in stamps))
     info = summary(windows)
     info["options"] = {
         "grid": list(args.grid),
@@ -383,34 +419,8 @@ def run(args: argparse.Namespace) -> int:
         "blur": args.blur,
         "padding": args.padding,
     }
-    (out / "summary.json").write_text(json.dumps(info, indent=2) + "\n")
-    written += [flow_dir / f"flow_*.{args.flow_format} ({len(windows)} files)", out / "flow_timestamps.txt"]
-    written += [out / "results.csv", out / "summary.json"]
-    if fig_dir.is_dir():
-        written += sorted(fig_dir.glob("window_*.png"))
-    label = f"example {args.example}" if args.example is not None else str(args.path)
-    print(
-        f"{len(windows)} window(s) of {label}: grid {args.grid[0]}x{args.grid[1]} cells, {args.levels} levels"
-    )
-    print(
-        f"  time: {info['seconds']:.2f} s in all, {info['mean_seconds_after_first']:.3f} s per window after "
-        "the first (which compiles the kernels)"
-    )
-    if "metrics" in info:
-        m = info["metrics"]
-        print(
-            f"  against the ground truth ({info['scored_windows']} window(s)): AEE {m['AEE']:.3f} px, "
-            f"3PE {m['3PE']:.2f}%, %Out {m.get('outlier', float('nan')):.2f}%"
-        )
-        if args.example is not None:
-            w = windows[0]
-            zero = _zero_flow_error(truth, w)
-            print(f"  (zero flow: AEE {zero:.3f} px)")
-    elif args.example is None:
-        print("  no flow ground truth in this recording: no metrics")
-    print("wrote: " + ", ".join(str(p) for p in written))
-    sys.stdout.flush()
-    return 0
+    folder.path("summary.json").write_text(json.dumps(info, indent=2) + "\n")
+    return windows, info, truth
 
 
 class _OneWindow:
