@@ -643,3 +643,17 @@ def test_a_tiny_blur_is_no_blur_not_a_nan():
     none = cm.ContrastMaximization(events, warp="translation2", blur_sigma=0.0)
     theta = np.array([30.0, -20.0])
     assert tiny.value(theta) == pytest.approx(none.value(theta), rel=1e-12)
+
+
+@pytest.mark.parametrize("name", ["flow.flo", "flow.npz", "flow.png", "x_gt_flow_dist.npz"])
+def test_a_fifo_given_as_a_flow_file_is_refused(tmp_path, name):
+    from cmax_taichi.io._flow import NpzFrames
+    from cmax_taichi.io.writers import read_flow
+
+    path = tmp_path / name
+    os.mkfifo(path)
+    start = time.perf_counter()
+    read = (lambda: NpzFrames(path, "x_flow_dist")) if name.startswith("x_gt") else (lambda: read_flow(path))
+    with pytest.raises(OSError, match=r"is a FIFO \(named pipe\), not a regular file"):
+        read()
+    assert time.perf_counter() - start < 10  # refused, not opened

@@ -93,8 +93,10 @@ def test_npz_round_trip_and_dispatch(tmp_path):
     assert meta == {"t_start": 0.5, "t_end": 0.75, "unit": "px", "window": 3}
     for suffix in ("flo", "npz"):
         np.testing.assert_allclose(read_flow(write_flow(tmp_path / f"g.{suffix}", flow)), flow, rtol=1e-7)
-    with pytest.raises(ValueError, match="unknown flow file type 'png'"):
-        write_flow(tmp_path / "g.png", flow)
+    # .png is DSEC's 16-bit flow PNG: 1/128 px steps
+    np.testing.assert_allclose(read_flow(write_flow(tmp_path / "g.png", flow)), flow, atol=1 / 256 + 1e-9)
+    with pytest.raises(ValueError, match="unknown flow file type 'tif'"):
+        write_flow(tmp_path / "g.tif", flow)
     with pytest.raises(TypeError, match="metadata 'note' must be a number or a string"):
         write_flow_npz(tmp_path / "h.npz", flow, note=[1, 2])
     np.savez(tmp_path / "other.npz", something=np.zeros(3))

@@ -213,7 +213,11 @@ def test_segment_writes_only_when_complete(recording, tmp_path, capsys):
     code, stdout, err = run(capsys, *argv, "--max-iterations", "1", "--out", out)
     assert code == 0, err
     assert sorted(p.name for p in out.iterdir()) == [
-        ".cmax-taichi-manifest.json", ".cmax-taichi.lock", "labels.csv", "labels.npy", "segmentation.json"
+        ".cmax-taichi-manifest.json",
+        ".cmax-taichi.lock",
+        "labels.csv",
+        "labels.npy",
+        "segmentation.json",
     ]
     (out / "labels.csv").write_text("edited")
     code, _, err = run(capsys, *argv, "--max-iterations", "1", "--out", out)

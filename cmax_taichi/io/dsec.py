@@ -13,7 +13,9 @@
 * Flow: ``<sequence>/flow/forward/*.png`` and ``<sequence>/flow/forward_timestamps.txt`` (``from_us,
   to_us`` per line, one line per PNG in name order), or ``flow_dir=`` pointing at that ``flow``
   folder. 16-bit PNG: ``flow_x = (R - 2**15) / 128``, ``flow_y = (G - 2**15) / 128`` px over the
-  line's interval, valid where ``B > 0``.
+  line's interval, valid where ``B > 0`` (:func:`read_flow_png`; the writer of submissions is
+  :func:`cmax_taichi.io.writers.write_dsec_flow_png`). :func:`read_flow_timestamps` reads those
+  timestamps and the benchmark's test CSVs (``from_us, to_us, file_index``).
 """
 
 from __future__ import annotations
@@ -71,6 +73,43 @@ def read_flow_png(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     flow = np.moveaxis(flow, -1, 0)
     flow[:, ~valid] = np.nan
     return flow, valid
+
+
+def read_flow_timestamps(path: str | Path) -> np.ndarray:
+    """A DSEC flow timestamps file: ``flow/forward_timestamps.txt`` of a training sequence
+    (``from_timestamp_us, to_timestamp_us`` per line) or a ``<sequence>.csv`` of the benchmark's
+    ``test_forward_optical_flow_timestamps`` (``from_timestamp_us, to_timestamp_us, file_index``).
+
+    Returns
+    -------
+    ndarray
+        (K, 2) or (K, 3) int64: microseconds (and the file index of the submission PNG). Lines
+        starting with ``#`` are comments. Raises ValueError naming the file and the line for a line of
+        another shape, a non-integer or ``to <= from``.
+    """
+    path = Path(path)
+    rows: list[tuple[int, ...]] = []
+    for k, line in enumerate(read_text_file(path).splitlines(), start=1):
+        content = line.split("#", 1)[0].replace(",", " ").split()
+        if not content:
+            continue
+        try:
+            values = tuple(int(v) for v in content)
+        except ValueError:
+            raise ValueError(
+                f"{path}, line {k}: expected integers (microseconds), got {line[:80]!r}"
+            ) from None
+        if len(values) not in (2, 3) or (rows and len(values) != len(rows[0])):
+            raise ValueError(
+                f"{path}, line {k}: expected 'from_us, to_us' or 'from_us, to_us, file_index' on every "
+                f"line, got {len(values)} value(s)"
+            )
+        if values[1] <= values[0]:
+            raise ValueError(f"{path}, line {k}: to_timestamp_us must exceed from_timestamp_us")
+        rows.append(values)
+    if not rows:
+        raise ValueError(f"{path}: no timestamps")
+    return np.array(rows, dtype=np.int64)
 
 
 def _yaml_list(text: str, key: str) -> list[float]:

@@ -218,8 +218,10 @@ def write_manifest(folder: str | os.PathLike, relative_paths: Iterable[str], com
 
 
 def _foreign_message(target: Path, listed: bool, option: str) -> str:
-    why = "changed since a cmax-taichi run wrote it" if listed else (
-        f"not written by a cmax-taichi run (no {MANIFEST_NAME} lists it)"
+    why = (
+        "changed since a cmax-taichi run wrote it"
+        if listed
+        else (f"not written by a cmax-taichi run (no {MANIFEST_NAME} lists it)")
     )
     return f"{target} exists and was {why}: not replaced; choose another {option} or move it away"
 
