@@ -81,11 +81,14 @@ def dense_warp(x, y, t, nodes, *, grid, sensor_size, t_ref: float):
 
 
 def smoothness_value(name: str, nodes, *, grid, sensor_size, duration: float) -> float:
-    """``total_variation`` or ``quadratic`` of the node displacements over the window (loops)."""
+    """``total_variation``, ``quadratic`` or ``curvature`` of the node displacements over the window
+    (loops; docs/FORMULAS.md, "Smoothness terms")."""
     nx, ny = grid
     W, H = sensor_size
     sx, sy = (W - 1) / nx, (H - 1) / ny
     D = np.asarray(nodes, dtype=np.float64).reshape(ny + 1, nx + 1, 2) * duration
+    if name == "curvature":
+        return _curvature(D, nx, ny, sx, sy, float(max(W, H)))
     terms = []
     for j in range(ny + 1):
         for i in range(nx + 1):
@@ -100,6 +103,26 @@ def smoothness_value(name: str, nodes, *, grid, sensor_size, duration: float) ->
     if name == "quadratic":
         return float(np.mean(e * e))
     raise ValueError(f"unknown smoothness {name!r}")
+
+
+def _curvature(D, nx: int, ny: int, sx: float, sy: float, side: float) -> float:
+    """``L^2 [mean(D_xx^2) + mean(D_yy^2) + 2 mean(D_xy^2)]`` over both components; a mean is absent
+    where the grid has fewer than 2 cells along its axis."""
+    xx, yy, xy = [], [], []
+    for j in range(ny + 1):
+        for i in range(nx + 1):
+            for c in range(2):
+                if 0 < i < nx:
+                    xx.append((D[j, i + 1, c] - 2.0 * D[j, i, c] + D[j, i - 1, c]) / (sx * sx))
+                if 0 < j < ny:
+                    yy.append((D[j + 1, i, c] - 2.0 * D[j, i, c] + D[j - 1, i, c]) / (sy * sy))
+                if i < nx and j < ny:
+                    xy.append((D[j + 1, i + 1, c] - D[j + 1, i, c] - D[j, i + 1, c] + D[j, i, c]) / (sx * sy))
+    total = 2.0 * float(np.mean(np.square(xy)))
+    for terms in (xx, yy):
+        if terms:
+            total += float(np.mean(np.square(terms)))
+    return side * side * total
 
 
 def dense_evaluate(
