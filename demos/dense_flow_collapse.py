@@ -6,6 +6,8 @@ of events whose neighbourhood the warp shrinks to less than half its area.
     python demos/dense_flow_collapse.py                    # the MVSEC indoor_flying1 cut, a window
     python demos/dense_flow_collapse.py --save out.png     # headless picture
     python demos/dense_flow_collapse.py --synthetic        # a simulated box room instead
+    python demos/dense_flow_collapse.py --ecd boxes_rotation --save out.png   # an ECD rotation cut, whose
+                                                           # gyro gives the FWL of the true motion
 
 Without a regularizer the dense flow gathers the events onto points and short lines (FWL far above any
 true flow's); total variation alone does not stop it; the divergence and deformation penalties do.
@@ -28,6 +30,7 @@ import _common
 import cmax_taichi as cm
 from cmax_taichi import viz
 from cmax_taichi.flow import DEFAULT_REGULARIZERS, DenseFlowEstimator, DenseFlowProblem
+from cmax_taichi.metrics import fwl
 
 #: the variants shown, left to right: (label, references, regularizers)
 VARIANTS = (
@@ -81,6 +84,12 @@ def estimate_all(events: cm.Events, grid: tuple[int, int], levels: int) -> list[
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--synthetic", action="store_true", help="a simulated scene instead of the MVSEC cut")
+    parser.add_argument(
+        "--ecd",
+        metavar="SEQUENCE",
+        choices=_common.ECD_SEQUENCES,
+        help="an ECD rotation cut instead (its gyro's rotation gives the true motion's FWL)",
+    )
     parser.add_argument("--grid", type=int, nargs=2, default=[16, 16], metavar=("NX", "NY"))
     parser.add_argument("--levels", type=int, default=4)
     _common.add_save_arguments(parser)
@@ -89,13 +98,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     import matplotlib.pyplot as plt
 
-    scene = None if args.synthetic else _common.load_mvsec(30000)
+    if args.ecd is not None:
+        scene = _common.load_ecd(args.ecd)
+        if scene is None:
+            print(f"no ECD cut {args.ecd!r} in {_common.DATA_DIR / 'ecd_rotation'}")
+            return 1
+    else:
+        scene = None if args.synthetic else _common.load_mvsec(30000)
     if scene is None:
         scene = synthetic_scene(args.max_events)
     else:
         _common.subsample_scene(scene, args.max_events)
     print(scene.name)
     events = undistorted(scene)
+    if scene.truth is not None:  # the gyro's rotation: the FWL of the true motion, for scale
+        true_fwl = fwl(scene.events, "rotation3", scene.truth, camera=scene.camera)
+        print(f"{'true motion (' + scene.truth_label + ')':32s} FWL {true_fwl:7.3f}")
+        scene.name += f"; FWL of the true motion ({scene.truth_label}): {true_fwl:.2f}"
     rows = estimate_all(events, tuple(args.grid), args.levels)
     fig, axes = plt.subplots(2, len(rows) + 1, figsize=(4.2 * (len(rows) + 1), 7.0), constrained_layout=True)
     grid = rows[0]["result"].grid

@@ -122,3 +122,21 @@ def test_bad_windows_are_refused(f64):
     ev = cm.Events([1.0, 2.0], [1.0, 2.0], [0.0, 0.0], [1, 1], (20, 20))
     with pytest.raises(ValueError, match="zero time"):
         DenseFlowEstimator((2, 2), levels=1).estimate(ev)
+
+
+def test_flow_example_prints_its_error_against_the_truth(tmp_path, f64, capsys):
+    """``cmax-taichi flow --example boxroom``: one window, scored against the exact flow and printed."""
+    from cmax_taichi.cli import main
+
+    out = tmp_path / "ex"
+    rc = main(
+        ["flow", "--example", "boxroom", "--grid", "4", "4", "--levels", "2", "--out", str(out), "--quiet"]
+    )
+    assert rc == 0
+    text = capsys.readouterr().out
+    aee = float(text.split("AEE ")[1].split(" px")[0])
+    zero = float(text.split("zero flow: AEE ")[1].split(" px")[0])
+    assert 0.0 < aee < 0.5 * zero  # a coarse grid, far better than no motion
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["metrics"]["AEE"] == pytest.approx(aee, abs=1e-3)
+    assert main(["flow", "--example", "nowhere", "--out", str(tmp_path / "x")]) == 2

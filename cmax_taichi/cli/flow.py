@@ -4,7 +4,7 @@ The flow lives on a grid of nodes over the sensor (bilinear between nodes), esti
 L-BFGS-B on the exact gradient of the contrast objective, with the event-collapse regularizers
 (divergence, deformation) and a smoothness term; each window is warm-started from the previous one.
 Results go to OUT: flow/flow_NNNN.<format> (the displacement over --dt, px: .npz with its interval,
-Middlebury .flo, or DSEC's 16-bit PNG where the build has its writer), flow_timestamps.txt (t_start t_end
+Middlebury .flo, or DSEC's 16-bit submission PNG), flow_timestamps.txt (t_start t_end
 of each file, for 'cmax-taichi evaluate'), results.csv and summary.json (per window: time span, events,
 J and its terms, evaluations, seconds, and AEE / NPE / %Out where the recording has flow ground truth),
 figures/window_NNNN.png (IWE without and with the flow, the flow in colour).
