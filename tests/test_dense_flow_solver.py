@@ -140,3 +140,28 @@ def test_flow_example_prints_its_error_against_the_truth(tmp_path, f64, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["metrics"]["AEE"] == pytest.approx(aee, abs=1e-3)
     assert main(["flow", "--example", "nowhere", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_flow_files_are_scored_by_evaluate_as_by_flow(tmp_path, f64):
+    """``cmax-taichi flow`` on a simulated recording in MVSEC's files (``*_data.hdf5`` with its
+    ``*_gt_flow_dist.npz``), dt = 1 frame, then ``cmax-taichi evaluate`` on its flow files: the same AEE
+    per window as the one ``flow`` computed from the recording's ground truth."""
+    import csv
+
+    from cmax_taichi import sim as sm
+    from cmax_taichi.cli import main
+
+    rec = sm.simulate_depth("planes", duration=0.11, scale=0.25)
+    h5, _ = rec.write(tmp_path / "sim", "planes", frame_rate=40.0)
+    W, H = rec.sensor_size
+    size = ["--sensor-size", str(W), str(H)]
+    out = tmp_path / "flow"
+    args = ["flow", str(h5), *size, "--duration", "0.05", "--dt", "0.025", "--grid", "4", "4"]
+    args += ["--levels", "2", "--max-windows", "2"]
+    assert main([*args, "--out", str(out), "--quiet", "--figures", "0"]) == 0
+    with (out / "results.csv").open() as f:
+        own = [float(r["AEE"]) for r in csv.DictReader(f)]
+    assert len(own) == 2 and all(0.0 < a < 3.0 for a in own)
+    assert main(["evaluate", str(out / "flow"), "--data", str(h5), *size, "--out", str(tmp_path / "ev")]) == 0
+    rows = json.loads((tmp_path / "ev" / "metrics.json").read_text())["windows"]
+    assert [r["AEE"] for r in rows] == pytest.approx(own, abs=1e-3)

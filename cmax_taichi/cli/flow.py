@@ -56,6 +56,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + ", ".join(_example_names()),
     )
     parser.add_argument("--format", default=None, help="reader format (default: detected)")
+    parser.add_argument(
+        "--sensor-size",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="the recording's sensor size in px when it is not the format's (e.g. a scaled simulation)",
+    )
     model = parser.add_argument_group("flow model")
     model.add_argument(
         "--grid",
@@ -385,7 +393,8 @@ def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: 
             _OneWindow(events, truth), estimator, n_events=len(events), max_windows=1, dt=args.dt
         )
     else:
-        source = io.open_recording(Path(args.path), format=args.format)
+        options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
+        source = io.open_recording(Path(args.path), format=args.format, **options)
         estimator.camera = source.camera
         total = None
         if args.duration is None:

@@ -143,8 +143,13 @@ def iter_flow(
             truth = _ground_truth(source, result.t_start, result.t_start + interval, window)
             if truth is not None:
                 gt, mask = truth
-                if gt.shape == (2, window.height, window.width):
-                    metrics = flow_error(result.flow(interval), gt, mask)
+                if gt.shape != (2, window.height, window.width):
+                    raise ValueError(
+                        f"the ground-truth flow is {gt.shape[2]}x{gt.shape[1]} px, the events' sensor "
+                        f"{window.width}x{window.height}: open the recording with its sensor size "
+                        "(sensor_size=, or --sensor-size)"
+                    )
+                metrics = flow_error(result.flow(interval), gt, mask)
         yield FlowWindow(index=index, result=result, dt=interval, metrics=metrics, events=window)
         previous = result
 
