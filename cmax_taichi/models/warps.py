@@ -65,6 +65,11 @@ class WarpModel:
         Declaring it puts the model on the fused pipeline (one kernel launch per value-and-gradient);
         without it, value and gradient run on the generic autodiff chain (slower, and
         :class:`~cmax_taichi.ChainPathWarning` says so once).
+    warp_terms : ti.func, optional
+        ``warp_terms(p, dt, th, ctx) -> (warp, det, jx, ddet, ddiv)``: the four above computed together,
+        for a model whose functions share costly intermediate values (``rotation3`` rotates the ray
+        once); the fused kernels then call it in place of ``warp``, ``det`` and ``param_jac``. It must
+        return exactly what those return. Default: the fused kernels call them side by side.
     constant_quantities : tuple of str
         Which of :data:`QUANTITY_KINDS` do not depend on the event (e.g. ``("div",)`` when ``div v``
         depends on theta only): the fused pipeline then does not vote their maps. Declare only what
@@ -93,6 +98,7 @@ class WarpModel:
     det: Callable | None = None
     div: Callable | None = None
     param_jac: Callable | None = None
+    warp_terms: Callable | None = None
     constant_quantities: tuple[str, ...] = ()
     positive_det: bool = False
     scale_kinds: tuple[str, ...] | None = None
@@ -110,6 +116,8 @@ class WarpModel:
             raise ValueError(
                 f"warp {self.name!r}: constant_quantities {unknown} are not among {QUANTITY_KINDS}"
             )
+        if self.warp_terms is not None and self.param_jac is None:
+            raise ValueError(f"warp {self.name!r}: warp_terms joins warp, det and param_jac; pass them too")
         if self.param_jac is not None and (self.det is None or self.div is None):
             raise ValueError(
                 f"warp {self.name!r}: param_jac differentiates the closed forms det and div; pass them too"
@@ -128,7 +136,7 @@ class WarpModel:
         """The model whose Taichi functions are the module's ``warp``, ``flow``, ``det``, ``div`` and
         ``param_jac`` (those present) and whose ``constant_quantities`` is its ``CONSTANT_QUANTITIES``.
         ``metadata`` sets the other fields."""
-        fns = {k: getattr(module, k) for k in ("det", "div", "param_jac") if hasattr(module, k)}
+        fns = {k: getattr(module, k) for k in ("det", "div", "param_jac", "warp_terms") if hasattr(module, k)}
         if hasattr(module, "CONSTANT_QUANTITIES"):
             fns["constant_quantities"] = module.CONSTANT_QUANTITIES
         return cls(name, tuple(params), tuple(units), module.warp, module.flow, **fns, **metadata)
