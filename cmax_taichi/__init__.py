@@ -14,6 +14,7 @@ from cmax_taichi.models.objectives import (
     Objective,
     objective_names,
     register_objective,
+    unregister_objective,
 )
 from cmax_taichi.models.regularizers import (
     RECOMMENDED_LAMBDA,
@@ -46,6 +47,7 @@ from cmax_taichi.sim import (
 from cmax_taichi.solve.batch import run as batch_run
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
 from cmax_taichi.solve.segment import SegmentationResult, segment
+from cmax_taichi.testing.checks import CheckReport, check_model, check_objective, check_regularizer
 
 __version__ = "0.1.0"
 
@@ -53,6 +55,7 @@ __all__ = [
     "BackendInfo",
     "Camera",
     "ChainPathWarning",
+    "CheckReport",
     "ContrastMaximization",
     "Evaluation",
     "Events",
@@ -74,6 +77,9 @@ __all__ = [
     "WarpModel",
     "backend_info",
     "batch_run",
+    "check_model",
+    "check_objective",
+    "check_regularizer",
     "dense_flow",
     "event_jacobians",
     "get_limits",
@@ -89,6 +95,7 @@ __all__ = [
     "segment",
     "set_limits",
     "simulate_preset",
+    "unregister_objective",
     "unregister_regularizer",
     "unregister_warp",
     "warp_names",
