@@ -171,7 +171,13 @@ def test_fused_declaration_must_use_the_objectives_finalize():
     variance = cm.OBJECTIVES.get("variance")
     with pytest.raises(ValueError, match="finalize"):
         dataclasses.replace(variance, name="test_bad", finalize=_second_moment_plus_mean_finalize)
-    with pytest.raises(ValueError, match="make_reduce or a fused declaration"):
+    with pytest.raises(ValueError, match="needs a pixel term"):
         cm.Objective("test_bad", 2, None, _second_moment_plus_mean_finalize)
+    with pytest.raises(ValueError, match="needs finalize"):
+        cm.Objective("test_bad", 2, pixel=blocks.variance_pixel)
+    with pytest.raises(ValueError, match="pixel is not the fused declaration's"):
+        cm.Objective(
+            "test_bad", 2, pixel=blocks.mean_square_pixel, finalize=variance.finalize, fused=variance.fused
+        )
     with pytest.raises(TypeError, match="FusedObjective"):
         cm.Objective("test_bad", 2, variance.make_reduce, variance.finalize, fused="variance")

@@ -4,7 +4,8 @@
 Each sub-command module defines ``NAME``, ``HELP`` and ``add_arguments(parser)`` / ``run(args) -> int``,
 and is listed explicitly in ``COMMAND_MODULES``. Errors a user can cause (bad paths, unknown formats,
 bad values) are raised as :class:`CliError` or ValueError / OSError / KeyError and printed as one line
-with exit code 2, never a traceback.
+with exit code 2, never a traceback. ``--plugin FILE.py`` anywhere on the line is imported first (the
+user's warps, objectives and regularizers then appear in every help and choice).
 """
 
 from __future__ import annotations
@@ -39,6 +40,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:  # the user's extensions first: the parser's help lists the registries
+        from cmax_taichi.cli._common import load_plugins
+
+        load_plugins(argv)
+    except CliError as exc:
+        print(f"cmax-taichi: error: {exc}", file=sys.stderr)
+        return 2
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):

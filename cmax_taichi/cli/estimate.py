@@ -301,6 +301,7 @@ def run_batch(args: argparse.Namespace) -> int:
         precision=args.precision,
         progress=not args.quiet,
         hooks=BatchFigures(max(0, args.figures)),
+        plugins=args.plugin,
         **process_options(args, regs),
     )
     done = len(result.recordings) - len(result.failed)
@@ -351,6 +352,10 @@ def run(args: argparse.Namespace) -> int:
     if len(args.path) > 1 or args.workers is not None or args.engine is not None or args.address is not None:
         return run_batch(args)
     check_choices(args)
+    if args.example is not None:  # the example's truth against the model, before anything is simulated
+        from cmax_taichi.sim.examples import check_example
+
+        check_example(args.example, args.warp)
     from cmax_taichi import io
 
     common.init_backend(args.arch, args.precision)
@@ -358,6 +363,7 @@ def run(args: argparse.Namespace) -> int:
         from cmax_taichi.sim.examples import make_example
 
         example = make_example(args.example)
+        truth = example.truth_in(args.warp)
         path = Path(f"example:{args.example}")
         source = contextlib.nullcontext(example.events)
         camera = example.camera
@@ -383,7 +389,7 @@ def run(args: argparse.Namespace) -> int:
 
         def on_window(row, prob, res):
             if example is not None:
-                area_scales.append((area_scale(prob, res.theta), area_scale(prob, example.truth)))
+                area_scales.append((area_scale(prob, res.theta), area_scale(prob, truth)))
             if figures_left[0] > 0:
                 fig_dir.mkdir(exist_ok=True)
                 _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
@@ -438,7 +444,7 @@ def _report_example(example, result, area_scales: list[tuple[float, float]], reg
 
     from cmax_taichi.metrics import COLLAPSE_AREA_SCALE
 
-    truth = example.truth
+    truth = example.truth_in(result.warp)
     theta = result.theta
     print(f"example {example.example.name!r}: {example.example.description}")
     print(f"  simulated: {len(example.events)} events, {example.events.duration * 1e3:.1f} ms (seed 0)")

@@ -26,7 +26,7 @@ import math
 import warnings
 from pathlib import Path
 
-from cmax_taichi.cli._common import add_backend_arguments, init_backend, names
+from cmax_taichi.cli._common import add_backend_arguments, add_plugin_argument, init_backend, names
 from cmax_taichi.io import FORMATS
 
 NAME = "evaluate"
@@ -49,6 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", default=None, metavar="DIR", help="output folder (default: the results folder)"
     )
     add_backend_arguments(parser, precision=False)
+    add_plugin_argument(parser)  # results of a user's model: its plugin names its flow
 
 
 def _thresholds(text: str) -> tuple[float, ...]:

@@ -440,10 +440,15 @@ class RecordingWorker:
     """One long-lived worker: Taichi initialised once, recordings estimated one after the other (the
     Ray engine wraps it as an actor; the local engine keeps one per pool process)."""
 
-    def __init__(self, arch: str | None = None, precision: str | None = None) -> None:
+    def __init__(
+        self, arch: str | None = None, precision: str | None = None, plugins: Sequence[str] = ()
+    ) -> None:
         from cmax_taichi.core import backend
+        from cmax_taichi.core.registry import load_plugin
 
         self.arch, self.precision = arch, precision
+        for plugin in plugins:  # the user's warps, objectives, regularizers, in this fresh interpreter
+            load_plugin(plugin)
         backend.init_if_needed(arch, precision)
 
     def estimate(self, path: str, folder: str, options: Mapping[str, Any], **kwargs: Any) -> RecordingSummary:
@@ -456,9 +461,9 @@ class RecordingWorker:
 _POOL_WORKER: RecordingWorker | None = None
 
 
-def _pool_init(arch: str | None, precision: str | None) -> None:
+def _pool_init(arch: str | None, precision: str | None, plugins: Sequence[str] = ()) -> None:
     global _POOL_WORKER
-    _POOL_WORKER = RecordingWorker(arch, precision)
+    _POOL_WORKER = RecordingWorker(arch, precision, plugins)
 
 
 def _pool_estimate(path: str, folder: str, options: Mapping[str, Any], kwargs: dict) -> RecordingSummary:
@@ -509,7 +514,7 @@ def _failed(task: tuple, error: str) -> RecordingSummary:
 
 
 def _run_local(
-    tasks, workers, arch, precision, kwargs, max_restarts, progress
+    tasks, workers, arch, precision, kwargs, max_restarts, progress, plugins=()
 ) -> dict[int, RecordingSummary]:
     import multiprocessing
 
@@ -522,7 +527,7 @@ def _run_local(
             max_workers=min(workers, len(pending)),
             mp_context=context,
             initializer=_pool_init,
-            initargs=(arch, precision),
+            initargs=(arch, precision, plugins),
         ) as pool:
             futures: dict[Future, int] = {pool.submit(_pool_estimate, *tasks[i], kwargs): i for i in pending}
             broken = False
@@ -548,7 +553,7 @@ def _run_local(
 
 
 def _run_ray(
-    tasks, workers, arch, precision, kwargs, max_restarts, progress, address
+    tasks, workers, arch, precision, kwargs, max_restarts, progress, address, plugins=()
 ) -> dict[int, RecordingSummary]:
     try:
         import ray
@@ -569,7 +574,7 @@ def _run_ray(
         actor_class = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=max_restarts)(
             RecordingWorker
         )
-        actors = [actor_class.remote(arch, precision) for _ in range(min(workers, len(tasks)))]
+        actors = [actor_class.remote(arch, precision, plugins) for _ in range(min(workers, len(tasks)))]
         queue = list(range(len(tasks)))
         running: dict[Any, tuple[int, Any]] = {}
         results: dict[int, RecordingSummary] = {}
@@ -588,7 +593,7 @@ def _run_ray(
                 except ray.exceptions.RayActorError as exc:  # restarts used up: a fresh actor goes on
                     error = f"worker died (after {max_restarts} restarts): {str(exc).splitlines()[0]}"
                     results[i] = _failed(tasks[i], error)
-                    idle.append(actor_class.remote(arch, precision))
+                    idle.append(actor_class.remote(arch, precision, plugins))
                 except ray.exceptions.RayError as exc:  # e.g. arguments that do not pickle
                     results[i] = _failed(tasks[i], f"{type(exc).__name__}: {str(exc).splitlines()[0]}")
                     idle.append(actor)
@@ -599,6 +604,20 @@ def _run_ray(
     finally:
         if started:
             ray.shutdown()
+
+
+def _loaded_plugins(plugins: Sequence[str]) -> tuple[str, ...]:
+    """The plugins, loaded here too (the options name their entries), files as absolute paths."""
+    from cmax_taichi.core.registry import load_plugin
+
+    if isinstance(plugins, str):
+        plugins = [plugins]
+    out = []
+    for plugin in plugins:
+        load_plugin(plugin)
+        is_file = plugin.endswith(".py") or Path(plugin).is_file()
+        out.append(str(Path(plugin).expanduser().resolve()) if is_file else plugin)
+    return tuple(out)
 
 
 def run(
@@ -614,6 +633,7 @@ def run(
     max_restarts: int = 3,
     progress: bool | TextIO = True,
     hooks: RecordingHooks | None = None,
+    plugins: Sequence[str] = (),
     **options: Any,
 ) -> BatchResult:
     """Estimate the motion of every window of several recordings, in parallel and resumable.
@@ -641,6 +661,10 @@ def run(
         Progress over all recordings on stderr (or on the given stream).
     hooks : RecordingHooks, optional
         Extra per-recording outputs made inside the workers (must pickle).
+    plugins : sequence of str
+        Plugins (Python files or modules that register warps, objectives, regularizers:
+        :func:`cmax_taichi.core.registry.load_plugin`) that every worker imports first; a file must be
+        at a path every worker sees.
     **options
         Keyword arguments of :func:`~cmax_taichi.solve.sequence.process`: ``warp``, ``objective``,
         ``regularizers``, ``n_events``, ``duration``, ``stride``, ``method``, ``warm_start``,
@@ -664,6 +688,7 @@ def run(
         paths = [paths]
     if not paths:
         raise ValueError("no recording given")
+    plugins = _loaded_plugins(plugins)
     unknown = set(options) - set(PROCESS_OPTIONS)
     if unknown:
         raise TypeError(f"unknown option(s) {sorted(unknown)}; valid: {', '.join(PROCESS_OPTIONS)}")
@@ -681,9 +706,9 @@ def run(
     t0 = time.perf_counter()
     try:
         if engine == "local":
-            results = _run_local(tasks, workers, arch, precision, kwargs, max_restarts, bar)
+            results = _run_local(tasks, workers, arch, precision, kwargs, max_restarts, bar, plugins)
         else:
-            results = _run_ray(tasks, workers, arch, precision, kwargs, max_restarts, bar, address)
+            results = _run_ray(tasks, workers, arch, precision, kwargs, max_restarts, bar, address, plugins)
         bar.poll(sum(r.status == "done" for r in results.values()))
     finally:
         bar.close()
