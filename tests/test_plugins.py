@@ -67,8 +67,8 @@ def test_an_estimate_with_a_pixel_term_objective_and_a_penalty_on_the_simulator(
     res = cm.maximize(prob, 0.8 * truth, init="warm")
     assert np.all(np.isfinite(res.theta)) and res.value >= prob.value(0.8 * truth)
     assert res.value > prob.value(np.zeros(6)) + 0.05  # the motion is found: sharper than no motion
-    # the translation part is the best constrained: within 20% of the truth
-    np.testing.assert_allclose(res.theta[4:], truth[4:], rtol=0.2)
+    # the translation part is the best constrained: within 10 px/s (0.5 px over the window) of the truth
+    np.testing.assert_allclose(res.theta[4:], truth[4:], atol=10.0)
     ev = prob.evaluate(res.theta)
     assert np.isfinite(ev.R[user.REGULARIZER]) and ev.R[user.REGULARIZER] >= 0
 
@@ -79,7 +79,7 @@ def test_estimate_with_a_plugin_on_the_command_line(tmp_path):
     folder = write_ecd_folder(tmp_path / "rec")
     out = tmp_path / "out"
     argv = [sys.executable, "-m", "cmax_taichi.cli", "estimate", str(folder), "--plugin", str(PLUGIN)]
-    argv += ["--warp", "user_affine6", "--objective", "exp_contrast", "--reg", "log_area=1"]
+    argv += ["--warp", "user_affine6", "--objective", "xlogx_contrast", "--reg", "log_area=1"]
     argv += ["--window", "1200", "--max-windows", "1", "--figures", "0", "--quiet", "--out", str(out)]
     proc = subprocess.run(
         argv, capture_output=True, text=True, env=dict(os.environ, MPLBACKEND="Agg"), timeout=900
@@ -95,7 +95,9 @@ def test_estimate_with_a_plugin_on_the_command_line(tmp_path):
         text=True,
         timeout=300,
     ).stdout
-    assert "user_affine6 (a11 [1/s]" in help_text and "exp_contrast" in help_text and "log_area" in help_text
+    help_text = " ".join(help_text.split())  # argparse wraps the lines
+    assert "user_affine6 (a11 [1/s]" in help_text
+    assert "xlogx_contrast" in help_text and "log_area" in help_text
 
 
 def test_bad_plugins_give_one_line(capsys, tmp_path):

@@ -120,16 +120,9 @@ def _reference_j(raw, warp, theta, objective_fn) -> float:
 
 
 def _reference_grad(raw, warp, theta, objective_fn, rel_step=1e-6) -> np.ndarray:
-    grad = np.empty_like(theta)
-    for i in range(theta.size):
-        h = rel_step * max(1.0, abs(theta[i]))
-        up, dn = theta.copy(), theta.copy()
-        up[i] += h
-        dn[i] -= h
-        grad[i] = (_reference_j(raw, warp, up, objective_fn) - _reference_j(raw, warp, dn, objective_fn)) / (
-            2 * h
-        )
-    return grad
+    return reference.central_differences(
+        lambda th: _reference_j(raw, warp, th, objective_fn), theta, rel_step=rel_step
+    )
 
 
 def _check_against_reference(prob, raw, warp, objective_fn):

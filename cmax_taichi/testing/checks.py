@@ -195,15 +195,10 @@ def _ref_kwargs(warp: str, **extra) -> dict:
 
 
 def _fd_grad(fn: Callable[[np.ndarray], float], theta: np.ndarray, rel_step: float = 1e-6) -> np.ndarray:
-    """Central differences of ``fn`` with the step ``rel_step * max(1, |theta_i|)`` per parameter."""
-    grad = np.empty_like(theta)
-    for i in range(theta.size):
-        h = rel_step * max(1.0, abs(theta[i]))
-        up, down = theta.copy(), theta.copy()
-        up[i] += h
-        down[i] -= h
-        grad[i] = (fn(up) - fn(down)) / (2.0 * h)
-    return grad
+    """Central differences of ``fn`` (the reference's, with the step ``rel_step * max(1, |theta_i|)``)."""
+    from cmax_taichi.testing.reference import central_differences
+
+    return central_differences(fn, theta, rel_step=rel_step)
 
 
 def _problem(events, warp, *, chain: bool = False, **options):

@@ -591,14 +591,9 @@ def evaluate(
     }
 
 
-def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> np.ndarray:
-    """dJ/dtheta by central differences of :func:`evaluate` (2P evaluations), with the step
-    ``rel_step * max(1, |theta_i|)`` per parameter; ``kwargs`` go to :func:`evaluate`.
-
-    J is piecewise smooth (bilinear votes have kinks where a warped event crosses a pixel boundary), so
-    the step must be small enough not to cross many kinks: see
-    ``cmax_taichi.lab.bench_impls.reference_fd_grad``.
-    """
+def central_differences(fn, theta, *, rel_step: float) -> np.ndarray:
+    """The gradient of the scalar function ``fn(theta)`` by central differences (2P evaluations), with
+    the step ``rel_step * max(1, |theta_i|)`` per parameter."""
     theta = np.asarray(theta, dtype=np.float64)
     grad = np.empty_like(theta)
     for i in range(theta.size):
@@ -606,7 +601,16 @@ def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> 
         tp, tm = theta.copy(), theta.copy()
         tp[i] += h
         tm[i] -= h
-        jp = evaluate(x, y, t, p, tp, **kwargs)["J"]
-        jm = evaluate(x, y, t, p, tm, **kwargs)["J"]
-        grad[i] = (jp - jm) / (2 * h)
+        grad[i] = (fn(tp) - fn(tm)) / (2 * h)
     return grad
+
+
+def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> np.ndarray:
+    """dJ/dtheta by central differences of :func:`evaluate` (:func:`central_differences`); ``kwargs`` go
+    to :func:`evaluate`.
+
+    J is piecewise smooth (bilinear votes have kinks where a warped event crosses a pixel boundary), so
+    the step must be small enough not to cross many kinks: see
+    ``cmax_taichi.lab.bench_impls.reference_fd_grad``.
+    """
+    return central_differences(lambda th: evaluate(x, y, t, p, th, **kwargs)["J"], theta, rel_step=rel_step)
