@@ -98,7 +98,8 @@ class Example:
         if warp == motion.warp:
             return np.asarray(motion.theta_at(0.0), dtype=np.float64)
         try:
-            return motion.theta_at(0.0, warp, duration=self.window, camera=default_camera(self.sensor_size))
+            theta = motion.theta_at(0.0, warp, duration=self.window, camera=default_camera(self.sensor_size))
+            return np.where(np.abs(theta) < 1e-9, 0.0, theta)  # rounding of the solve: exactly 0
         except NotExpressedError as exc:
             raise ValueError(
                 f"example {self.name!r}: its truth is a {motion.warp} motion (theta = {list(motion.theta)}), "

@@ -8,8 +8,8 @@ the Taichi kernels and is used by the tests (as the oracle the kernels are held 
 benchmark. It favours readability over speed and depends on NumPy only.
 
 The warps form a small registry of their own (:class:`ReferenceWarp`, :func:`register_reference_warp`):
-the six built-ins register below, and a test registers the NumPy twin of a new model there (see
-``tests/test_user_warp.py``) without editing this module.
+the built-ins register in ``reference_warps.py`` (a new built-in adds its twin there), and a user model
+registers its own (see ``examples/user_extensions.py``) without editing this package.
 
 Units: positions in pixels (px), times in seconds (s), parameters in physical units (px/s, 1/s,
 rad/s), flows in px/s, divergences in 1/s.
