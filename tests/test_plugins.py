@@ -34,6 +34,7 @@ def user():
     module.unregister()
 
 
+@pytest.mark.usefixtures("f64")  # the core's dense flow to 1e-8 px
 def test_the_simulator_derives_the_exact_motion_of_a_model_registered_at_run_time(user):
     """The displacement of the simulated motion over [t_a, t_a + dt] is the core's warp of the new model
     with theta_at(t_a) (its parameters grow: first order in time), as for the built-ins."""

@@ -66,6 +66,7 @@ def test_several_thresholds_in_one_render_step_give_several_interpolated_events(
     assert len(np.unique(rec.t)) > 0.9 * len(rec)
 
 
+@pytest.mark.usefixtures("f64")  # the core's dense flow to 1e-8 px: whatever precision ran before
 @pytest.mark.parametrize("warp", WARPS)
 def test_ground_truth_motion_is_undone_by_the_core_warp(warp):
     """The displacement of the simulated motion over [t_a, t_b] equals the core's dense flow of the
