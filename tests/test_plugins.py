@@ -137,3 +137,27 @@ def test_an_example_is_expressed_in_another_model_where_it_can_be(user):
     np.testing.assert_allclose(example.truth_in("translation2"), [150.0, -80.0], atol=1e-9)
     with pytest.raises(ValueError, match="'rotation'.*cannot express.*estimate it with warp 'rotation3'"):
         check_example("rotation", [user.WARP, "se2"])
+
+
+def test_batch_workers_import_the_plugin(user, tmp_path):
+    """Batch workers are fresh interpreters: they import the plugins before reading the options."""
+    from test_batch import write_recording
+
+    from cmax_taichi.solve import batch
+
+    recording = write_recording(tmp_path / "rec0.txt", (150.0, -60.0))
+    result = batch.run(
+        [recording],
+        tmp_path / "out",
+        workers=1,
+        progress=False,
+        plugins=[str(PLUGIN)],
+        warp=user.WARP,
+        regularizers={user.REGULARIZER: 1.0},
+        n_events=700,
+        max_windows=1,
+    )
+    assert not result.failed, [r.error for r in result.recordings]
+    assert result.recordings[0].windows == 1
+    rows = json.loads((tmp_path / "out" / "rec0" / "results.json").read_text())
+    assert rows["warp"] == user.WARP
