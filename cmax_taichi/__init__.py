@@ -1,8 +1,12 @@
 """cmax-taichi: Contrast Maximization for event cameras with the event-collapse regularizers of
 Shiba, Aoki and Gallego (Sensors 2022), as Taichi kernels that run on the CPU and the GPU.
 
-Public names only; see README.md for a worked example and docs/FORMULAS.md for every formula.
+Public names only; see README.md for a worked example and docs/FORMULAS.md for every formula. The
+simulator, the batch runner and segmentation are imported when first used (:data:`_LAZY`), so that
+``import cmax_taichi`` (and the command line) does not pay for what a run does not use.
 """
+
+import importlib
 
 from cmax_taichi.core.backend import BackendInfo, init
 from cmax_taichi.core.backend import info as backend_info
@@ -37,19 +41,39 @@ from cmax_taichi.pipeline.fused import ChainPathWarning
 from cmax_taichi.pipeline.jacobians import event_jacobians
 from cmax_taichi.pipeline.parameters import NonFiniteResultError
 from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation
-from cmax_taichi.sim import (
-    SimulatedRecording,
-    Simulator,
-    SimulatorConfig,
-    read_simulation,
-    simulate_preset,
-)
-from cmax_taichi.solve.batch import run as batch_run
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
-from cmax_taichi.solve.segment import SegmentationResult, segment
-from cmax_taichi.testing.checks import CheckReport, check_model, check_objective, check_regularizer
 
 __version__ = "0.1.0"
+
+#: public names imported on first use: name -> (module, attribute)
+_LAZY = {
+    "SimulatedRecording": ("cmax_taichi.sim", "SimulatedRecording"),
+    "Simulator": ("cmax_taichi.sim", "Simulator"),
+    "SimulatorConfig": ("cmax_taichi.sim", "SimulatorConfig"),
+    "read_simulation": ("cmax_taichi.sim", "read_simulation"),
+    "simulate_preset": ("cmax_taichi.sim", "simulate_preset"),
+    "batch_run": ("cmax_taichi.solve.batch", "run"),
+    "SegmentationResult": ("cmax_taichi.solve.segment", "SegmentationResult"),
+    "segment": ("cmax_taichi.solve.segment", "segment"),
+    "CheckReport": ("cmax_taichi.testing.checks", "CheckReport"),
+    "check_model": ("cmax_taichi.testing.checks", "check_model"),
+    "check_objective": ("cmax_taichi.testing.checks", "check_objective"),
+    "check_regularizer": ("cmax_taichi.testing.checks", "check_regularizer"),
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        module, attribute = _LAZY[name]
+        value = getattr(importlib.import_module(module), attribute)
+        globals()[name] = value  # later lookups find it directly
+        return value
+    raise AttributeError(f"module 'cmax_taichi' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     "BackendInfo",

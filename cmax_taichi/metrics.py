@@ -7,6 +7,8 @@ AEE                mean over the evaluated pixels of ``|f_pred(x) - f_gt(x)|_2``
                                                                                     GT interval)
 NPE (N = 3, 10,    ``100 * #{x : |f_pred(x) - f_gt(x)|_2 > N} / #pixels``            % of pixels
 20, any N)
+%Out ("outlier")   ``100 * #{x : EPE > 3 px and EPE > 0.05 |f_gt(x)|} / #pixels``   % of pixels
+AE ("AE_deg")      mean angle between ``(u, v, 1)`` and ``(u_gt, v_gt, 1)``          degrees
 FWL                ``Var(I(x; theta)) / Var(I(x; 0))``: IWE variance of the         dimensionless
                    estimate over that of the identity warp, same events and blur   (> 1: sharper)
 RMS angular error  ``sqrt(mean_k |w_est,k - w_gt,k|^2) * 180 / pi`` over windows k  deg/s
@@ -18,9 +20,25 @@ ratio              occupy less area than unwarped; collapse drives it towards 0)
 =================  ===============================================================  ==============
 
 The flow metrics use the pixels where the ground truth is valid (finite, and both components non-zero,
-as in the authors' evaluation code) **and** at least one event of the interval occurred (its rounded
-position). The flow of a parametric estimate over a ground-truth interval ``dt`` is
-:func:`flow_from_warp` (the negated displacement of every pixel warped over ``dt``, in px).
+as in the authors' evaluation code; for DSEC, whose PNGs carry a validity channel and where a zero
+component is a valid flow, ``zero_is_invalid=False``) **and** at least one event of the interval
+occurred (its rounded position). The flow of a parametric estimate over a ground-truth interval ``dt``
+is :func:`flow_from_warp` (the negated displacement of every pixel warped over ``dt``, in px).
+
+Which outlier rate is which (sources):
+
+* ``3PE`` (any ``NPE``): EPE > N px. The nPE of tub-rip/event_based_optical_flow
+  (``src/utils/flow_utils.py::calculate_flow_error_numpy``: 1PE, 2PE, 3PE, 5PE, 10PE, 20PE) and of the
+  DSEC optical-flow benchmark's tables (1PE, 2PE, 3PE with EPE and AE). EV-FlowNet's test code
+  (daniilidis-group/EV-FlowNet ``src/eval_utils.py::flow_error_dense``) prints its complement, the
+  share of pixels with EPE < 3 px.
+* ``outlier`` (%Out): EPE > 3 px **and** EPE > 5% of the ground-truth magnitude, KITTI 2015's Fl
+  (torchvision's RAFT reference ``references/optical_flow/utils.py``: ``(epe > 3) & (epe / |gt| >
+  0.05)``), the "% Outlier" of the MVSEC tables that follow Zhu et al. 2019.
+* ``AE_deg``: the angular error of tub-rip's code (``arccos((1 + u u_gt + v v_gt) / (sqrt(1 + u^2 +
+  v^2) sqrt(1 + u_gt^2 + v_gt^2)))``, radians there), in degrees.
+
+All are computed per window; over a sequence the benchmarks average the per-window values.
 """
 
 from __future__ import annotations
@@ -46,17 +64,22 @@ __all__ = [
     "flow_error",
     "flow_from_warp",
     "fwl",
+    "score_flow",
     "valid_flow_mask",
 ]
 
 
-def valid_flow_mask(flow_gt: np.ndarray) -> np.ndarray:
-    """Pixels with valid ground truth: both components finite and non-zero. ``(2, H, W) -> (H, W)``."""
+def valid_flow_mask(flow_gt: np.ndarray, zero_is_invalid: bool = True) -> np.ndarray:
+    """Pixels with valid ground truth: both components finite and (``zero_is_invalid``, MVSEC's
+    convention) non-zero. ``(2, H, W) -> (H, W)``."""
     flow_gt = np.asarray(flow_gt, dtype=np.float64)
     if flow_gt.ndim != 3 or flow_gt.shape[0] != 2:
         raise ValueError(f"flow must have shape (2, H, W), got {flow_gt.shape}")
-    with np.errstate(invalid="ignore"):
-        return np.all(np.isfinite(flow_gt), axis=0) & np.all(np.abs(flow_gt) > 0, axis=0)
+    valid = np.all(np.isfinite(flow_gt), axis=0)
+    if zero_is_invalid:
+        with np.errstate(invalid="ignore"):
+            valid &= np.all(np.abs(flow_gt) > 0, axis=0)
+    return valid
 
 
 def event_mask(events: Events) -> np.ndarray:
@@ -76,8 +99,10 @@ def flow_error(
     flow_gt: np.ndarray,
     mask: np.ndarray | None = None,
     thresholds: Sequence[float] = (3.0, 10.0, 20.0),
+    *,
+    zero_is_invalid: bool = True,
 ) -> dict[str, float]:
-    """AEE and NPE of a predicted flow against ground truth.
+    """AEE, NPE, %Out and AE of a predicted flow against ground truth (module docstring: sources).
 
     Parameters
     ----------
@@ -88,36 +113,96 @@ def flow_error(
         :func:`event_mask` of the interval's events.
     thresholds : sequence of float
         The N of the NPE values, px.
+    zero_is_invalid : bool
+        Whether a ground-truth component exactly 0 marks an invalid pixel (MVSEC and the simulator's
+        files: yes; DSEC, whose invalid pixels are NaN once read: no).
 
     Returns
     -------
     dict
-        ``"AEE"`` (px), ``"{N}PE"`` for each N (percent, N printed with ``:g``: ``"3PE"``), and
-        ``"n_pixels"`` (the number evaluated). With no pixel to evaluate every value is NaN.
+        ``"AEE"`` (px), ``"{N}PE"`` for each N (percent, N printed with ``:g``: ``"3PE"``),
+        ``"outlier"`` (%Out: EPE > 3 px and > 5% of ``|f_gt|``, percent), ``"AE_deg"`` (degrees),
+        ``"n_pixels"`` (the number evaluated) and ``"n_missing"`` (pixels that would be evaluated but
+        whose prediction is not finite, e.g. NaN for no estimate: left out, and counted here). With no
+        pixel to evaluate every value is NaN.
     """
     flow_pred = np.asarray(flow_pred, dtype=np.float64)
     flow_gt = np.asarray(flow_gt, dtype=np.float64)
     if flow_pred.shape != flow_gt.shape:
         raise ValueError(f"flow shapes differ: predicted {flow_pred.shape}, ground truth {flow_gt.shape}")
-    valid = valid_flow_mask(flow_gt)
+    valid = valid_flow_mask(flow_gt, zero_is_invalid)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != valid.shape:
             raise ValueError(f"mask shape {mask.shape} does not match the flow's {valid.shape}")
         valid &= mask
-    valid &= np.all(np.isfinite(flow_pred), axis=0)
+    predicted = np.all(np.isfinite(flow_pred), axis=0)
+    n_missing = int(np.count_nonzero(valid & ~predicted))
+    valid &= predicted
     n = int(np.count_nonzero(valid))
-    out: dict[str, float] = {"n_pixels": float(n)}
+    out: dict[str, float] = {"n_pixels": float(n), "n_missing": float(n_missing)}
     if n == 0:
         out["AEE"] = math.nan
         for t in thresholds:
             out[f"{t:g}PE"] = math.nan
+        out["outlier"] = out["AE_deg"] = math.nan
         return out
-    err = np.hypot(flow_pred[0] - flow_gt[0], flow_pred[1] - flow_gt[1])[valid]
+    u, v = flow_pred[0][valid], flow_pred[1][valid]
+    ug, vg = flow_gt[0][valid], flow_gt[1][valid]
+    err = np.hypot(u - ug, v - vg)
     out["AEE"] = float(err.mean())
     for t in thresholds:
         out[f"{t:g}PE"] = float(100.0 * np.count_nonzero(err > t) / n)
+    out["outlier"] = float(100.0 * np.count_nonzero((err > 3.0) & (err > 0.05 * np.hypot(ug, vg))) / n)
+    cos = (1.0 + u * ug + v * vg) / (np.sqrt(1.0 + u * u + v * v) * np.sqrt(1.0 + ug * ug + vg * vg))
+    out["AE_deg"] = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean())
     return out
+
+
+def score_flow(
+    recording,
+    flow_pred: np.ndarray,
+    t0: float,
+    t1: float,
+    thresholds: Sequence[float] = (3.0, 10.0, 20.0),
+) -> dict[str, float] | None:
+    """Score a predicted flow over ``[t0, t1]`` against a recording's ground truth, as the benchmarks
+    count it: :func:`flow_error` on the pixels with valid ground truth where at least one event of
+    ``[t0, t1]`` occurred.
+
+    Parameters
+    ----------
+    recording : cmax_taichi.io.Recording
+        A reader with flow ground truth (``flow(t0, t1)``: MVSEC ``*_gt_flow_dist.npz``, DSEC flow
+        PNGs, the simulator's MVSEC-like files) and ``read_time``.
+    flow_pred : ndarray
+        (2, H, W) predicted displacement over ``[t0, t1]``, px, on the recording's pixel grid (the
+        grid of its ground truth: MVSEC's raw pixels, DSEC's rectified ones).
+    t0, t1 : float
+        The interval, s.
+    thresholds : sequence of float
+        NPE thresholds, px.
+
+    Returns
+    -------
+    dict or None
+        :func:`flow_error`'s values plus ``"n_events"``; None when the recording has no flow ground
+        truth. For DSEC a zero ground-truth component counts as valid (its PNGs have a validity
+        channel).
+    """
+    gt = recording.flow(t0, t1)
+    if gt is None:
+        return None
+    events = recording.read_time(t0, float(np.nextafter(t1, np.inf)))
+    err = flow_error(
+        flow_pred,
+        gt,
+        event_mask(events),
+        thresholds,
+        zero_is_invalid=getattr(recording, "format", None) != "dsec",
+    )
+    err["n_events"] = float(len(events))
+    return err
 
 
 def flow_from_warp(

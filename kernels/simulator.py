@@ -46,7 +46,7 @@ def _sample(tex, layer, u, v, nx, ny):
     )
 
 
-def make_render_kernel(mirror: tuple, opaque: tuple, width: int, height: int):
+def make_render_kernel(mirror: tuple, opaque: tuple, width: int, height: int, depth_test: bool = False):
     """Build the renderer of a layered scene.
 
     Parameters
@@ -58,15 +58,23 @@ def make_render_kernel(mirror: tuple, opaque: tuple, width: int, height: int):
         Per layer: True when its coverage is 1 everywhere inside (its alpha is then not sampled).
     width, height : int
         Sensor size, px.
+    depth_test : bool
+        False: the layers are composited in their order (painter's algorithm). True: every ``hinv[k]``
+        is scaled so that the third texel coordinate is the inverse depth ``1 / Z`` of the layer at the
+        pixel (3-D planes, ``sim/rigid.py``), and each pixel composites the layers nearest first
+        ("over": ``sum_k a_k c_k prod_{j nearer} (1 - a_j)``); the label is the nearest layer with
+        coverage > ``label_cover``, -1 where no layer covers the pixel.
 
     Returns
     -------
     kernel
-        ``render(tex, alpha, tex_shape, hinv, log_eps, out_log, out_label)``: ``tex`` and ``alpha`` are
+        ``render(tex, alpha, tex_shape, hinv, log_eps, label_cover, out_log, out_label)``: ``tex`` and
+        ``alpha`` are
         ``(n_layers, Ht, Wt)`` linear intensity in [0, 1] and coverage in [0, 1]; ``tex_shape[k]`` is
         ``(Wt_k, Ht_k)``; ``hinv[k]`` maps homogeneous image coordinates (px) to texel coordinates of
         layer k at the render time. Writes ``log(I + log_eps)`` into ``out_log`` (H, W) and the index
-        of the front-most layer covering each pixel (coverage > 0.5) into ``out_label``.
+        of the front-most layer covering each pixel (coverage > 0.5; with ``depth_test`` coverage >
+        ``label_cover``) into ``out_label``.
     """
     n_layers = len(mirror)
 
@@ -77,12 +85,16 @@ def make_render_kernel(mirror: tuple, opaque: tuple, width: int, height: int):
         tex_shape: ti.template(),
         hinv: ti.template(),
         log_eps: float,
+        label_cover: float,
         out_log: ti.template(),
         out_label: ti.template(),
     ):
         for j, i in ti.ndrange(height, width):
             value = 0.0
             label = 0
+            covers = ti.Vector([0.0] * n_layers)
+            colors = ti.Vector([0.0] * n_layers)
+            inv_depth = ti.Vector([0.0] * n_layers)
             for k in ti.static(range(n_layers)):
                 h = hinv[k]
                 X = h @ ti.Vector([float(i), float(j), 1.0])
@@ -105,9 +117,27 @@ def make_render_kernel(mirror: tuple, opaque: tuple, width: int, height: int):
                             cover = 1.0
                         else:
                             cover = _sample(alpha, k, u, v, nx, ny)
-                value = cover * color + (1.0 - cover) * value
-                if cover > 0.5:
-                    label = k
+                if ti.static(depth_test):
+                    covers[k] = cover
+                    colors[k] = color
+                    inv_depth[k] = X[2]
+                else:
+                    value = cover * color + (1.0 - cover) * value
+                    if cover > 0.5:
+                        label = k
+            if ti.static(depth_test):
+                label = -1
+                nearest = 0.0
+                for k in ti.static(range(n_layers)):
+                    through = 1.0  # the light of layer k that the layers in front of it let through
+                    for m in ti.static(range(n_layers)):
+                        if ti.static(m != k):  # noqa: SIM102 - a compile-time branch
+                            if inv_depth[m] > inv_depth[k] or (inv_depth[m] == inv_depth[k] and m > k):
+                                through *= 1.0 - covers[m]
+                    value += covers[k] * colors[k] * through
+                    if covers[k] > label_cover and inv_depth[k] > nearest:
+                        nearest = inv_depth[k]
+                        label = k
             out_log[j, i] = ti.log(value + log_eps)
             out_label[j, i] = label
 
@@ -123,9 +153,17 @@ def count_crossings(
     c_neg: ti.template(),
     total: ti.template(),
     max_change: ti.template(),
+    label_now: ti.template(),
+    label_prev: ti.template(),
+    skip_label_change: ti.i32,
 ):
     """Upper bound of the events the next ``emit`` will write (refractory ignored) into ``total``,
-    and the largest ``|log_now - prev|`` of any pixel into ``max_change``. Changes no state."""
+    and the largest ``|log_now - prev|`` of any pixel into ``max_change``. Changes no state.
+
+    With ``skip_label_change`` (depth scenes) a pixel whose label changed between the two renders does
+    not count in ``max_change``: where two surfaces meet without an anti-aliased edge (the corner of
+    two walls, a surface passing behind another) its intensity jumps however short the step, so
+    shortening the step cannot bound it; the step is still bounded by the largest image motion."""
     for j, i in log_now:
         L1 = log_now[j, i]
         r = ref[j, i]
@@ -136,7 +174,8 @@ def count_crossings(
             n = ti.cast(ti.floor((r - L1) / c_neg[j, i]), ti.i32)
         if n > 0:
             ti.atomic_add(total[None], n)
-        ti.atomic_max(max_change[None], ti.abs(L1 - prev[j, i]))
+        if skip_label_change == 0 or label_now[j, i] == label_prev[j, i]:
+            ti.atomic_max(max_change[None], ti.abs(L1 - prev[j, i]))
 
 
 @ti.kernel

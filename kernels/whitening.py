@@ -3,14 +3,26 @@
 ``x'' = mu0 + S0^(1/2) (S + eps I)^(-1/2) (x' - mu)`` (docs/FORMULAS.md, "Whitening baseline").
 The moments of the warped positions are reduced into one 0-D vector field ``wmom``:
 slots 0-4 hold ``sum x, sum y, sum x^2, sum x y, sum y^2`` of the positions relative to the centre
-``(cx, cy)`` of ``ctx`` (less cancellation in f32), slot 5 the event count, slots 6-7 ``mu0`` and
-8-10 the entries ``(a, b, d)`` of the symmetric ``S0^(1/2)``; slots 5-10 are constants written by the driver.
+``(cx, cy)`` of ``ctx`` (less cancellation in f32), slot 5 the number of events in the moments, slots
+6-7 ``mu0`` and 8-10 the entries ``(a, b, d)`` of the symmetric ``S0^(1/2)``; slots 5-10 are written by
+the driver (slot 5: the event count). An event that the warp sends nowhere (``(OUTSIDE, OUTSIDE)``: a
+``rotation3`` ray rotated behind the camera) is dropped as in the IWE: left out of the moments (the
+moments kernel takes it off slot 5) and not whitened, so that it is voted nowhere. Counting it at the
+sentinel position would make ``mu`` and ``S`` depend on an arbitrary constant (-1e7 px).
 """
 
 import taichi as ti
 
+from .warps.common import OUTSIDE
+
 N_SLOTS = 11
 EPS = 1e-6  # px^2, keeps the covariance invertible at total collapse
+
+
+@ti.func
+def _nowhere(q):
+    """The warp sent the event nowhere (``warps.common.OUTSIDE`` in both coordinates)."""
+    return q[0] == OUTSIDE and q[1] == OUTSIDE
 
 
 @ti.func
@@ -27,8 +39,9 @@ def _inv_sqrt_2x2(a, b, d):
 
 @ti.func
 def apply(q, m, c):
-    """Whitened position of the warped position ``q`` given the moments ``m`` and the context ``c``."""
-    n = m[5]
+    """Whitened position of the warped position ``q`` given the moments ``m`` and the context ``c``
+    (``q`` itself when the warp sent the event nowhere)."""
+    n = ti.max(m[5], 1.0)  # every event dropped: no moments (and nothing to whiten)
     mx = m[0] / n
     my = m[1] / n
     sxx = ti.max(m[2] / n - mx * mx, 0.0) + EPS
@@ -40,11 +53,15 @@ def apply(q, m, c):
     uy = q[1] - c[1] - my
     wx = ia * ux + ib * uy
     wy = ib * ux + id_ * uy
-    return ti.Vector([m[6] + m[8] * wx + m[9] * wy, m[7] + m[9] * wx + m[10] * wy])
+    out = ti.Vector([m[6] + m[8] * wx + m[9] * wy, m[7] + m[9] * wx + m[10] * wy])
+    if _nowhere(q):
+        out = q
+    return out
 
 
 def make_moments_kernel(warp_fn):
-    """Reduce the first and second moments of the warped positions into ``wmom`` (slots 0-4)."""
+    """Reduce the first and second moments of the warped positions into ``wmom`` (slots 0-4); an
+    event sent nowhere is taken off the count in slot 5 instead."""
 
     @ti.kernel
     def moments(
@@ -58,12 +75,15 @@ def make_moments_kernel(warp_fn):
     ):
         for i in range(n):
             q = warp_fn(ti.Vector([ex[i], ey[i]]), edt[i], th[None], ctx[None])
-            ux = q[0] - ctx[None][0]
-            uy = q[1] - ctx[None][1]
-            wmom[None][0] += ux
-            wmom[None][1] += uy
-            wmom[None][2] += ux * ux
-            wmom[None][3] += ux * uy
-            wmom[None][4] += uy * uy
+            if _nowhere(q):
+                wmom[None][5] -= 1.0
+            else:
+                ux = q[0] - ctx[None][0]
+                uy = q[1] - ctx[None][1]
+                wmom[None][0] += ux
+                wmom[None][1] += uy
+                wmom[None][2] += ux * ux
+                wmom[None][3] += ux * uy
+                wmom[None][4] += uy * uy
 
     return moments

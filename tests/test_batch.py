@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -120,10 +123,11 @@ def test_rerun_after_interruption_skips_written_windows(recordings, serial, tmp_
     out = tmp_path / "out"
     marker = tmp_path / "crashed"
     monkeypatch.setenv(batch.CRASH_HOOK_ENV, f"rec0:0:{marker}")
-    # no restart allowed: the batch stops with rec0 after its window 0 (like a killed job)
+    # no restart allowed: rec0 fails after its window 0 (like a killed job); its death is charged to rec0
+    # alone, and rec1, queued behind it, runs on a fresh worker
     first = batch.run(recordings[:2], out, workers=1, max_restarts=0, progress=False, **OPTIONS)
-    assert [r.status for r in first.recordings] == ["failed", "failed"]
-    assert "died" in first.recordings[0].error
+    assert [r.status for r in first.recordings] == ["failed", "done"], first.recordings
+    assert "worker process died 1 time(s) on it" in first.recordings[0].error
     assert not (out / "rec0" / "results.csv").exists()  # an unfinished recording has no results file
     checkpoint = json.loads((out / "rec0" / batch.CHECKPOINT_NAME).read_text())
     assert [w["index"] for w in checkpoint["windows"]] == [0]
@@ -217,3 +221,136 @@ def test_bad_input(recordings, tmp_path, capsys):
 def test_import_does_not_import_ray():
     code = "import sys, cmax_taichi, cmax_taichi.solve.batch; assert 'ray' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# --- batches that keep their word (issue 23) --------------------------------------------------------
+def test_resume_refuses_a_recording_replaced_at_the_same_path(tmp_path):
+    """A checkpoint is continued only on the recording that wrote it (size, mtime, content, camera)."""
+    path = write_recording(tmp_path / "rec.txt", VELOCITIES[0], seed=0)
+    folder = tmp_path / "out" / "rec"
+    with pytest.raises(KeyboardInterrupt):
+        batch.estimate_recording(path, folder, OPTIONS, hooks=_StopAfterWindow1())
+    write_recording(path, VELOCITIES[1], seed=5)  # another recording at the same path
+    summary = batch.estimate_recording(path, folder, OPTIONS)
+    assert summary.status == "failed" and "changed since" in summary.error and "content" in summary.error
+    checkpoint = json.loads((folder / batch.CHECKPOINT_NAME).read_text())
+    assert [w["index"] for w in checkpoint["windows"]] == [0, 1]  # the old windows, not mixed with new ones
+
+
+def test_a_dying_worker_fails_only_its_recording(recordings, serial, tmp_path, monkeypatch):
+    """rec1 kills its worker in every attempt: after max_restarts it alone fails; the others are re-queued
+    on fresh workers and give the serial results."""
+    monkeypatch.setenv(batch.CRASH_HOOK_ENV, "rec1:0:")
+    result = batch.run(recordings, tmp_path / "out", workers=2, max_restarts=1, progress=False, **OPTIONS)
+    by_name = {r.name: r for r in result.recordings}
+    assert by_name["rec1"].status == "failed" and "died 2 time(s) on it" in by_name["rec1"].error
+    for name in ("rec0", "rec2"):
+        assert by_name[name].status == "done", by_name[name]
+        assert_same_windows(result.results(name), serial[name])
+
+
+def test_a_second_batch_on_the_same_out_and_special_files_are_refused(recordings, tmp_path):
+    from cmax_taichi.io import outputs
+
+    out = tmp_path / "out"
+    with (
+        outputs.hold_lock(out, "a batch"),
+        pytest.raises(outputs.OutputBusyError, match="in use by another cmax-taichi run"),
+    ):
+        batch.run(recordings, out, progress=False, **OPTIONS)
+    fifo = tmp_path / "live.txt"
+    os.mkfifo(fifo)
+    with pytest.raises(OSError, match=r"live.txt: is a FIFO \(named pipe\), not a regular file"):
+        batch.run([recordings[0], fifo], tmp_path / "out2", progress=False, **OPTIONS)
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` and that are not zombies (Linux /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                state, ppid = (entry / "stat").read_text().rsplit(") ", 1)[1].split()[:2]
+            except (OSError, IndexError, ValueError):
+                continue
+            if int(ppid) == pid and state != "Z":
+                found.append(int(entry.name))
+    return found
+
+
+def _alive(pids: list[int]) -> list[int]:
+    alive = []
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1].split()[0]
+        except (OSError, IndexError):
+            continue
+        if state != "Z":
+            alive.append(pid)
+    return alive
+
+
+def _wait(condition, seconds: float, what: str) -> None:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def long_recordings(tmp_path_factory) -> list[Path]:
+    folder = tmp_path_factory.mktemp("long")
+    return [
+        write_recording(folder / f"long{i}.txt", v, n=150_000, duration=3.0, seed=i)
+        for i, v in enumerate([(5.0, -2.0), (-4.0, 3.0)])  # px/s: slow enough to stay on the sensor
+    ]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_workers_die_with_their_driver(long_recordings, tmp_path):
+    """kill -9 of the driver: its workers end too (PR_SET_PDEATHSIG / the watchdog) and stop writing."""
+    out = tmp_path / "out"
+    code = (
+        "import sys\nfrom cmax_taichi.solve import batch\n"
+        f"batch.run({[str(p) for p in long_recordings]!r}, {str(out)!r}, workers=2, progress=False, "
+        "warp='translation2', n_events=2000)\n"
+    )
+    driver = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        _wait(lambda: len(list(out.glob("*/" + batch.CHECKPOINT_NAME))) == 2, 600, "both workers to write")
+        workers = _children(driver.pid)
+        assert len(workers) >= 2, workers
+    finally:
+        driver.kill()
+        driver.wait()
+    _wait(lambda: not _alive(workers), 15, f"the workers {workers} to end")
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    time.sleep(2)
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before  # nobody writes into OUT any more
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_sigterm_of_a_batch_is_handled_as_ctrl_c(long_recordings, tmp_path):
+    out = tmp_path / "out"
+    argv = [sys.executable, "-m", "cmax_taichi.cli", "estimate", *map(str, long_recordings), "--workers", "2"]
+    argv += ["--window", "2000", "--out", str(out), "--quiet", "--figures", "0"]
+    driver = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait(lambda: len(list(out.glob("*/" + batch.CHECKPOINT_NAME))) == 2, 600, "both workers to write")
+    workers = _children(driver.pid)
+    driver.send_signal(signal.SIGTERM)
+    _, err = driver.communicate(timeout=120)
+    assert driver.returncode == 143, err
+    assert "terminated (SIGTERM)" in err and "Traceback" not in err
+    _wait(lambda: not _alive(workers), 15, f"the workers {workers} to end")
+    assert not list(out.rglob("*.tmp"))  # nothing partial
+    unfinished = 0
+    for path in out.glob("*/" + batch.CHECKPOINT_NAME):
+        complete = json.loads(path.read_text())["checkpoint"]["complete"]  # whole, and resumable
+        # results.csv only beside a complete checkpoint (a recording may have finished before the signal)
+        assert (path.parent / "results.csv").exists() == complete
+        unfinished += not complete
+    assert unfinished >= 1, "both recordings finished before SIGTERM: nothing was interrupted"

@@ -154,8 +154,11 @@ def test_estimate_then_evaluate_end_to_end(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     results = json.loads((out / "results.json").read_text())
-    assert len(results["windows"]) == 2
-    for w in results["windows"]:
+    assert [w["status"] for w in results["windows"]] == ["estimated", "estimated", "partial_tail"]
+    tail = results["windows"][2]
+    assert tail["theta"] == {"v_x": None, "v_y": None}
+    assert tail["n_events"] + 2000 == results["events"]["total"]
+    for w in results["windows"][:2]:
         assert abs(w["theta"]["v_x"] - V[0]) < 10 and abs(w["theta"]["v_y"] - V[1]) < 10, w
     header = (out / "results.csv").read_text().splitlines()[0]
     assert header.startswith("index,t_start [s],t_end [s],n_events,v_x [px/s],v_y [px/s],value,fwl")

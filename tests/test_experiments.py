@@ -9,7 +9,6 @@ import re
 from pathlib import Path
 
 import pytest
-from conftest import shared_data_dir
 
 from cmax_taichi.cli import main
 from cmax_taichi.lab import experiment_reports as reports
@@ -119,12 +118,39 @@ def test_sensitivity_and_complexity_writers(tmp_path):
     assert png.exists() and "| 4000 | 0.40 | 0.60 (1.50x) | 0.64 (1.60x) | 0.80 (2.00x) |" in md
 
 
+#: ``../shared/data`` beside the checkout (this file is ``<checkout>/tests/test_experiments.py``)
+BESIDE_CHECKOUT = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def _default_paths_of_this_checkout(monkeypatch) -> None:
+    """Unset ``CMAX_SHARED_DATA``; skip unless ``cmax_taichi`` is imported from this checkout (the
+    default data path is relative to the package's files)."""
+    monkeypatch.delenv("CMAX_SHARED_DATA", raising=False)
+    if Path(ex.__file__).resolve().parents[2] != Path(__file__).resolve().parents[1]:
+        pytest.skip(f"cmax_taichi is imported from {ex.__file__}, not from this checkout")
+
+
+def test_default_data_path_is_shared_data_beside_the_checkout(monkeypatch, tmp_path):
+    from cmax_taichi.lab import experiments_real
+
+    _default_paths_of_this_checkout(monkeypatch)
+    assert ex.shared_data_root() == BESIDE_CHECKOUT
+    assert ex.default_data_dir() == BESIDE_CHECKOUT / "ecd_rotation"
+    assert experiments_real.default_data_dir() == BESIDE_CHECKOUT
+    monkeypatch.setenv("CMAX_SHARED_DATA", str(tmp_path))
+    assert ex.default_data_dir() == tmp_path / "ecd_rotation"
+    assert experiments_real.default_data_dir() == tmp_path
+
+
 @pytest.mark.slow
-def test_reproduce_table3_quick_on_the_ecd_cuts(tmp_path, capsys):
-    data = shared_data_dir("ecd_rotation")
-    code = main(
-        ["reproduce", "table3", "--quick", "--out", str(tmp_path), "--data", str(data), "--no-progress"]
-    )
+def test_reproduce_table3_quick_on_the_default_data_path(tmp_path, monkeypatch, capsys):
+    """``reproduce table3`` without ``--data`` reads ``../shared/data/ecd_rotation`` beside the checkout
+    (it once looked one folder too deep and skipped on every machine)."""
+    _default_paths_of_this_checkout(monkeypatch)
+    data = BESIDE_CHECKOUT / "ecd_rotation"
+    if not data.is_dir():
+        pytest.skip(f"real-data folder {data} is absent (it sits beside the checkout, not in it)")
+    code = main(["reproduce", "table3", "--quick", "--out", str(tmp_path), "--no-progress"])
     assert code == 0
     md = (tmp_path / "table3.md").read_text()
     assert "| GT pose |" in md and "boxes_rotation" in md and "(8.858 / 1.562)" in md

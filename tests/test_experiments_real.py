@@ -7,12 +7,15 @@ import numpy as np
 
 from cmax_taichi.lab.experiments_real import (
     COLLAPSE_SHARE,
+    WHITENING_HEADER,
     collapse_line,
     collapse_outcome,
     lambda_table,
+    main,
     rotation_header,
     rotation_line,
     select_lambda,
+    whitening_line,
 )
 
 
@@ -86,3 +89,31 @@ def test_rotation_table_lines_match_their_header():
     assert header.count("|") == line.count("|")
     assert "Div, lambda = 10: change / error" in header
     assert "1.00% / 12.0%" in line
+
+
+def test_missing_data_folder_is_one_line_naming_the_folder_and_the_variable(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("CMAX_SHARED_DATA", str(tmp_path / "absent"))
+    assert main(["--only", "slider"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(tmp_path / "absent") in err and "CMAX_SHARED_DATA" in err
+
+
+def test_whitening_table_lines_match_their_header():
+    row = {
+        "label": "0.5 x ray",
+        "theta": np.array([39.0, -39.0, 65.0]),
+        "angle": 2.06,
+        "behind": 347,
+        "spread": 1234.4,
+        "top10": 0.4321,
+        "J_white": 449.6511,
+        "J_white_ref": 449.6511,
+        "J_plain": 0.134,
+    }
+    header = WHITENING_HEADER.splitlines()[0]
+    for r in (row, {**row, "behind": None, "spread": None, "top10": None, "J_white_ref": None}):
+        assert header.count("|") == whitening_line(r).count("|")
+    line = whitening_line(row)
+    assert line == (
+        "| 0.5 x ray | (+39.00, -39.00, +65.00) | 2.06 | 347 | 1234 | 43.2% | 449.6511 | 449.6511 | 0.1340 |"
+    )

@@ -149,6 +149,15 @@ def test_crowded_window_against_f64_reference(path):
     )
 
 
+@pytest.mark.parametrize("name", ["pitch", "oblique"])
+def test_whitening_with_events_behind_the_camera_against_f64_reference(name):
+    """rotation3 rays rotated behind the camera stay out of the whitening moments on the GPU too."""
+    from test_whitening_collapse import BEHIND
+
+    options = dict(warp="rotation3", regularizers=REGS["both"], camera=CAMERA, whitening=True)
+    check_against_reference("f32", {**options, "theta": BEHIND[name]}, fused=False)
+
+
 def test_fused_and_chain_agree_along_a_path():
     """The two GPU code paths give the same J and gradient at several parameter vectors (f32)."""
     from cmax_taichi.pipeline.fused import FusedPipeline

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import time
 import warnings
 
@@ -429,10 +430,13 @@ def test_process_reports_undistortion_once_with_totals():
     assert len(dropped) == 2, dropped
     assert dropped[0].startswith("dropped ") and "of 200 event(s) in undistortion" in dropped[0]
     total = sum(w.n_events for w in result.windows)
-    assert (
-        dropped[1] == f"dropped {600 - total} of 600 event(s) in undistortion over 3 windows "
-        "(the first window's warning has the details)"
+    assert dropped[1] == (
+        f"Events(n=600): {600 - total} of 600 event(s) not estimated: {600 - total} lost in undistortion "
+        "(the first such window's warning says why)"
     )
+    # per window in the results, and in the totals
+    assert [w.n_events + w.n_dropped for w in result.windows] == [200] * 3
+    assert result.events["undistortion"] == 600 - total and result.events["estimated"] == total
 
 
 @pytest.mark.parametrize(
@@ -483,3 +487,173 @@ def test_cli_segment_refuses_a_nan_start_time(tmp_path, capsys):
     assert main(["segment", str(folder), "--out", str(tmp_path / "out"), "--t-start", "nan"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == "cmax-taichi segment: error: --t-start must be a finite number of seconds, got nan"
+
+
+# --- issue 23: timestamps checked once, early ------------------------------------------------------
+def _mvsec_times(path, t):
+    n = len(t)
+    with h5py.File(path, "w") as f:
+        f["davis/left/events"] = np.c_[np.full(n, 10.0), np.full(n, 12.0), t, np.ones(n)]
+    return path
+
+
+@pytest.mark.parametrize("mode", [{"n_events": 100}, {"duration": 0.02}])
+def test_unsorted_and_nan_hdf5_times_name_the_file_dataset_and_first_row(tmp_path, mode):
+    t = np.linspace(0.0, 0.1, 500)
+    t[300] = 0.01  # earlier than row 299
+    path = _mvsec_times(tmp_path / "u_data.hdf5", t)
+    where = r"u_data.hdf5: dataset 'davis/left/events', column 2 \(t\), row 300: time 0.010000000 s is "
+    where += r"earlier.*must be sorted by time \(open_recording\(\.\.\., sort=True\)"
+    with io.open_recording(path) as rec:
+        with pytest.raises(ValueError, match=where):
+            rec.windows(**mode)  # both window modes, at the call, before any window is read
+        with pytest.raises(ValueError, match="row 300"):
+            sequence.process(rec, **mode, progress=False)
+        with pytest.raises(ValueError, match="row 300"):
+            rec.read_time(0.0, 0.05)  # a search by time relies on the order too
+        assert len(rec.read(0, 100)) == 100  # rows in order are still readable
+    with io.open_recording(path, sort=True) as rec:  # sorting on request
+        assert rec.rows_out_of_order == 1 and np.all(np.diff(rec.read().t) >= 0)
+        assert len(list(rec.windows(100))) == 5
+    t[300] = np.nan
+    _mvsec_times(path, t)
+    with io.open_recording(path) as rec:
+        nan = r"column 2 \(t\), row 300: time nan is not finite"
+        with pytest.raises(ValueError, match=nan):
+            rec.windows(**mode)  # not "cannot convert float NaN to integer"
+
+
+def test_all_equal_times_are_refused_in_both_modes(tmp_path, capsys):
+    folder = _write_text(tmp_path / "eq", [f"0.5 {k % 60} {k % 40} {k % 2}" for k in range(100)])
+    with io.open_recording(folder) as rec:
+        for mode in ({"n_events": 50}, {"duration": 0.01}):
+            with pytest.raises(ValueError, match=r"all 100 events have the same time t = 0.500000000 s"):
+                rec.windows(**mode)
+    events = cm.Events(np.zeros(5), np.zeros(5), np.full(5, 2.0), np.ones(5), SENSOR)
+    with pytest.raises(ValueError, match="all 5 events have the same time"):
+        sequence.process(events, n_events=2, progress=False)
+    for argv in (["--window", "50"], ["--duration", "0.01"]):
+        assert main(["estimate", str(folder), "--out", str(tmp_path / "o"), "--quiet", *argv]) == 2
+        err = capsys.readouterr().err
+        assert "all 100 events have the same time" in err and "--window" not in err, err
+
+
+def test_no_window_messages_name_the_mode_given(tmp_path, capsys):
+    empty = tmp_path / "empty_data.hdf5"
+    with h5py.File(empty, "w") as f:
+        f["davis/left/events"] = np.zeros((0, 4))
+    assert main(["estimate", str(empty), "--out", str(tmp_path / "o"), "--quiet", "--duration", "0.01"]) == 2
+    assert capsys.readouterr().err.strip().endswith("no window to estimate: the recording has no events")
+    folder = _write_text(tmp_path / "few", [f"{0.001 * k:.3f} {k % 60} {k % 40} {k % 2}" for k in range(100)])
+    assert main(["estimate", str(folder), "--out", str(tmp_path / "o"), "--quiet", "--window", "150"]) == 2
+    err = capsys.readouterr().err
+    assert "100 events, fewer than one window of --window 150: --keep-tail estimates a shorter window" in err
+
+
+def test_a_broken_external_link_names_the_file(tmp_path):
+    path = tmp_path / "ext_data.hdf5"
+    with h5py.File(path, "w") as f:
+        f["davis/left/events"] = h5py.ExternalLink("missing.h5", "/events")
+    broken = r"ext_data.hdf5: dataset 'davis/left/events' cannot be opened \(a broken link"
+    with pytest.raises(OSError, match=broken):
+        io.open_recording(path)
+
+
+# --- issue 23: special files never block --------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["fifo", "socket", "device"])
+def test_special_files_are_refused_at_open(tmp_path, capsys, kind):
+    import socket
+
+    if kind == "fifo":
+        path = tmp_path / "events.txt"
+        os.mkfifo(path)
+    elif kind == "socket":
+        path = tmp_path / "events.sock"
+        with socket.socket(socket.AF_UNIX) as s:
+            s.bind(str(path))
+    else:
+        path = tmp_path / "zero"
+        if not os.path.exists("/dev/zero"):
+            pytest.skip("no /dev/zero")
+        path = type(tmp_path)("/dev/zero")
+    message = r"is a (FIFO \(named pipe\)|socket|character device), not a regular file"
+    start = time.perf_counter()
+    for call in (
+        lambda: io.open_recording(path),
+        lambda: io.open_recording(path, format="text"),
+        lambda: io.open_recording(path, format="mvsec"),
+        lambda: sequence.read_results(path),
+        lambda: sequence.process(path, progress=False),
+    ):
+        with pytest.raises(OSError, match=message):
+            call()
+    assert main(["estimate", str(path), "--format", "text", "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert time.perf_counter() - start < 30  # refused, not read
+
+
+def test_a_fifo_where_a_side_file_is_expected_is_refused(tmp_path):
+    folder = _write_text(tmp_path / "seq", ["0.0 1 2 1", "0.1 3 4 0", "0.2 5 6 1"])
+    os.mkfifo(folder / "calib.txt")  # Path.is_file() would say False and hide it
+    with pytest.raises(OSError, match=r"calib.txt: is a FIFO"):
+        io.open_recording(folder)
+
+
+# --- issue 23: unclear answers made clear -----------------------------------------------------------------
+def test_evaluate_of_a_binary_file_names_it(tmp_path, capsys):
+    raw = tmp_path / "some.raw"
+    raw.write_bytes(b"\x81\x00\xff\xfe" * 8)
+    assert main(["evaluate", str(raw)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"cmax-taichi evaluate: error: {raw}: not a results JSON file (byte 0x81 at offset")
+    assert "codec" not in err
+
+
+def test_segment_refuses_a_negative_sensor_size_by_name(tmp_path, capsys):
+    folder = _write_text(tmp_path / "seq", [f"{0.001 * k:.3f} {k % 60} {k % 40} {k % 2}" for k in range(100)])
+    argv = ["segment", str(folder), "--sensor-size", "-5", "10", "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        "cmax-taichi segment: error: --sensor-size: sensor_size must be positive, got (W, H) = (-5, 10)"
+    )
+    with pytest.raises(ValueError, match="sensor_size must be positive"):
+        io.open_recording(tmp_path / "seq", sensor_size=(-5, 10))
+
+
+def test_vote_weights_are_checked_as_event_arrays_are():
+    events = _normal_events()
+    n = len(events)
+    for weights, error, message in [
+        (np.full(n, 1 + 1j), TypeError, r"weights has complex values"),
+        (["1.5"] * n, TypeError, r"weights must be real numbers, got dtype <U3"),
+        (np.full(n, 1e300), ValueError, r"weights up to 1e\+300 in magnitude would overflow"),
+        (np.full(n - 1, 1.0), ValueError, r"weights has 299 values for 300 events"),
+        (np.r_[np.nan, np.ones(n - 1)], ValueError, r"weights has 1 non-finite value"),
+    ]:
+        with pytest.raises(error, match=message):
+            cm.ContrastMaximization(events, warp="translation2", weights=weights)
+    prob = cm.ContrastMaximization(events, warp="translation2", weights=np.full(n, 1e6))
+    assert np.isfinite(prob.value(np.zeros(2)))
+
+
+def test_a_tiny_blur_is_no_blur_not_a_nan():
+    events = _normal_events()
+    tiny = cm.ContrastMaximization(events, warp="translation2", blur_sigma=1e-300)
+    none = cm.ContrastMaximization(events, warp="translation2", blur_sigma=0.0)
+    theta = np.array([30.0, -20.0])
+    assert tiny.value(theta) == pytest.approx(none.value(theta), rel=1e-12)
+
+
+@pytest.mark.parametrize("name", ["flow.flo", "flow.npz", "flow.png", "x_gt_flow_dist.npz"])
+def test_a_fifo_given_as_a_flow_file_is_refused(tmp_path, name):
+    from cmax_taichi.io._flow import NpzFrames
+    from cmax_taichi.io.writers import read_flow
+
+    path = tmp_path / name
+    os.mkfifo(path)
+    start = time.perf_counter()
+    read = (lambda: NpzFrames(path, "x_flow_dist")) if name.startswith("x_gt") else (lambda: read_flow(path))
+    with pytest.raises(OSError, match=r"is a FIFO \(named pipe\), not a regular file"):
+        read()
+    assert time.perf_counter() - start < 10  # refused, not opened

@@ -261,3 +261,150 @@ def test_dsec_reader_raises_only_documented_errors(t, xy, p, offset):
                     rec.read_time(rec.t_start, rec.t_end)
         except DOCUMENTED:
             pass
+
+
+# --- window accounting: events in = events estimated + events counted as not estimated -------------
+def _oracle_counts(t, inside, n_events, duration, stride, keep_tail, max_windows):
+    """Where every event goes, by brute force: every window listed (time windows stepped one by one),
+    then each event given its best fate over the windows that hold it (see cmax_taichi.core.windows)."""
+    n = len(t)
+    windows = []  # (start, stop, tail, keep)
+    if duration is None:
+        step = stride or n_events
+        starts = list(range(0, n - n_events + 1, step))
+        windows = [(s, s + n_events, False, True) for s in starts]
+        following = starts[-1] + step if starts else 0
+        if following < n:
+            least = max(2, math.ceil(0.5 * n_events))
+            windows.append((following, n, True, keep_tail and n - following >= least))
+    elif n:
+        step = stride or duration
+        k = 0
+        while t[0] + k * step <= t[-1]:
+            a = t[0] + k * step
+            i0, i1 = (int(i) for i in np.searchsorted(t, [a, a + duration], side="left"))
+            if i1 > i0:
+                windows.append((i0, i1, False, True))
+            k += 1
+    stopped = max_windows is not None and len(windows) > max_windows
+    if max_windows is not None:
+        windows = windows[:max_windows]
+    rank = ["between_windows", "partial_tail", "too_few_events", "zero_duration", "outside_sensor"]
+    rank.append("estimated")
+    fate = np.zeros(n, dtype=int)
+    for i0, i1, _tail, keep in windows:
+        ok = inside[i0:i1]
+        used = t[i0:i1][ok]
+        if not keep:
+            code = 1
+        elif len(used) < 2:
+            code = 2
+        elif not used[-1] - used[0] > 0:
+            code = 3
+        else:
+            code = 5
+        window = np.full(i1 - i0, code)
+        window[~ok] = 4
+        fate[i0:i1] = np.maximum(fate[i0:i1], window)
+    counts = {name: int(np.sum(fate == k)) for k, name in enumerate(rank)}
+    counts["after_max_windows"] = 0
+    last = max((i1 for _, i1, _, _ in windows), default=0)
+    if stopped:
+        counts["after_max_windows"] = int(np.sum(fate[last:] == 0))
+        counts["between_windows"] -= counts["after_max_windows"]
+    return counts
+
+
+@st.composite
+def _bursts(draw):
+    """Event times in bursts separated by gaps (some bursts on a coarse grid: repeated timestamps)."""
+    times = []
+    t = 0.0
+    for _ in range(draw(st.integers(0, 5))):
+        t += draw(st.sampled_from([0.0, 0.001, 0.05, 0.5, 3.0]))
+        count = draw(st.integers(0, 120))
+        spread = draw(st.sampled_from([0.0, 1e-4, 0.01, 0.1]))
+        burst = t + np.random.default_rng(draw(st.integers(0, 99))).uniform(0, spread, count)
+        if draw(st.booleans()):
+            burst = np.round(burst, 3)
+        times.append(burst)
+        t += spread
+    return np.sort(np.concatenate(times)) if times else np.zeros(0)
+
+
+_WINDOW_ARGS = {
+    "n_events": st.integers(2, 70),
+    "stride": st.one_of(st.none(), st.integers(1, 90)),
+    "duration_share": st.one_of(st.none(), st.floats(0.005, 1.5)),
+    "time_stride_share": st.one_of(st.none(), st.floats(0.005, 2.0)),
+    "keep_tail": st.booleans(),
+    "max_windows": st.one_of(st.none(), st.integers(1, 12)),
+}
+
+
+def _time_args(t, duration_share, time_stride_share):
+    span = float(t[-1] - t[0]) if len(t) > 1 else 1.0
+    span = span if span > 0 else 1.0
+    if duration_share is None:
+        return None, None
+    return duration_share * span, None if time_stride_share is None else time_stride_share * span
+
+
+@FAST
+@given(t=_bursts(), **_WINDOW_ARGS)
+def test_every_event_is_accounted_for(
+    t, n_events, stride, duration_share, time_stride_share, keep_tail, max_windows
+):
+    """Any window size, stride, duration, gaps and repeated times: the events estimated plus those counted
+    under each reason are the events in, and each count is the brute-force one (count_events runs the
+    windows, statuses and ledger of sequence.process, without estimating)."""
+    from cmax_taichi.solve.sequence import count_events
+
+    events = cm.Events(np.zeros(len(t)), np.zeros(len(t)), t, np.ones(len(t)), (4, 4))
+    duration, time_stride = _time_args(t, duration_share, time_stride_share)
+    kwargs = dict(n_events=n_events, duration=duration, stride=time_stride if duration else stride)
+    if len(t) > 1 and t[0] == t[-1]:
+        with pytest.raises(ValueError, match="have the same time"):
+            count_events(events, **kwargs, keep_tail=keep_tail, max_windows=max_windows)
+        return
+    got = count_events(events, **kwargs, keep_tail=keep_tail, max_windows=max_windows)
+    want = _oracle_counts(
+        t, np.ones(len(t), dtype=bool), n_events, duration, kwargs["stride"], keep_tail, max_windows
+    )
+    assert sum(v for k, v in got.items() if k not in ("total", "windows")) == got["total"] == len(t)
+    assert {k: v for k, v in got.items() if k not in ("total", "windows", "undistortion")} == want
+
+
+@pytest.fixture(scope="module")
+def recording_with_outside_events(tmp_path_factory):
+    """A text recording of undistorted (float) coordinates, 5% of them a little off the 40x30 sensor,
+    in three bursts with gaps."""
+    folder = tmp_path_factory.mktemp("outside")
+    rng = np.random.default_rng(7)
+    t = np.sort(np.concatenate([rng.uniform(a, a + 0.02, 150) for a in (0.0, 0.021, 0.5)]))
+    x, y = rng.uniform(0, 39, len(t)), rng.uniform(0, 29, len(t))
+    off = rng.random(len(t)) < 0.05
+    x[off] = rng.choice([-0.4, 39.4], int(off.sum()))
+    np.savetxt(folder / "events.txt", np.c_[t, x, y, np.ones(len(t))], fmt="%.9f")
+    (folder / "calib.txt").write_text("30 30 19.5 14.5\n40 30\n")
+    rec = io.open_recording(folder, cache_dir=tmp_path_factory.mktemp("cache"))
+    yield rec, np.loadtxt(folder / "events.txt")[:, 0], ~off  # the times as the file holds them
+    rec.close()
+
+
+@settings(FAST, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(**_WINDOW_ARGS)
+def test_every_event_of_a_recording_is_accounted_for(
+    recording_with_outside_events, n_events, stride, duration_share, time_stride_share, keep_tail, max_windows
+):
+    """The same through a Recording whose reader drops events outside the sensor (counted once each,
+    however many windows hold them)."""
+    from cmax_taichi.solve.sequence import count_events
+
+    rec, t, inside = recording_with_outside_events
+    duration, time_stride = _time_args(t, duration_share, time_stride_share)
+    kwargs = dict(n_events=n_events, duration=duration, stride=time_stride if duration else stride)
+    got = count_events(rec, **kwargs, keep_tail=keep_tail, max_windows=max_windows)
+    want = _oracle_counts(t, inside, n_events, duration, kwargs["stride"], keep_tail, max_windows)
+    assert sum(v for k, v in got.items() if k not in ("total", "windows")) == got["total"] == len(t)
+    assert {k: v for k, v in got.items() if k not in ("total", "windows", "undistortion")} == want

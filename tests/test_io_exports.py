@@ -93,8 +93,10 @@ def test_npz_round_trip_and_dispatch(tmp_path):
     assert meta == {"t_start": 0.5, "t_end": 0.75, "unit": "px", "window": 3}
     for suffix in ("flo", "npz"):
         np.testing.assert_allclose(read_flow(write_flow(tmp_path / f"g.{suffix}", flow)), flow, rtol=1e-7)
-    with pytest.raises(ValueError, match="unknown flow file type 'png'"):
-        write_flow(tmp_path / "g.png", flow)
+    # .png is DSEC's 16-bit flow PNG: 1/128 px steps
+    np.testing.assert_allclose(read_flow(write_flow(tmp_path / "g.png", flow)), flow, atol=1 / 256 + 1e-9)
+    with pytest.raises(ValueError, match="unknown flow file type 'tif'"):
+        write_flow(tmp_path / "g.tif", flow)
     with pytest.raises(TypeError, match="metadata 'note' must be a number or a string"):
         write_flow_npz(tmp_path / "h.npz", flow, note=[1, 2])
     np.savez(tmp_path / "other.npz", something=np.zeros(3))
@@ -142,8 +144,10 @@ def test_results_to_hdf5(tmp_path):
     with h5py.File(path, "r") as f:
         assert list(f.attrs["columns"]) == [
             "index", "t_start", "t_end", "n_events", "v_x", "v_y",
-            "value", "fwl", "iterations", "evaluations", "seconds", "converged",
+            "value", "fwl", "iterations", "evaluations", "seconds", "converged", "n_dropped", "status",
         ]  # fmt: skip
+        assert [s.decode() for s in f["status"][()]] == ["estimated"] * 3
+        np.testing.assert_array_equal(f["n_dropped"][()], [0, 0, 0])
         np.testing.assert_array_equal(f["index"][()], [0, 1, 2])
         np.testing.assert_array_equal(f["t_end"][()], [w.t_end for w in result.windows])
         np.testing.assert_array_equal(f["v_x"][()], result.theta[:, 0])
@@ -173,11 +177,14 @@ def test_estimate_writes_hdf5_and_flow_of_a_raw_file(tmp_path, capsys):
     assert "results.h5" in capsys.readouterr().out
     with (out / "results.csv").open() as fh:
         table = list(csv.DictReader(fh))
-    assert len(table) == 2
+    # two windows of 1000 events, then the partial tail's row (not estimated, counted)
+    assert [r["status"] for r in table] == ["estimated", "estimated", "partial_tail"]
     with h5py.File(out / "results.h5", "r") as f:
         np.testing.assert_array_equal(f["v_x"][()], [float(r["v_x [px/s]"]) for r in table])
         np.testing.assert_array_equal(f["t_start"][()], [float(r["t_start [s]"]) for r in table])
+        assert [s.decode() for s in f["status"][()]] == [r["status"] for r in table]
         assert f.attrs["setting_format"] == "raw" and f.attrs["setting_window_events"] == 1000
+    table = table[:2]  # the estimated windows have a flow file each
     for k, row in enumerate(table):
         flow, meta = read_flow_npz(out / "flow" / f"flow_{k:04d}.npz")
         assert flow.shape == (2, 48, 64) and meta["unit"] == "px" and meta["window"] == k

@@ -102,15 +102,26 @@ def test_mvsec_text_cut():
     rec = open_recording(folder)
     assert rec.format == "text" and rec.sensor_size == (346, 260) and rec.undistorted
     assert rec.columns == ("t", "x", "y", "depth", "p") and rec.n_events == 37187
-    assert rec.camera.fx == pytest.approx(226.38018519795807)
+    # the rectified camera of these coordinates (MVSEC's P of the left DAVIS), not the raw DAVIS one
+    # (K = 226.38 226.15 173.65 133.73 with distortion, calib_raw_davis.txt): see PROVENANCE.txt
+    cam = rec.camera
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == pytest.approx((199.653, 199.653, 177.433, 126.812), abs=1e-3)
+    assert cam.dist == (0.0,) * 5
+    calib = np.loadtxt(folder / "calib.txt", max_rows=1)
+    assert cam == cm.Camera(*calib[:4], dist=tuple(calib[4:]))
     with pytest.warns(RuntimeWarning, match="outside the 346x260 sensor"):
         ev = rec.read()
     inside = (raw[:, 1] <= 345) & (raw[:, 2] <= 259)
     np.testing.assert_array_equal(ev.x, raw[inside, 1])
     np.testing.assert_array_equal(ev.t, raw[inside, 0])
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # the warning is given once per recording
+    # each read counts its own drops; a pass of windows gives one warning with the totals (issue 23)
+    with pytest.warns(RuntimeWarning, match=r"dropped \d+ of 30000 event\(s\) outside the 346x260 sensor"):
         rec.read(0, 30000)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        list(rec.windows(10000, keep_tail=True))  # every event in a window: the drops are all counted
+    assert [str(w.message).count("outside the sensor") for w in caught] == [1], caught
+    assert f"{int((~inside).sum())} outside the sensor" in str(caught[0].message)
 
 
 # --- fixture folders --------------------------------------------------------------------------

@@ -2,17 +2,25 @@
 ``cmax_taichi/cli/``.
 
 Each sub-command module defines ``NAME``, ``HELP`` and ``add_arguments(parser)`` / ``run(args) -> int``,
-and is listed explicitly in ``COMMAND_MODULES``. Errors a user can cause (bad paths, unknown formats,
-bad values) are raised as :class:`CliError` or ValueError / OSError / KeyError and printed as one line
-with exit code 2, never a traceback. ``--plugin FILE.py`` anywhere on the line is imported first (the
-user's warps, objectives and regularizers then appear in every help and choice).
+and is listed explicitly in ``COMMAND_MODULES``. A command line that names its sub-command imports that
+module only (the others import what their options list: the lab's experiments, the benchmark, ...); the
+full parser serves ``cmax-taichi``, ``--help`` and an unknown command. Errors a user can cause (bad
+paths, unknown formats, bad values) are raised as :class:`CliError` or ValueError / OSError / KeyError
+and printed as one line with exit code 2, never a traceback. Warnings (events not estimated, ...) are
+printed as one line each, ``cmax-taichi COMMAND: warning: ...``. Ctrl-C ends a command with exit code
+130 and SIGTERM with 143, both the same way (the outputs are left as they were: see
+:mod:`cmax_taichi.io.outputs`). ``--plugin FILE.py`` anywhere on the line is imported first (the user's
+warps, objectives and regularizers then appear in every help and choice).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import signal
 import sys
+import warnings
 
 #: explicit list of sub-command modules (cmax_taichi.cli.<name>)
 COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce", "bench")
@@ -22,7 +30,38 @@ class CliError(Exception):
     """An error caused by the user's input: printed as one line, exit code 2."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that it unwinds as Ctrl-C does (exit code 143)."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def _command_signals_and_warnings(command: str):
+    """For the length of a command: SIGTERM handled as SIGINT is, and each warning as one line."""
+    previous_term = None
+    with contextlib.suppress(ValueError):  # not the main thread: leave the signals alone
+        previous_term = signal.signal(signal.SIGTERM, _raise_terminated)
+    previous_show = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message).replace("\n", " ")
+        print(f"cmax-taichi {command}: warning: {text}", file=file or sys.stderr)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous_show
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The command's parser: every sub-command, or the one called ``only`` (a name of
+    :data:`COMMAND_MODULES`)."""
     parser = argparse.ArgumentParser(
         prog="cmax-taichi",
         description=(
@@ -31,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
+    for name in COMMAND_MODULES if only is None else (only,):
         module = importlib.import_module(f"cmax_taichi.cli.{name}")
         p = sub.add_parser(module.NAME, help=module.HELP, description=module.__doc__)
         module.add_arguments(p)
@@ -40,21 +79,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    try:  # the user's extensions first: the parser's help lists the registries
-        from cmax_taichi.cli._common import load_plugins
+    args_list = sys.argv[1:] if argv is None else list(argv)
+    if any(a == "--plugin" or a.startswith("--plugin=") for a in args_list):
+        try:  # the user's extensions first: the parser's help lists the registries
+            from cmax_taichi.cli._common import load_plugins
 
-        load_plugins(argv)
-    except CliError as exc:
-        print(f"cmax-taichi: error: {exc}", file=sys.stderr)
-        return 2
-    parser = build_parser()
-    args = parser.parse_args(argv)
+            load_plugins(args_list)
+        except CliError as exc:
+            print(f"cmax-taichi: error: {exc}", file=sys.stderr)
+            return 2
+    named = args_list[0] if args_list and args_list[0] in COMMAND_MODULES else None
+    parser = build_parser(named)
+    args = parser.parse_args(args_list)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
     try:
-        return int(args._run(args) or 0)
+        with _command_signals_and_warnings(args.command):
+            return int(args._run(args) or 0)
+    except Terminated:
+        print("cmax-taichi: terminated (SIGTERM)", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("cmax-taichi: interrupted", file=sys.stderr)
         return 130

@@ -3,9 +3,15 @@
 The recording is read window by window (30,000 events per window by default, or --duration seconds);
 each window's warp parameters are found by a global search and gradient ascent, warm-started from the
 previous window. Results go to OUT/results.csv, OUT/results.json and OUT/results.h5 (one row per window:
-time span, event count, parameters in physical units, objective value, FWL, iterations, seconds),
-figures to OUT/figures/ (IWE before and after, flow colours; parameters over time); with --flow-out,
-each window's dense flow (displacement over the window, px) as a Middlebury .flo or .npz file.
+time span, event count, parameters in physical units, objective value, FWL, iterations, seconds, events
+dropped, status: windows that could not be estimated have a row too), figures to OUT/figures/ (IWE
+before and after, flow colours; parameters over time); with --flow-out, each window's dense flow
+(displacement over the window, px) as a Middlebury .flo or .npz file. Events not estimated (the partial
+last window, outside the sensor, ...) are counted in one warning at the end.
+
+OUT is never the recording nor a folder that holds it, files there that no cmax-taichi run wrote are
+never replaced, and everything appears in OUT only when the run completes (a Ctrl-C leaves OUT as it
+was); a second run on the same OUT is refused while the first runs.
 
 examples:
   cmax-taichi estimate --example rotation --out out_rotation   # simulated on the fly, against its truth
@@ -68,12 +74,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--stride", type=float, default=None, help="start-to-start step (events, or s with --duration)"
     )
     win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
+    win.add_argument(
+        "--keep-tail",
+        action="store_true",
+        help="also estimate the partial last window (count windows) when it holds at least half a window",
+    )
     opt = parser.add_argument_group("optimizer")
-    opt.add_argument("--method", default="adam", help=f"{common.names(METHODS)} (default adam)")
+    opt.add_argument("--method", default="bfgs", help=f"{common.names(METHODS)} (default bfgs)")
     opt.add_argument(
         "--init",
         default="auto",
-        help=f"{common.names(INITS)} (default auto: grid, then warm)",
+        help=f"{common.names(INITS)} (default auto: pyramid, then warm)",
     )
     opt.add_argument("--n-init", type=int, default=None, help="evaluations of the global search")
     opt.add_argument("--no-warm-start", action="store_true", help="global search in every window")
@@ -147,44 +158,72 @@ def check_choices(args: argparse.Namespace) -> None:
     common.parse_t_ref(args.t_ref)
 
 
-def _window_figure(path: Path, row, prob, res) -> None:
-    import matplotlib
+#: what a single run may write into OUT (paths relative to it; see cmax_taichi.io.outputs)
+OUTPUT_PATTERNS = (
+    "results.csv",
+    "results.json",
+    "results.h5",
+    "figures/window_*.png",
+    "figures/parameters.png",
+    "truth.json",
+)
+FLOW_PATTERNS = ("flow_*.flo", "flow_*.npz")
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def _save_figure(fig, path: Path, dpi: int) -> None:
+    """``fig`` to ``path`` through a temporary name renamed when complete (never a half-written PNG)."""
+    from cmax_taichi.io.outputs import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
+
+
+def _figure(width: float, height: float):
+    """A matplotlib figure drawn by the Agg canvas directly: no pyplot (its import and backend
+    machinery are a third of a figure's cost on the command line), nothing left open."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height))
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _window_figure_data(row, prob, res) -> dict:
+    """What the figure of a window shows (computed with the window's problem, drawn anywhere)."""
     import numpy as np
-
-    from cmax_taichi import viz
 
     model = prob.model
     params = ", ".join(
         f"{n}={v:.4g} {u}" for n, v, u in zip(model.params, res.theta, model.units, strict=True)
     )
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), constrained_layout=True)
-    viz.show_iwe(axes[0], prob.iwe(np.zeros(model.n_params)), title="IWE, identity warp (no motion)")
-    viz.show_iwe(axes[1], prob.iwe(res.theta), title=f"IWE, estimate (J = {res.value:.3f})")
-    flow = prob.dense_flow(res.theta)
-    viz.show_flow(axes[2], flow, unit="px/s", title=f"Flow of the estimate ({model.name})")
-    fig.suptitle(
-        f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events; {params}",
-        fontsize=10,
-    )
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    return {
+        "identity": prob.iwe(np.zeros(model.n_params)),
+        "estimate": prob.iwe(res.theta),
+        "flow": prob.dense_flow(res.theta),
+        "value": float(res.value),
+        "warp": model.name,
+        "title": f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events; "
+        f"{params}",
+    }
 
 
-def _flow_dir(flow_out: str | None) -> Path | None:
-    """The --flow-out folder, created (CliError when it cannot be)."""
-    from cmax_taichi.cli import CliError
+def _draw_window_figure(path: Path, data: dict) -> None:
+    from cmax_taichi import viz
 
-    if flow_out is None:
-        return None
-    flow_dir = Path(flow_out)
-    try:
-        flow_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(f"--flow-out: cannot create {flow_dir} ({exc.strerror or exc})") from None
-    return flow_dir
+    fig = _figure(16, 4.6)
+    axes = fig.subplots(1, 3)
+    # fixed margins: the constrained layout engine took a third of the figure's time
+    fig.subplots_adjust(left=0.035, right=0.965, bottom=0.08, top=0.86, wspace=0.42)
+    viz.show_iwe(axes[0], data["identity"], title="IWE, identity warp (no motion)")
+    viz.show_iwe(axes[1], data["estimate"], title=f"IWE, estimate (J = {data['value']:.3f})")
+    viz.show_flow(axes[2], data["flow"], unit="px/s", title=f"Flow of the estimate ({data['warp']})")
+    fig.suptitle(data["title"], fontsize=10)
+    _save_figure(fig, path, dpi=90)
+
+
+def _window_figure(path: Path, row, prob, res) -> None:
+    _draw_window_figure(path, _window_figure_data(row, prob, res))
 
 
 def _write_window_flow(path: Path, row, prob, res) -> None:
@@ -196,27 +235,126 @@ def _write_window_flow(path: Path, row, prob, res) -> None:
     write_flow(path, flow, unit="px", **meta)
 
 
-def _parameters_figure(path: Path, result) -> None:
-    import matplotlib
+def _parameters_figure_data(result) -> dict:
+    return {
+        "t": result.t_mid,
+        "theta": result.theta,
+        "fwl": [w.fwl for w in result.windows],
+        "names": result.param_names,
+        "units": result.units,
+        "warp": result.warp,
+    }
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    P = len(result.param_names)
-    fig, axes = plt.subplots(P + 1, 1, figsize=(8, 1.8 * (P + 1)), sharex=True, constrained_layout=True)
-    t = result.t_mid
-    theta = result.theta
-    for i, (name, unit) in enumerate(zip(result.param_names, result.units, strict=True)):
+def _draw_parameters_figure(path: Path, data: dict) -> None:
+    P = len(data["names"])
+    fig = _figure(8, 1.8 * (P + 1))
+    axes = fig.subplots(P + 1, 1, sharex=True)
+    fig.subplots_adjust(left=0.14, right=0.97, bottom=0.3 / (P + 1), top=1 - 0.25 / (P + 1), hspace=0.15)
+    t, theta = data["t"], data["theta"]
+    for i, (name, unit) in enumerate(zip(data["names"], data["units"], strict=True)):
         axes[i].plot(t, theta[:, i], ".-")
         axes[i].set_ylabel(f"{name} [{unit}]")
         axes[i].grid(alpha=0.3)
-    axes[P].plot(t, [w.fwl for w in result.windows], ".-", color="C1")
+    axes[P].plot(t, data["fwl"], ".-", color="C1")
     axes[P].set_ylabel("FWL")
     axes[P].set_xlabel("time (window middle) [s]")
     axes[P].grid(alpha=0.3)
-    axes[0].set_title(f"{result.warp} estimates per window")
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    axes[0].set_title(f"{data['warp']} estimates per window")
+    _save_figure(fig, path, dpi=90)
+
+
+def _parameters_figure(path: Path, result) -> None:
+    _draw_parameters_figure(path, _parameters_figure_data(result))
+
+
+_DRAW = {"window": _draw_window_figure, "parameters": _draw_parameters_figure}
+
+
+def _figure_worker(conn) -> None:
+    """The figure process: import matplotlib at once (while the estimate runs), then draw each
+    ``(kind, path, data)`` it receives until None; send back the list of errors."""
+    import matplotlib.backends.backend_agg  # noqa: F401 - the import is the point: it runs in parallel
+    import matplotlib.figure  # noqa: F401
+
+    errors = []
+    while True:
+        job = conn.recv()
+        if job is None:
+            break
+        kind, path, data = job
+        try:
+            _DRAW[kind](path, data)
+        except Exception as exc:  # reported by the parent, which then draws nothing more
+            errors.append(f"{path}: {type(exc).__name__}: {exc}")
+    conn.send(errors)
+    conn.close()
+
+
+class FigureWriter:
+    """Draws the command's figures in a child process where the platform can fork and Taichi has not
+    started yet (else in this process).
+
+    matplotlib's import and the drawing took 1.2 s of CPU time of a 38,000-event run whose estimate
+    takes about as long: forked before the backend starts (no Taichi thread exists yet), the child
+    imports matplotlib on the other core while the problem is built and solved, and draws each figure
+    while the results are written. :meth:`close` waits for it and raises CliError if a figure failed.
+    """
+
+    def __init__(self) -> None:
+        import multiprocessing
+
+        from cmax_taichi.core import backend
+
+        self._conn = self._process = None
+        self._errors: list[str] = []  # of the figures drawn in this process
+        # fork only a process without Taichi's thread pool (a thread holding a lock at the fork would
+        # leave it held in the child): the command forks before it starts the backend
+        if "fork" not in multiprocessing.get_all_start_methods() or backend.is_initialized():
+            return
+        ctx = multiprocessing.get_context("fork")
+        sys.stdout.flush()  # the child flushes its copy of the buffers when it ends: empty them first
+        sys.stderr.flush()
+        parent, child = ctx.Pipe()
+        self._process = ctx.Process(target=_figure_worker, args=(child,), daemon=True)
+        self._process.start()
+        child.close()
+        self._conn = parent
+
+    def draw(self, kind: str, path: Path, data: dict) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.send((kind, path, data))
+                return
+            except OSError:  # the child is gone: draw here from now on
+                self._conn = None
+        try:
+            _DRAW[kind](path, data)
+        except Exception as exc:  # one error line at close(), as from the child
+            self._errors.append(f"{path}: {type(exc).__name__}: {exc}")
+
+    def close(self) -> None:
+        from cmax_taichi.cli import CliError
+
+        errors, self._errors = self._errors, []
+        if self._conn is not None:
+            conn, self._conn = self._conn, None
+            try:
+                conn.send(None)
+                errors += conn.recv()
+            except (OSError, EOFError):
+                errors.append("the figure process ended before drawing every figure")
+            conn.close()
+            self._process.join(timeout=60)
+        if errors:
+            raise CliError("figures: " + "; ".join(errors))
+
+    def abandon(self) -> None:
+        """Stop the child without waiting for its figures (the run failed)."""
+        if self._process is not None and self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout=5)
+        self._conn = None
 
 
 def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
@@ -240,6 +378,7 @@ def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
         "method": args.method,
         "warm_start": not args.no_warm_start,
         "max_windows": args.max_windows,
+        "keep_tail": args.keep_tail,
         "problem_options": {
             "blur_sigma": args.blur,
             "t_ref": t_ref,
@@ -314,6 +453,8 @@ def run_batch(args: argparse.Namespace) -> int:
         if rec.new_windows == 0:
             resumed = " (already complete)"
         state = f"{rec.windows} window(s), {rec.new_windows} new{resumed}"
+        if rec.not_estimated:
+            state += f"; {rec.not_estimated} of {rec.events} event(s) not estimated"
         state = state if rec.status == "done" else f"FAILED: {rec.error}"
         print(f"  {rec.name}: {state}")
     print(f"wrote: {result.summary_csv}, {result.windows_csv}, {result.out}/<recording>/results.csv")
@@ -335,7 +476,6 @@ def run(args: argparse.Namespace) -> int:
     from cmax_taichi.solve.sequence import process
 
     regs = common.parse_regularizers(args.reg)
-    example = None
     if args.example is not None:
         if args.path:
             raise CliError("give a recording PATH or --example NAME, not both")
@@ -356,9 +496,68 @@ def run(args: argparse.Namespace) -> int:
         from cmax_taichi.sim.examples import check_example
 
         check_example(args.example, args.warp)
+    inputs = [] if args.example is not None else [Path(args.path[0])]
+    if inputs and not inputs[0].exists():
+        raise CliError(f"{inputs[0]}: no such file or folder")
+    out_folders = _output_folders(args, inputs)  # refuses, before any work, an OUT that would touch inputs
+    figures = FigureWriter()  # before the backend starts: see FigureWriter
+    try:
+        common.init_backend(args.arch, args.precision)
+        unique = list(dict.fromkeys(out_folders))  # the flow folder may be OUT itself
+        with contextlib.ExitStack() as stack:
+            for f in unique:
+                stack.enter_context(f)  # lock, checks, staging
+            folder, flow_folder = out_folders[0], (out_folders[-1] if args.flow_out is not None else None)
+            written = _estimate_one(
+                args, regs, folder, flow_folder, process, area_scale, cm, CliError, figures
+            )
+            final = []
+            for f in unique:
+                final += f.commit()  # every file moved into place whole, now that the run is complete
+    except BaseException:
+        figures.abandon()
+        raise
+    if written["flows"]:
+        flow_dir = out_folders[-1].out
+        final = [p for p in final if p.parent != flow_dir or not p.name.startswith("flow_")]
+        final.append(Path(flow_dir) / f"flow_*.{args.flow_format} ({written['flows']} files)")
+    print("wrote: " + ", ".join(str(p) for p in final))
+    sys.stdout.flush()
+    return 0
+
+
+def _output_folders(args: argparse.Namespace, inputs: list[Path]) -> list:
+    """The OutputFolder of --out, and the one of --flow-out when it is another folder; both checked
+    against the inputs now (one line, exit 2)."""
+    from cmax_taichi.io.outputs import OutputFolder, check_inputs
+
+    patterns = list(OUTPUT_PATTERNS)
+    same = args.flow_out is not None and Path(args.flow_out).resolve() == Path(args.out).resolve()
+    if same:
+        patterns += FLOW_PATTERNS
+    folders = [OutputFolder(args.out, inputs=inputs, patterns=patterns, command="estimate")]
+    check_inputs(args.out, inputs, "--out")
+    if args.flow_out is not None and not same:
+        check_inputs(args.flow_out, inputs, "--flow-out")
+        folders.append(
+            OutputFolder(
+                args.flow_out, inputs=inputs, patterns=FLOW_PATTERNS, command="estimate --flow-out",
+                option="--flow-out",
+            )
+        )  # fmt: skip
+    elif same:
+        folders.append(folders[0])
+    return folders
+
+
+def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliError, figures) -> dict:  # noqa: N803
+    """Estimate the one recording (or example) of ``args`` into the staging folder of ``folder``
+    (and ``flow_folder``), its figures drawn by ``figures`` (a FigureWriter, closed here: every figure
+    is in the staging folder on return); prints the summary; returns ``{"flows": number of flow
+    files}``."""
     from cmax_taichi import io
 
-    common.init_backend(args.arch, args.precision)
+    example = None
     if args.example is not None:
         from cmax_taichi.sim.examples import make_example
 
@@ -369,52 +568,40 @@ def run(args: argparse.Namespace) -> int:
         camera = example.camera
     else:
         path = Path(args.path[0])
-        if not path.exists():
-            raise CliError(f"{path}: no such file or folder")
         source = io.open_recording(path, format=args.format)
         camera = None
-    out = Path(args.out)
-    fig_dir = out / "figures"
     # per window, for the examples: the mean area scale of the warp at the estimate (a collapse
     # shrinks the events' neighbourhoods towards points: it drives the scale towards 0)
     area_scales: list[tuple[float, float]] = []  # (estimate, truth)
+    flows = [0]
     with source as rec:
-        n_events = len(rec) if example is not None else rec.n_events
         camera = camera if camera is not None else rec.camera
         if cm.get_warp(args.warp).needs_camera and camera is None:
             raise CliError(f"warp {args.warp!r} needs a calibration, and {path} has none (calib.txt)")
-        out.mkdir(parents=True, exist_ok=True)
-        flow_dir = _flow_dir(args.flow_out)
         figures_left = [max(0, args.figures)]
 
         def on_window(row, prob, res):
             if example is not None:
                 area_scales.append((area_scale(prob, res.theta), area_scale(prob, truth)))
             if figures_left[0] > 0:
-                fig_dir.mkdir(exist_ok=True)
-                _window_figure(fig_dir / f"window_{row.index:04d}.png", row, prob, res)
+                data = _window_figure_data(row, prob, res)
+                figures.draw("window", folder.path(f"figures/window_{row.index:04d}.png"), data)
                 figures_left[0] -= 1
-            if flow_dir is not None:
-                _write_window_flow(flow_dir / f"flow_{row.index:04d}.{args.flow_format}", row, prob, res)
+            if flow_folder is not None:
+                name = f"flow_{row.index:04d}.{args.flow_format}"
+                _write_window_flow(flow_folder.path(name), row, prob, res)
+                flows[0] += 1
 
         result = process(
             rec, **process_options(args, regs), camera=camera, progress=not args.quiet, on_window=on_window
         )
     if not result.windows:
-        raise CliError(
-            f"{path}: no window to estimate ({n_events} events; --window {args.window} is too large?)"
-        )
-    csv_path = result.to_csv(out / "results.csv")
-    json_path = result.to_json(out / "results.json")
-    written = [csv_path, json_path, result.to_hdf5(out / "results.h5")]
-    if args.flow_out is not None:
-        written.append(Path(args.flow_out) / f"flow_*.{args.flow_format} ({len(result.windows)} files)")
+        raise CliError(f"{path}: no window to estimate: {_why_no_window(args, result)}")
+    result.to_csv(folder.path("results.csv"))
+    result.to_json(folder.path("results.json"))
+    result.to_hdf5(folder.path("results.h5"))
     if len(result.windows) > 1:
-        fig_dir.mkdir(exist_ok=True)
-        _parameters_figure(fig_dir / "parameters.png", result)
-        written.append(fig_dir / "parameters.png")
-    if fig_dir.is_dir():
-        written += sorted(p for p in fig_dir.glob("window_*.png"))
+        figures.draw("parameters", folder.path("figures/parameters.png"), _parameters_figure_data(result))
     theta = result.theta
     print(f"{len(result.windows)} window(s) of {path}, warp {result.warp}, objective {args.objective}")
     for i, (name, unit) in enumerate(zip(result.param_names, result.units, strict=True)):
@@ -429,11 +616,37 @@ def run(args: argparse.Namespace) -> int:
     fwls = [w.fwl for w in result.windows if math.isfinite(w.fwl)]
     if fwls:
         print(f"  FWL: median {_median(fwls):.4f}")
+    events = result.events
+    if events.get("total"):
+        left = events["total"] - events["estimated"]
+        note = f"; {left} not estimated ({len(result.skipped)} window(s) not estimated)" if left else ""
+        print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
     if example is not None:
-        written.append(_report_example(example, result, area_scales, regs, out / "truth.json"))
-    print("wrote: " + ", ".join(str(p) for p in written))
-    sys.stdout.flush()
-    return 0
+        _report_example(example, result, area_scales, regs, folder.path("truth.json"))
+    figures.close()
+    return {"flows": flows[0]}
+
+
+def _why_no_window(args: argparse.Namespace, result) -> str:
+    """Why no window could be estimated, in the terms of the options the user gave."""
+    from cmax_taichi.core.windows import min_tail_events
+
+    events = result.events
+    total = events.get("total", 0)
+    if total == 0:
+        return "the recording has no events"
+    if args.duration is None and total < args.window:
+        least = min_tail_events(args.window)
+        hint = (
+            f"--keep-tail estimates a shorter window of {total} events"
+            if total >= least
+            else f"choose a smaller --window (--keep-tail needs at least {least} events)"
+        )
+        return f"{total} events, fewer than one window of --window {args.window}: {hint}"
+    windows = events.get("windows", {})
+    mode = f"--duration {args.duration:g} s" if args.duration is not None else f"--window {args.window}"
+    reasons = ", ".join(f"{n} {status.replace('_', ' ')}" for status, n in windows.items() if n)
+    return f"{total} events; no window of {mode} holds 2 events spanning a positive time ({reasons})"
 
 
 def _report_example(example, result, area_scales: list[tuple[float, float]], regs: dict, path: Path) -> Path:

@@ -1,4 +1,4 @@
-"""Compare the estimates of 'cmax-taichi estimate' with the recording's ground truth.
+"""Compare the estimates of 'cmax-taichi estimate', or dense flow files, with the recording's ground truth.
 
 For each window of RESULTS (the results.json that 'estimate' wrote, or its folder):
 
@@ -9,12 +9,21 @@ For each window of RESULTS (the results.json that 'estimate' wrote, or its folde
   and at least one event;
 * the estimate's FWL (variance of its IWE over the identity warp's) as 'estimate' computed it.
 
+Dense flow (RESULTS a folder of flow files, or one file, with --data): each file's flow, the
+displacement over its interval, against the ground truth over that interval (MVSEC *_gt_flow_dist.npz
+accumulated as EV-FlowNet does, DSEC flow PNGs, the simulator's files): AEE, NPE, %Out (EPE > 3 px
+and > 5% of the truth) and AE on the pixels with valid ground truth and at least one event. Files:
+flow_*.npz with t_start, t_end (what 'estimate --flow-out DIR --flow-format npz' writes), or .flo /
+DSEC .png files with --timestamps (t_start t_end in s per line, or DSEC's from_us, to_us[, file_index]).
+
 Writes OUT/metrics.csv and OUT/metrics.json (OUT defaults to the results folder) and prints a summary
 with the RMS angular-velocity error (deg/s) and the mean AEE / NPE.
 
-example:
+examples:
   cmax-taichi estimate ../shared/data/ecd_rotation/boxes_rotation --warp rotation3 --out out_boxes
   cmax-taichi evaluate out_boxes
+  cmax-taichi evaluate flows/ --data indoor_flying1_data.hdf5
+  cmax-taichi evaluate submission/zurich_city_01_a --data zurich_city_01_a --timestamps stamps.csv
 """
 
 from __future__ import annotations
@@ -30,18 +39,34 @@ from cmax_taichi.cli._common import add_backend_arguments, add_plugin_argument, 
 from cmax_taichi.io import FORMATS
 
 NAME = "evaluate"
-HELP = "metrics of 'estimate' results against ground truth (angular-velocity error, AEE, NPE, FWL)"
+HELP = "metrics of 'estimate' results or dense flow files against ground truth (angular error, AEE, NPE, FWL)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument(
-        "results", metavar="RESULTS", help="results.json written by 'estimate' (or its folder)"
+        "results",
+        metavar="RESULTS",
+        help="results.json written by 'estimate' (or its folder), or dense flow files (a folder or one file)",
     )
     parser.add_argument(
         "--data", default=None, metavar="PATH", help="the recording (default: the one the results name)"
     )
+    parser.add_argument(
+        "--timestamps",
+        default=None,
+        metavar="FILE",
+        help="intervals of .flo / .png files: 't_start t_end' (s) per line, or DSEC's from_us, to_us[, idx]",
+    )
     parser.add_argument("--format", default=None, help=f"{names(FORMATS)} (default: detected)")
+    parser.add_argument(
+        "--sensor-size",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="the recording's sensor size in px when it is not the format's (e.g. a scaled simulation)",
+    )
     parser.add_argument(
         "--npe", default="3,10,20", metavar="N,N,...", help="NPE thresholds in px (default 3,10,20)"
     )
@@ -76,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
 
     thresholds = _thresholds(args.npe)
     results_path = Path(args.results)
+    if _is_flow_source(results_path):
+        return _run_flows(args, results_path, thresholds)
+    if args.timestamps is not None:
+        raise CliError("--timestamps goes with flow files (.flo, .png), not with estimate results")
     if results_path.is_dir():
         results_path = results_path / "results.json"
     if not results_path.is_file():
@@ -89,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     model = cm.get_warp(result.warp)
     rows = []
     lossy = UndistortionTally()
-    with io.open_recording(data, format=fmt) as rec, warnings.catch_warnings():
+    with io.open_recording(data, format=fmt, **_size(args)) as rec, warnings.catch_warnings():
         camera = rec.camera
         for w in result.windows:
             row: dict = {"index": w.index, "t_start": w.t_start, "t_end": w.t_end, "fwl": w.fwl}
@@ -161,6 +190,91 @@ def run(args: argparse.Namespace) -> int:
     if fwls:
         summary["mean_fwl"] = float(np.mean(fwls))
         print(f"  FWL of the estimate: mean {summary['mean_fwl']:.4f}")
+    (out / "metrics.json").write_text(json.dumps({"summary": summary, "windows": rows}, indent=1))
+    print(f"wrote: {out / 'metrics.csv'}, {out / 'metrics.json'}")
+    return 0
+
+
+def _size(args: argparse.Namespace) -> dict:
+    return {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
+
+
+def _is_flow_source(path: Path) -> bool:
+    """Flow files rather than estimate results: a flow file, or a folder of them without results.json."""
+    from cmax_taichi.io.writers import FLOW_FORMATS
+
+    if path.is_file():
+        return path.suffix.lower().lstrip(".") in FLOW_FORMATS
+    if path.is_dir() and not (path / "results.json").is_file():
+        return any(f.suffix.lower().lstrip(".") in FLOW_FORMATS for f in path.iterdir())
+    return False
+
+
+def _run_flows(args: argparse.Namespace, source: Path, thresholds: tuple[float, ...]) -> int:
+    """Dense flow files against the ground truth of --data (see the module docstring)."""
+    import numpy as np
+
+    from cmax_taichi import io
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.io.writers import read_flow_windows
+    from cmax_taichi.metrics import score_flow
+
+    if not args.data:
+        raise CliError("evaluating flow files needs the recording with the ground truth: --data PATH")
+    try:
+        windows = read_flow_windows(source, args.timestamps)
+    except (OSError, KeyError, ValueError) as exc:
+        raise CliError(str(exc)) from None
+    rows = []
+    with io.open_recording(args.data, format=args.format, **_size(args)) as rec:
+        W, H = rec.sensor_size
+        for k, w in enumerate(windows):
+            try:
+                flow = w.displacement()
+            except (OSError, KeyError, ValueError) as exc:
+                raise CliError(str(exc)) from None
+            if flow.shape != (2, H, W):
+                raise CliError(
+                    f"{w.path}: flow of {flow.shape[2]}x{flow.shape[1]} px, the recording is {W}x{H}"
+                )
+            try:
+                err = score_flow(rec, flow, w.t_start, w.t_end, thresholds)
+            except ValueError as exc:  # an interval outside the ground truth
+                raise CliError(f"{w.path}: {exc}") from None
+            if err is None:
+                raise CliError(f"{args.data}: no flow ground truth to compare with")
+            rows.append({"index": k, "file": w.path.name, "t_start": w.t_start, "t_end": w.t_end, **err})
+    out = Path(args.out) if args.out else (source if source.is_dir() else source.parent)
+    out.mkdir(parents=True, exist_ok=True)
+    keys: list[str] = []
+    for r in rows:
+        keys += [key for key in r if key not in keys]
+    with (out / "metrics.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(keys)
+        for r in rows:
+            writer.writerow([r.get(key, "") for key in keys])
+    scored = [r for r in rows if math.isfinite(r["AEE"])]
+    summary: dict = {
+        "windows": len(rows),
+        "scored": len(scored),
+        "recording": str(args.data),
+        "flows": str(source),
+    }
+    print(f"{len(rows)} flow file(s) of {source} against {args.data} ({len(scored)} with pixels to score)")
+    if scored:
+        names = ["AEE", *(f"{t:g}PE" for t in thresholds), "outlier", "AE_deg"]
+        for name in names:
+            summary[f"mean_{name}"] = float(np.mean([r[name] for r in scored]))
+        summary["mean_n_pixels"] = float(np.mean([r["n_pixels"] for r in scored]))
+        npe = ", ".join(f"{t:g}PE {summary[f'mean_{t:g}PE']:.2f}%" for t in thresholds)
+        print(
+            f"  flow: mean AEE {summary['mean_AEE']:.3f} px, {npe}, %Out {summary['mean_outlier']:.2f}%, "
+            f"AE {summary['mean_AE_deg']:.2f} deg over {summary['mean_n_pixels']:.0f} px per window"
+        )
+    missing = sum(int(r["n_missing"]) for r in rows)
+    if missing:
+        print(f"  {missing} pixel(s) with ground truth and events had no finite flow (NaN): not scored")
     (out / "metrics.json").write_text(json.dumps({"summary": summary, "windows": rows}, indent=1))
     print(f"wrote: {out / 'metrics.csv'}, {out / 'metrics.json'}")
     return 0

@@ -2,7 +2,9 @@
 and the real ECD rotation cuts: Tables 1-3, the lambda sensitivity and the computational complexity.
 
 Writes Markdown, CSV (and PNG plots) into --out and prints each table; progress goes to stderr.
-See cmax_taichi/lab/experiments.py for the protocol.
+See cmax_taichi/lab/experiments.py for the protocol. --out is never the data folder nor a folder that
+holds it, files there that no cmax-taichi run wrote are never replaced, and the files appear in --out
+when the whole run completes (an interrupted run leaves --out as it was).
 """
 
 from __future__ import annotations
@@ -38,8 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
+    from pathlib import Path
 
-    from cmax_taichi.lab.experiments import Settings, reproduce
+    from cmax_taichi.io.outputs import OutputFolder
+    from cmax_taichi.lab.experiments import Settings, default_data_dir, reproduce
 
     settings = Settings.quick() if args.quick else Settings()
     changes = {}
@@ -55,14 +59,21 @@ def run(args: argparse.Namespace) -> int:
     if args.seed is not None:
         changes["seed"] = args.seed
     settings = replace(settings, **changes)
-    written = reproduce(
-        args.experiment,
-        args.out,
-        quick=args.quick,
-        data_dir=args.data,
-        settings=settings,
-        progress=not args.no_progress,
-    )
+    data_dir = Path(args.data) if args.data is not None else default_data_dir()
+    names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
+    patterns = [f"{name}.*" for name in names] + [f"run_{args.experiment}.json"]
+    with OutputFolder(args.out, inputs=[data_dir], patterns=patterns, command="reproduce") as folder:
+        staging = folder.staging
+        written = reproduce(
+            args.experiment,
+            staging,
+            quick=args.quick,
+            data_dir=data_dir,
+            settings=settings,
+            progress=not args.no_progress,
+        )
+        folder.commit()  # every file moved into place whole, now that the run is complete
     for name, files in written.items():
-        print(f"{name}: " + ", ".join(str(f) for f in files))
+        final = [folder.final(Path(f).relative_to(staging)) for f in files]
+        print(f"{name}: " + ", ".join(str(f) for f in final))
     return 0

@@ -5,7 +5,8 @@ Writes OUT/labels.npy (cluster per event, -1 for events dropped by undistortion)
 (t, x, y, p, label and the K membership probabilities per event), OUT/segmentation.json (per-cluster
 parameters with units, sizes, iterations, timings, settings) and two figures in OUT/figures/: the
 events coloured by cluster (image plane and x-t), and each cluster's sharpened IWE next to the
-unwarped events.
+unwarped events. OUT is never the recording nor a folder that holds it, files there that no cmax-taichi
+run wrote are never replaced, and the files appear in OUT only when the run completes.
 
 examples:
   cmax-taichi segment --example two-objects --out seg_example   # simulated, against the true labels
@@ -27,6 +28,15 @@ from cmax_taichi.cli import _common as common
 
 NAME = "segment"
 HELP = "segment a window of events into K independently moving clusters (labels, figures)"
+#: what a run may write into OUT (paths relative to it; see cmax_taichi.io.outputs)
+OUTPUT_PATTERNS = (
+    "labels.npy",
+    "labels.csv",
+    "segmentation.json",
+    "figures/events_by_cluster.png",
+    "figures/cluster_iwes.png",
+    "truth.json",
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -147,7 +157,7 @@ def _events_figure(path: Path, events, res) -> None:
         f"{len(res.history)} iterations, {res.seconds:.2f} s",
         fontsize=10,
     )
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, format="png")
     plt.close(fig)
 
 
@@ -174,16 +184,13 @@ def _iwe_figure(path: Path, events, res, raw_iwe) -> None:
             bbox=dict(facecolor="white", alpha=0.75, edgecolor="none"),
         )  # fmt: skip
     fig.suptitle("Per-cluster images of warped events (membership-weighted, blurred)", fontsize=10)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, format="png")
     plt.close(fig)
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
     import cmax_taichi as cm
     from cmax_taichi.cli import CliError
-    from cmax_taichi.testing.reference import bilinear_votes, gaussian_blur
 
     regs = common.parse_regularizers(args.reg)
     if args.example is not None:
@@ -197,6 +204,13 @@ def run(args: argparse.Namespace) -> int:
         args.warp = args.warp or SEGMENT_EXAMPLES[args.example].warp
     elif args.path is None:
         raise CliError("give a recording PATH, or --example NAME for a simulated scene")
+    if args.sensor_size is not None:
+        from cmax_taichi.core.checks import sensor_size
+
+        try:
+            args.sensor_size = sensor_size(args.sensor_size)
+        except (TypeError, ValueError) as exc:
+            raise CliError(f"--sensor-size: {exc}") from None
     args.warp = args.warp or "mitrokhin4"
     if args.clusters < 1:
         raise CliError(f"-k/--clusters must be at least 1, got {args.clusters}")
@@ -212,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
 
         check_example(args.example, warps)
     from cmax_taichi import io
+    from cmax_taichi.io.outputs import OutputFolder, check_inputs
 
     example = None
     if args.example is not None:
@@ -225,6 +240,7 @@ def run(args: argparse.Namespace) -> int:
         path = Path(args.path)
         if not path.exists():
             raise CliError(f"{path}: no such file or folder")
+        check_inputs(args.out, [path], "--out")  # before any work
         common.init_backend(args.arch, args.precision)
         options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
         with io.open_recording(path, format=args.format, **options) as rec:
@@ -249,17 +265,30 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    np.save(out / "labels.npy", res.labels)
-    written.append(out / "labels.npy")
+    with OutputFolder(
+        args.out, inputs=[] if example is not None else [path], patterns=OUTPUT_PATTERNS, command="segment"
+    ) as folder:
+        _write_outputs(folder, args, path, events, res, regs, t_ref, warps, example)
+        written = folder.commit()  # every file moved into place whole, now that all are written
+    print("wrote: " + ", ".join(str(p) for p in written))
+    sys.stdout.flush()
+    return 0
+
+
+def _write_outputs(folder, args, path, events, res, regs, t_ref, warps, example) -> None:
+    """The labels, the JSON summary and the figures, into the staging folder of ``folder``."""
+    import numpy as np
+
+    import cmax_taichi as cm
+    from cmax_taichi.testing.reference import bilinear_votes, gaussian_blur
+
+    with folder.path("labels.npy").open("wb") as fh:
+        np.save(fh, res.labels)
     K = res.n_clusters
     table = np.column_stack([events.t, events.x, events.y, events.p, res.labels, res.probabilities])
     header = "t_s,x_px,y_px,p,label," + ",".join(f"p_{j}" for j in range(K))
     fmt = ["%.9f", "%.3f", "%.3f", "%d", "%d"] + ["%.4f"] * K
-    np.savetxt(out / "labels.csv", table, delimiter=",", header=header, comments="", fmt=fmt)
-    written.append(out / "labels.csv")
+    np.savetxt(folder.path("labels.csv"), table, delimiter=",", header=header, comments="", fmt=fmt)
     thetas = list(res.thetas)
     clusters = []
     for j in range(K):
@@ -301,17 +330,13 @@ def run(args: argparse.Namespace) -> int:
         "seconds": res.seconds,
         "history": res.history,
     }
-    (out / "segmentation.json").write_text(json.dumps(summary, indent=1))
-    written.append(out / "segmentation.json")
+    folder.path("segmentation.json").write_text(json.dumps(summary, indent=1))
     if not args.no_figures:
-        fig_dir = out / "figures"
-        fig_dir.mkdir(exist_ok=True)
-        _events_figure(fig_dir / "events_by_cluster.png", events, res)
+        _events_figure(folder.path("figures/events_by_cluster.png"), events, res)
         W, H = events.sensor_size
         used = res.events  # undistorted when a camera with distortion was given
         raw = gaussian_blur(bilinear_votes(used.x, used.y, 1.0, W, H), args.blur)
-        _iwe_figure(fig_dir / "cluster_iwes.png", events, res, raw)
-        written += [fig_dir / "events_by_cluster.png", fig_dir / "cluster_iwes.png"]
+        _iwe_figure(folder.path("figures/cluster_iwes.png"), events, res, raw)
     print(
         f"segmented {len(events)} events of {path} into {K} clusters in {res.seconds:.2f} s "
         f"({len(res.history)} iterations, converged={res.converged})"
@@ -321,10 +346,7 @@ def run(args: argparse.Namespace) -> int:
         state = " (empty)" if c["empty"] else ""
         print(f"  cluster {c['cluster']} [{c['warp']}]: {c['events']} events{state}; {params}")
     if example is not None:
-        written.append(_report_example(example, res, out / "truth.json"))
-    print("wrote: " + ", ".join(str(p) for p in written))
-    sys.stdout.flush()
-    return 0
+        _report_example(example, res, folder.path("truth.json"))
 
 
 def _layer_truth(example, layer: int, warp: str) -> list[float]:

@@ -245,3 +245,67 @@ def per_thread_loops() -> Iterator[None]:
         yield
     finally:
         cfg.make_cpu_multithreading_loop = previous
+
+
+# --- Taichi's front end: the source position of every AST node ---------------------------------------
+#: set to 1 to keep Taichi's own source positions (a wrapped excerpt of the line per node)
+FULL_SOURCE_INFO_ENV = "CMAX_TAICHI_FULL_SOURCE_INFO"
+
+
+def _short_source_positions() -> bool:
+    """Give Taichi 1.7.4's AST builder the short position of each node (``File "...", line N, in f:``).
+
+    Taichi runs its Python front end on every kernel in every process, warm offline cache or not (the
+    cache skips LLVM only), and it formats, for every node of the kernel's tree, the source line with
+    a caret under the node through ``textwrap`` (``ASTTransformerContext.get_pos_info``): a quarter of
+    the 0.7 s of CPU time that building a fused kernel takes. The excerpt only labels the IR's debug
+    information (runtime messages in debug mode). A compile error still gets the full excerpt (the
+    error path below calls ``get_pos_info`` as Taichi does); the offline cache keys do not change.
+    Applied only to the Taichi version it was written for, and not with ``CMAX_TAICHI_FULL_SOURCE_INFO=1``.
+    Returns whether it was applied.
+    """
+    if os.environ.get(FULL_SOURCE_INFO_ENV, "").strip() == "1" or ti.__version__ != (1, 7, 4):
+        return False
+    try:
+        import ast
+        import traceback
+
+        from taichi.lang import impl
+        from taichi.lang.ast import ast_transformer_utils as utils
+        from taichi.lang.exception import TaichiCompilationError, TaichiSyntaxError, handle_exception_from_cpp
+    except ImportError:  # pragma: no cover - another layout than 1.7.4's
+        return False
+    if getattr(utils.Builder.__call__, "_cmax_short_positions", False):
+        return True
+
+    def build_node(self, ctx, node):  # Taichi 1.7.4's Builder.__call__ but for the position string
+        method = getattr(self, "build_" + node.__class__.__name__, None)
+        try:
+            if method is None:
+                error_msg = f'Unsupported node "{node.__class__.__name__}"'
+                raise TaichiSyntaxError(error_msg)
+            info = ""
+            if isinstance(node, (ast.stmt, ast.expr)):
+                line = node.lineno + ctx.lineno_offset
+                info = f'File "{ctx.file}", line {line}, in {ctx.func.func.__name__}:\n'
+            with impl.get_runtime().src_info_guard(info):
+                return method(ctx, node)
+        except Exception as e:
+            if impl.get_runtime().print_full_traceback:
+                raise e
+            if ctx.raised or not isinstance(node, (ast.stmt, ast.expr)):
+                raise e.with_traceback(None)  # noqa: B904 - as Taichi raises it
+            ctx.raised = True
+            e = handle_exception_from_cpp(e)
+            if not isinstance(e, TaichiCompilationError):
+                msg = ctx.get_pos_info(node) + traceback.format_exc()
+                raise TaichiCompilationError(msg) from None
+            msg = ctx.get_pos_info(node) + str(e)
+            raise type(e)(msg) from None
+
+    build_node._cmax_short_positions = True
+    utils.Builder.__call__ = build_node
+    return True
+
+
+SHORT_SOURCE_POSITIONS = _short_source_positions()

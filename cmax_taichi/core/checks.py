@@ -19,10 +19,12 @@ import numpy as np
 __all__ = [
     "MAX_TIME_WINDOWS",
     "MIN_EVENTS_PER_WINDOW",
+    "MAX_ABS_WEIGHT",
     "EventsDroppedWarning",
     "sensor_size",
     "whole_number",
     "seconds",
+    "vote_weights",
     "warn_dropped",
     "UndistortionTally",
     "time_windows",
@@ -33,6 +35,10 @@ MAX_TIME_WINDOWS = 10_000_000
 #: a window by time must expect at least this many events on average (``duration / mean spacing``):
 #: shorter windows are nearly all empty, which is a mistake of units rather than a request
 MIN_EVENTS_PER_WINDOW = 1e-3
+#: the largest per-event vote weight: the image of warped events sums weights and its variance their
+#: squares, which must stay finite in float32 (3.4e38) for windows of millions of events; only the ratios
+#: of the weights matter to a normalised objective, so larger weights are refused, not clipped
+MAX_ABS_WEIGHT = 1e9
 
 
 class EventsDroppedWarning(RuntimeWarning):
@@ -74,6 +80,35 @@ def seconds(name: str, value, positive: bool = False) -> float:
     if positive and not number > 0:
         raise ValueError(f"{name} must be a positive number of seconds, got {number}")
     return number
+
+
+def vote_weights(values, n_events: int, name: str = "weights") -> np.ndarray:
+    """Per-event vote weights as a float64 array of ``n_events`` values.
+
+    Raises TypeError for values that are not real numbers (strings, even numeric ones, objects,
+    complex values: the imaginary part is never dropped silently, datetimes), ValueError for another
+    count, a NaN or an infinity, or a magnitude above :data:`MAX_ABS_WEIGHT`."""
+    try:
+        arr = np.asarray(values)
+    except (TypeError, ValueError) as exc:  # ragged nested lists and the like
+        raise ValueError(f"{name} cannot be read as a numeric array ({exc})") from None
+    if np.iscomplexobj(arr):
+        raise TypeError(f"{name} has complex values (dtype {arr.dtype}); vote weights must be real")
+    if arr.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64).reshape(-1)
+    if arr.size != n_events:
+        raise ValueError(f"{name} has {arr.size} values for {n_events} events")
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        raise ValueError(f"{name} has {bad} non-finite value(s) (NaN or inf)")
+    largest = float(np.max(np.abs(arr))) if arr.size else 0.0
+    if largest > MAX_ABS_WEIGHT:
+        raise ValueError(
+            f"{name} up to {largest:g} in magnitude would overflow the image of warped events (at most "
+            f"{MAX_ABS_WEIGHT:g}); rescale them: only their ratios matter to a normalised objective"
+        )
+    return arr
 
 
 def sensor_size(value, where: str = "") -> tuple[int, int]:

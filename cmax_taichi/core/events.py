@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cmax_taichi.core.checks import EventsDroppedWarning, time_windows, warn_dropped, whole_number
+from cmax_taichi.core.checks import EventsDroppedWarning, time_windows, warn_dropped
 from cmax_taichi.core.checks import sensor_size as _check_sensor_size
 
 __all__ = ["Events", "Camera", "EventsDroppedWarning"]
@@ -180,26 +180,39 @@ class Events:
         i0, i1 = np.searchsorted(self.t, [t_start, t_end], side="left")
         return self._subset(slice(int(i0), int(i1)))
 
-    def windows_by_count(self, n_events: int, stride: int | None = None) -> Iterator[Events]:
+    def windows_by_count(
+        self, n_events: int, stride: int | None = None, keep_tail: bool = False
+    ) -> Iterator[Events]:
         """Consecutive windows of ``n_events`` events, starting every ``stride`` events (default: no
-        overlap). The last, shorter window is dropped.
+        overlap). The last, shorter window (the partial tail) is yielded with ``keep_tail`` when it holds
+        at least half a window; otherwise its events, and those a stride longer than the window skips,
+        are counted in one :class:`EventsDroppedWarning` when the pass ends.
 
         Both are whole numbers (``n_events >= 2``, ``stride >= 1``), checked when this is called:
         TypeError for a non-number, ValueError for a fraction or a value too small."""
-        n_events = whole_number("n_events", n_events, 2)
-        stride = n_events if stride is None else whole_number("stride (events)", stride, 1)
-        return self._count_windows(n_events, stride)
+        from cmax_taichi.core.windows import count_spans
 
-    def _count_windows(self, n_events: int, stride: int) -> Iterator[Events]:
-        for start in range(0, len(self) - n_events + 1, stride):
-            yield self._subset(slice(start, start + n_events))
+        return self._pass(count_spans(len(self), n_events, stride, keep_tail), n_events)
+
+    def _pass(self, spans, n_events: int | None) -> Iterator[Events]:
+        """The windows of ``spans``, then one warning with the events left out (see core/windows.py)."""
+        from cmax_taichi.core.windows import ESTIMATED, PARTIAL_TAIL, EventLedger
+
+        ledger = EventLedger(len(self))
+        for span in spans:
+            ledger.add(span, ESTIMATED if span.keep else PARTIAL_TAIL)
+            if span.keep:
+                yield self._subset(slice(span.start, span.stop))
+        ledger.finish()
+        ledger.warn(f"windows of {self!r}", n_events, verb="in no window", stacklevel=2)
 
     def windows_by_duration(
         self, duration: float, stride: float | None = None, max_windows: int | None = None
     ) -> Iterator[Events]:
         """Consecutive windows of ``duration`` seconds (start every ``stride`` s, default: no
         overlap), from the first event's time; empty windows are skipped (without stepping through
-        them one by one).
+        them one by one). The events a stride longer than the window skips are counted in one
+        :class:`EventsDroppedWarning` when the pass ends.
 
         The arguments are checked when this is called (see :func:`cmax_taichi.core.checks.time_windows`):
         ValueError for a non-positive or non-finite duration or stride, a duration below 1/1000 of the
@@ -214,15 +227,9 @@ class Events:
             lambda i: float(self.t[i]),
             max_windows,
         )
-        first = next(ranges, None)  # runs the checks now, not at the first iteration of the caller
-        return self._ranges(first, ranges)
+        from cmax_taichi.core.windows import time_spans
 
-    def _ranges(self, first, ranges) -> Iterator[Events]:
-        if first is None:
-            return
-        yield self._subset(slice(*first))
-        for i0, i1 in ranges:
-            yield self._subset(slice(i0, i1))
+        return self._pass(time_spans(ranges), None)  # the checks run now, not at the first iteration
 
     def undistort(self, camera: Camera, return_mask: bool = False):
         """Return new events with undistorted coordinates.

@@ -22,7 +22,9 @@ import importlib
 import os
 from pathlib import Path
 
+from cmax_taichi.core import checks
 from cmax_taichi.core.events import Events
+from cmax_taichi.io._files import check_regular, is_present
 from cmax_taichi.io.base import Recording
 from cmax_taichi.io.text import EVENT_FILE_NAMES, count_columns, find_events_file
 
@@ -54,30 +56,34 @@ def _hdf5_format(path: Path) -> str:
         with h5py.File(path, "r") as f:
             if "davis" in f:
                 return "mvsec"
-            if "events" in f and isinstance(f["events"], h5py.Group) and "x" in f["events"]:
+            if "events" in f and isinstance(f.get("events"), h5py.Group) and "x" in f["events"]:
                 return "dsec"
             keys = sorted(f.keys())
+    except KeyError as exc:  # a broken (external) link: h5py names neither the file nor the link
+        reason = exc.args[0] if exc.args else exc
+        raise OSError(f"{path}: cannot open an object of this HDF5 file (a broken link? {reason})") from None
     except OSError as exc:
         raise OSError(f"{path}: not a readable HDF5 file ({exc})") from None
     raise _unknown(path, f"HDF5 file without 'davis/left/events' (MVSEC) or 'events/x' (DSEC); keys {keys}")
 
 
 def _starts_with(path: Path, prefix: bytes) -> bool:
-    with open(path, "rb") as f:
+    with open(check_regular(path), "rb") as f:
         return f.read(len(prefix)) == prefix
 
 
 def detect_format(path: str | os.PathLike) -> str:
     """The format name of ``path`` (a file or a folder), from its name and, for HDF5, text and
     ``.dat``, its content (a Prophesee DAT file starts with a ``%`` header, a text file with a number
-    or ``#``). Raises FileNotFoundError for a missing path and ValueError for an unknown format."""
+    or ``#``). Raises FileNotFoundError for a missing path, OSError for a FIFO, a device or a socket
+    (never opened: reading one could block for ever) and ValueError for an unknown format."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
     if path.is_dir():
-        if any((path / name).is_file() for name in EVENT_FILE_NAMES):
+        if any([is_present(path / name) for name in EVENT_FILE_NAMES]):
             return "ecd" if count_columns(find_events_file(path)) == 4 else "text"
-        if (path / "events.h5").is_file() or (path / "events" / "left" / "events.h5").is_file():
+        if is_present(path / "events.h5") or is_present(path / "events" / "left" / "events.h5"):
             return "dsec"
         for pattern, name in (("*_data.hdf5", "mvsec"), ("*.aedat4", "aedat4")):
             found = sorted(path.glob(pattern))
@@ -86,6 +92,7 @@ def detect_format(path: str | os.PathLike) -> str:
             if len(found) > 1:
                 raise _unknown(path, f"{len(found)} {pattern} files in this folder: open one of them")
         raise _unknown(path, "no events file found in this folder")
+    check_regular(path)
     suffix = path.suffix.lower()
     if suffix == ".aedat4":
         return "aedat4"
@@ -128,6 +135,9 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
     ------
     FileNotFoundError
         ``path`` does not exist.
+    OSError
+        ``path`` (or a file of the folder that the reader opens) is a FIFO, a device or a socket:
+        refused before anything reads from it.
     ValueError
         Unknown format, or a malformed file (the message names the file and the problem).
     KeyError
@@ -136,10 +146,15 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
         The optional package a format needs is not installed (the message names it).
     """
     path = Path(path).expanduser()
+    if options.get("sensor_size") is not None:
+        # before any decoder sees it (faery would answer "out of range integral type conversion")
+        options["sensor_size"] = checks.sensor_size(options["sensor_size"])
     if format is None:
         format = detect_format(path)
     elif not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
+    elif not path.is_dir():
+        check_regular(path)
     if format not in _READERS:
         raise ValueError(f"unknown format {format!r}; supported formats: {', '.join(FORMATS)}")
     module_name, class_name = _READERS[format]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import tempfile
 import warnings
@@ -91,6 +92,36 @@ def _map(table_path: Path, n: int) -> np.ndarray:
     return np.memmap(table_path, dtype=np.float64, mode="r", shape=(n, COLUMNS))
 
 
+_SORT_BLOCK = 1 << 20  # rows gathered at once when a table is sorted
+
+
+def sort_rows(path: Path, n: int) -> tuple[float, float, int]:
+    """Sort the ``(n, 4)`` float64 table file ``path`` by time (stable: events of one time keep their
+    order), through a second temporary file; returns (first time, last time, rows that were earlier
+    than the row before). Memory: the time column and the order, 16 bytes per event."""
+    if n == 0:
+        return math.nan, math.nan, 0
+    table = np.memmap(path, dtype=np.float64, mode="r", shape=(n, COLUMNS))
+    t = np.array(table[:, 0])
+    back = int(np.count_nonzero(np.diff(t) < 0))
+    if back == 0:
+        del table
+        return float(t[0]), float(t[-1]), 0
+    order = np.argsort(t, kind="stable")
+    sorted_path = path.with_name(path.name + ".sorted")
+    try:
+        out = np.memmap(sorted_path, dtype=np.float64, mode="w+", shape=(n, COLUMNS))
+        for a in range(0, n, _SORT_BLOCK):
+            out[a : a + _SORT_BLOCK] = table[order[a : a + _SORT_BLOCK]]
+        out.flush()
+        del out, table
+        os.replace(sorted_path, path)
+    except BaseException:
+        sorted_path.unlink(missing_ok=True)
+        raise
+    return float(t[order[0]]), float(t[order[-1]]), back
+
+
 def cached_table(
     source: Path,
     kind: str,
@@ -98,8 +129,12 @@ def cached_table(
     build: Callable[[BinaryIO], dict],
     cache_dir: str | os.PathLike | None = None,
     use_cache: bool = True,
+    sort: bool = False,
 ) -> tuple[np.ndarray, dict]:
     """The ``(N, 4)`` float64 table of ``source``, memory-mapped, and its metadata.
+
+    With ``sort``, the rows are sorted by time (:func:`sort_rows`) before they are stored (the entry is
+    another one than the unsorted table's); the metadata then has ``rows_out_of_order``.
 
     ``build(out)`` decodes the source, writes the rows to the binary stream ``out`` (row-major
     float64) and returns a JSON-able dict with at least ``"n"`` (the row count). It runs once per
@@ -107,6 +142,8 @@ def cached_table(
     cache directory cannot be written (a warning says so), the table goes to a temporary file that
     is deleted when the returned array is garbage-collected (on POSIX).
     """
+    if sort:
+        options = dict(options, sorted_by_time=True)
     path_key, state_key = _keys(source, kind, options)
     root = cache_root(cache_dir)
     table_path = root / f"{path_key}-{state_key}.f64"
@@ -139,6 +176,9 @@ def cached_table(
         meta = dict(meta, source=str(source.resolve()), kind=kind, version=CACHE_VERSION)
         if tmp.stat().st_size != meta["n"] * COLUMNS * 8:
             raise OSError(f"event cache for {source}: wrote {tmp.stat().st_size} bytes for {meta['n']} rows")
+        if sort:
+            t_first, t_last, back = sort_rows(tmp, int(meta["n"]))
+            meta.update(t_start=t_first, t_end=t_last, rows_out_of_order=back)
         if not use_cache:
             table = _map(tmp, int(meta["n"]))
             # POSIX: the mapping keeps the data alive until it is released; Windows cannot unlink a
@@ -168,6 +208,8 @@ class CachedTableReads:
     """
 
     _table: np.ndarray | None
+    #: the decoders check that times are finite and in order (or sort them: ``sort=True``)
+    _times_checked = True
 
     @staticmethod
     def table_span(meta: dict) -> dict:

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax_taichi.io._files import check_regular
+
 Frame = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
 
@@ -111,7 +113,7 @@ class NpzFrames:
     """
 
     def __init__(self, path: Path, key: str) -> None:
-        self.path = Path(path)
+        self.path = check_regular(path)  # a FIFO or a device is refused, never read
         self.key = key
         try:
             with zipfile.ZipFile(self.path) as zf:

@@ -35,9 +35,15 @@ def dataset(f: h5py.File, key: str, path: Path, what: str) -> h5py.Dataset:
     Raises KeyError naming the file and the missing key, and OSError telling the user to
     ``pip install hdf5plugin`` when the dataset uses a compression filter that is not registered
     (DSEC files use blosc)."""
-    if key not in f or not isinstance(f[key], h5py.Dataset):
+    if key not in f:
         raise KeyError(f"{path}: no dataset '{key}' ({what})")
-    ds = f[key]
+    try:
+        ds = f[key]
+    except (KeyError, OSError) as exc:  # a broken soft or external link: h5py names neither file nor key
+        reason = exc.args[0] if exc.args else exc
+        raise OSError(f"{path}: dataset '{key}' cannot be opened (a broken link? {reason})") from None
+    if not isinstance(ds, h5py.Dataset):
+        raise KeyError(f"{path}: no dataset '{key}' ({what})")
     plist = ds.id.get_create_plist()
     for i in range(plist.get_nfilters()):
         code, _flags, _values, name = plist.get_filter(i)

@@ -1,4 +1,5 @@
-"""A minimal PNG decoder (zlib + NumPy) that returns exact 8- or 16-bit sample values.
+"""A minimal PNG decoder (zlib + NumPy) that returns exact 8- or 16-bit sample values, and an encoder
+(:func:`write_png`, for the DSEC flow files of :mod:`cmax_taichi.io.writers`).
 
 Why not matplotlib: it reads PNGs through Pillow, which has no 16-bit RGB mode and truncates DSEC's
 16-bit flow images to 8 bits. Non-interlaced grayscale, gray+alpha, RGB and RGBA images of bit depth 8
@@ -13,6 +14,8 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+
+from cmax_taichi.io._files import check_regular
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> samples per pixel
@@ -56,7 +59,7 @@ def read_png(path: str | Path) -> np.ndarray:
     ValueError
         Not a PNG, truncated or corrupt data, or an unsupported kind (interlaced, palette, < 8 bits).
     """
-    path = Path(path)
+    path = check_regular(path)  # a FIFO or a device is refused, never read
     data = path.read_bytes()
     if not data.startswith(SIGNATURE):
         raise ValueError(f"{path}: not a PNG file")
@@ -104,3 +107,36 @@ def read_png(path: str | Path) -> np.ndarray:
         image = image.view(">u2").astype(np.uint16)
     image = image.reshape(H, W, channels)
     return image[..., 0] if channels == 1 else image
+
+
+def write_png(path: str | Path, image: np.ndarray, level: int = 6) -> Path:
+    """Encode ``image`` as a PNG file: (H, W) gray or (H, W, C) with C = 2, 3, 4 (gray+alpha, RGB,
+    RGBA), uint8 or uint16 (16-bit samples are written big-endian, as the format wants). Each row is
+    filtered with "up" (type 2), which suits smooth images such as flow fields. Returns the path."""
+    image = np.asarray(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise TypeError(f"a PNG holds uint8 or uint16 samples, got {image.dtype}")
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.ndim != 3 or image.shape[2] not in (1, 2, 3, 4) or min(image.shape[:2]) < 1:
+        raise ValueError(f"a PNG image is (H, W) or (H, W, 1..4), got shape {image.shape}")
+    H, W, C = image.shape
+    depth = 16 if image.dtype == np.uint16 else 8
+    color = {1: 0, 2: 4, 3: 2, 4: 6}[C]
+    rows = image.astype(">u2" if depth == 16 else np.uint8).reshape(H, W * C).view(np.uint8)
+    up = rows.copy()
+    up[1:] = rows[1:] - rows[:-1]  # uint8 arithmetic wraps modulo 256, as the filter is defined
+    raw = np.concatenate([np.full((H, 1), 2, dtype=np.uint8), up], axis=1)
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    header = struct.pack(">IIBBBBB", W, H, depth, color, 0, 0, 0)
+    path = Path(path)
+    path.write_bytes(
+        SIGNATURE
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw.tobytes(), level))
+        + chunk(b"IEND", b"")
+    )
+    return path

@@ -20,6 +20,7 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io._cache import CachedTableReads, cached_table
+from cmax_taichi.io._files import check_regular
 from cmax_taichi.io.base import Recording
 
 PACKAGE = "aedat"
@@ -49,7 +50,7 @@ def _event_stream(decoder, path: Path) -> tuple[int, tuple[int, int]]:
     return sid, (int(stream["width"]), int(stream["height"]))
 
 
-def _decode(path: Path, out: BinaryIO) -> dict:
+def _decode(path: Path, out: BinaryIO, check_order: bool = True) -> dict:
     decoder = _decoder(path)
     sid, size = _event_stream(decoder, path)
     n, t_first, t_last = 0, math.nan, math.nan
@@ -65,8 +66,12 @@ def _decode(path: Path, out: BinaryIO) -> dict:
             rows[:, 1] = ev["x"]
             rows[:, 2] = ev["y"]
             rows[:, 3] = ev["on"]
-            if (not math.isnan(t_last) and rows[0, 0] < t_last) or np.any(np.diff(rows[:, 0]) < 0):
-                raise ValueError(f"{path}: event timestamps go backwards (packet after {n} events)")
+            backwards = (not math.isnan(t_last) and rows[0, 0] < t_last) or np.any(np.diff(rows[:, 0]) < 0)
+            if check_order and backwards:
+                raise ValueError(
+                    f"{path}: event timestamps go backwards (packet after {n} events; "
+                    "open_recording(..., sort=True) sorts them)"
+                )
             if n == 0:
                 t_first = float(rows[0, 0])
             t_last = float(rows[-1, 0])
@@ -90,7 +95,7 @@ class AEDAT4Recording(CachedTableReads, Recording):
         ``(W, H)`` px; default: the event stream's size.
     camera : Camera, optional
         AEDAT4 files carry no calibration.
-    cache_dir, cache
+    cache_dir, cache, sort
         As for the text formats (:class:`~.text.TextRecording`).
     """
 
@@ -104,6 +109,7 @@ class AEDAT4Recording(CachedTableReads, Recording):
         camera: Camera | None = None,
         cache_dir: str | os.PathLike | None = None,
         cache: bool = True,
+        sort: bool = False,
     ) -> None:
         path = Path(path)
         if path.is_dir():
@@ -111,12 +117,13 @@ class AEDAT4Recording(CachedTableReads, Recording):
             if len(found) != 1:
                 raise ValueError(f"{path}: expected one .aedat4 file in this folder, found {len(found)}")
             path = found[0]
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such file")
+        check_regular(path)
         _decoder(path)  # fails early, before any cache look-up, without the package or on a bad file
         self._table, meta = cached_table(
-            path, "aedat4", {}, lambda out: _decode(path, out), cache_dir=cache_dir, use_cache=cache
-        )
+            path, "aedat4", {}, lambda out: _decode(path, out, check_order=not sort), cache_dir=cache_dir,
+            use_cache=cache, sort=bool(sort),
+        )  # fmt: skip
+        self.rows_out_of_order = int(meta.get("rows_out_of_order", 0))
         super().__init__(
             path,
             sensor_size=sensor_size or tuple(meta["sensor_size"]),

@@ -13,7 +13,9 @@
 * Flow: ``<sequence>/flow/forward/*.png`` and ``<sequence>/flow/forward_timestamps.txt`` (``from_us,
   to_us`` per line, one line per PNG in name order), or ``flow_dir=`` pointing at that ``flow``
   folder. 16-bit PNG: ``flow_x = (R - 2**15) / 128``, ``flow_y = (G - 2**15) / 128`` px over the
-  line's interval, valid where ``B > 0``.
+  line's interval, valid where ``B > 0`` (:func:`read_flow_png`; the writer of submissions is
+  :func:`cmax_taichi.io.writers.write_dsec_flow_png`). :func:`read_flow_timestamps` reads those
+  timestamps and the benchmark's test CSVs (``from_us, to_us, file_index``).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
+from cmax_taichi.io._files import check_regular, is_present
 from cmax_taichi.io._flow import accumulate_flow
 from cmax_taichi.io._png import read_png
 from cmax_taichi.io.base import Recording, event_span
@@ -39,12 +42,12 @@ _MAX_US = 2**62  # microseconds; beyond, the int64 sums of times and offsets cou
 def _find_events_file(path: Path) -> Path:
     if path.is_dir():
         for candidate in (path / "events.h5", path / "events" / "left" / "events.h5"):
-            if candidate.is_file():
+            if is_present(candidate):
                 return candidate
         raise FileNotFoundError(f"{path}: no events.h5 (nor events/left/events.h5) in this folder")
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
-    return path
+    return check_regular(path)
 
 
 def _sequence_dirs(events_file: Path) -> list[Path]:
@@ -70,6 +73,43 @@ def read_flow_png(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     flow = np.moveaxis(flow, -1, 0)
     flow[:, ~valid] = np.nan
     return flow, valid
+
+
+def read_flow_timestamps(path: str | Path) -> np.ndarray:
+    """A DSEC flow timestamps file: ``flow/forward_timestamps.txt`` of a training sequence
+    (``from_timestamp_us, to_timestamp_us`` per line) or a ``<sequence>.csv`` of the benchmark's
+    ``test_forward_optical_flow_timestamps`` (``from_timestamp_us, to_timestamp_us, file_index``).
+
+    Returns
+    -------
+    ndarray
+        (K, 2) or (K, 3) int64: microseconds (and the file index of the submission PNG). Lines
+        starting with ``#`` are comments. Raises ValueError naming the file and the line for a line of
+        another shape, a non-integer or ``to <= from``.
+    """
+    path = Path(path)
+    rows: list[tuple[int, ...]] = []
+    for k, line in enumerate(read_text_file(path).splitlines(), start=1):
+        content = line.split("#", 1)[0].replace(",", " ").split()
+        if not content:
+            continue
+        try:
+            values = tuple(int(v) for v in content)
+        except ValueError:
+            raise ValueError(
+                f"{path}, line {k}: expected integers (microseconds), got {line[:80]!r}"
+            ) from None
+        if len(values) not in (2, 3) or (rows and len(values) != len(rows[0])):
+            raise ValueError(
+                f"{path}, line {k}: expected 'from_us, to_us' or 'from_us, to_us, file_index' on every "
+                f"line, got {len(values)} value(s)"
+            )
+        if values[1] <= values[0]:
+            raise ValueError(f"{path}, line {k}: to_timestamp_us must exceed from_timestamp_us")
+        rows.append(values)
+    if not rows:
+        raise ValueError(f"{path}: no timestamps")
+    return np.array(rows, dtype=np.int64)
 
 
 def _yaml_list(text: str, key: str) -> list[float]:
@@ -129,6 +169,8 @@ class DSECRecording(Recording):
         sequence, if present.
     flow_direction : {"forward", "backward"}
         Which flow of ``flow_dir`` to use.
+    sort, cache_dir
+        As for :class:`~.mvsec.MVSECRecording`: events out of order are refused unless ``sort=True``.
     """
 
     format = "dsec"
@@ -142,6 +184,8 @@ class DSECRecording(Recording):
         rectify: bool | None = None,
         flow_dir: str | os.PathLike | None = None,
         flow_direction: str = "forward",
+        sort: bool = False,
+        cache_dir: str | os.PathLike | None = None,
     ) -> None:
         self.events_file = _find_events_file(Path(path))
         ef = self.events_file
@@ -171,9 +215,9 @@ class DSECRecording(Recording):
             self._rectify_map = None
             map_file = ef.with_name("rectify_map.h5")
             if rectify is None:
-                rectify = map_file.is_file()
+                rectify = is_present(map_file)
             if rectify:
-                if not map_file.is_file():
+                if not is_present(map_file):
                     raise FileNotFoundError(f"{map_file}: rectify=True but there is no rectify_map.h5")
                 with _hdf5.open_h5(map_file) as mf:
                     rmap = _hdf5.read(
@@ -188,7 +232,7 @@ class DSECRecording(Recording):
             if camera is None:
                 for d in _sequence_dirs(ef):
                     for yaml in (d / "calibration" / "cam_to_cam.yaml", d / "cam_to_cam.yaml"):
-                        if camera is None and yaml.is_file():
+                        if camera is None and is_present(yaml):
                             camera = _yaml_camera(yaml, "camRect0" if rectify else "cam0")
             super().__init__(
                 ef,
@@ -200,6 +244,9 @@ class DSECRecording(Recording):
         self._flow_dir = self._locate_flow(flow_dir)
         self.flow_direction = flow_direction
         self._flow_index = None
+        if sort:
+            with _hdf5.closed_on_error(self._file):
+                self._sort_by_time(cache_dir)
 
     # --- events -----------------------------------------------------------------------------
     def _seconds(self, t_us, where: str = "") -> np.ndarray:
@@ -220,6 +267,9 @@ class DSECRecording(Recording):
 
     def _where(self, start: int, stop: int) -> str:
         return f"{self.events_file}: datasets 'events/x, y, t, p', rows {start}..{stop}"
+
+    def _where_time(self, row: int) -> str:
+        return f"{self.events_file}: dataset 'events/t', row {row}"
 
     def _columns(self, start: int, stop: int):
         ef = self.events_file

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax_taichi.core import checks
+from cmax_taichi.io._files import is_present
 from cmax_taichi.io.base import interpolate_rows
 from cmax_taichi.io.text import TextRecording, read_text_file
 
@@ -51,7 +52,7 @@ class ECDRecording(TextRecording):
     def _file(self, name: str, ncols: int) -> np.ndarray | None:
         if name not in self._gt:
             path = self.folder / name
-            self._gt[name] = _load_table(path, ncols) if path.is_file() else None
+            self._gt[name] = _load_table(path, ncols) if is_present(path) else None
         return self._gt[name]
 
     def angular_velocity(self, t) -> np.ndarray | None:
@@ -77,7 +78,7 @@ class ECDRecording(TextRecording):
     def images(self) -> list[tuple[float, Path]] | None:
         """``images.txt`` as ``(t, path)`` pairs (s, absolute path); None when absent."""
         path = self.folder / "images.txt"
-        if not path.is_file():
+        if not is_present(path):
             return None
         out = []
         for k, line in enumerate(read_text_file(path).splitlines(), start=1):
@@ -95,7 +96,7 @@ class ECDRecording(TextRecording):
         rotational flow of ``motion.txt`` times the window's duration ``t_end - t_start``; the flow
         over ``[t0, t1]`` is scaled by ``(t1 - t0) / (t_end - t_start)``. None without ``flow.npy``."""
         path = self.folder / "flow.npy"
-        if not path.is_file():
+        if not is_present(path):
             return None
         try:
             # never unpickle: a pickled .npy runs code of whoever wrote it

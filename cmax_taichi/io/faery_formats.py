@@ -37,6 +37,7 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io._cache import CachedTableReads, cached_table
+from cmax_taichi.io._files import check_regular
 from cmax_taichi.io.base import Recording
 
 PACKAGE = "faery"
@@ -251,7 +252,7 @@ class _Packets:
         return self._size
 
 
-def _decode(decoder, path: Path, what: str, out: BinaryIO) -> dict:
+def _decode(decoder, path: Path, what: str, out: BinaryIO, check_order: bool = True) -> dict:
     """Write the packets of ``decoder`` to ``out`` as ``t x y p`` rows (s, px, px, -1/+1)."""
     n, t_first, t_last = 0, math.nan, math.nan
     try:
@@ -263,8 +264,9 @@ def _decode(decoder, path: Path, what: str, out: BinaryIO) -> dict:
             rows[:, 1] = packet["x"]
             rows[:, 2] = packet["y"]
             rows[:, 3] = np.where(packet["on"], 1.0, -1.0)
-            if (not math.isnan(t_last) and rows[0, 0] < t_last) or np.any(np.diff(rows[:, 0]) < 0):
-                raise ValueError("event timestamps go backwards")
+            backwards = (not math.isnan(t_last) and rows[0, 0] < t_last) or np.any(np.diff(rows[:, 0]) < 0)
+            if check_order and backwards:
+                raise ValueError("event timestamps go backwards; open_recording(..., sort=True) sorts them")
             if n == 0:
                 t_first = float(rows[0, 0])
             t_last = float(rows[-1, 0])
@@ -293,7 +295,7 @@ class FaeryRecording(CachedTableReads, Recording):
     version : str, optional
         RAW: ``"evt2"``, ``"evt2.1"`` or ``"evt3"``; DAT: ``"dat1"`` or ``"dat2"``. Used only when
         the header does not name the encoding (default then ``evt3`` / ``dat2``, as in ``faery``).
-    cache_dir, cache
+    cache_dir, cache, sort
         As for the text formats (:class:`~.text.TextRecording`).
 
     Attributes
@@ -316,10 +318,9 @@ class FaeryRecording(CachedTableReads, Recording):
         version: str | None = None,
         cache_dir: str | os.PathLike | None = None,
         cache: bool = True,
+        sort: bool = False,
     ) -> None:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such file")
+        path = check_regular(path)
         if path.stat().st_size == 0:
             raise ValueError(f"{path}: empty file (not a {self._what} file)")
         allowed = VERSIONS[self._faery_type]
@@ -333,10 +334,12 @@ class FaeryRecording(CachedTableReads, Recording):
             path,
             self.format,
             {"version": version, "sensor_size": None if sensor_size is None else list(sensor_size)},
-            lambda out: _decode(decoder, path, self._what, out),
+            lambda out: _decode(decoder, path, self._what, out, check_order=not sort),
             cache_dir=cache_dir,
             use_cache=cache,
+            sort=bool(sort),
         )
+        self.rows_out_of_order = int(meta.get("rows_out_of_order", 0))
         super().__init__(
             path,
             sensor_size=sensor_size or tuple(meta["sensor_size"]),

@@ -20,6 +20,7 @@ import numpy as np
 from cmax_taichi.core import checks
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io._cache import CachedTableReads, cached_table
+from cmax_taichi.io._files import check_regular, is_present
 from cmax_taichi.io.base import Recording
 
 #: the column layouts recognised by their count when ``columns=`` is not given
@@ -32,6 +33,7 @@ _CHUNK = 8 << 20  # bytes parsed at once (bounded memory)
 def read_text_file(path: Path) -> str:
     """The text of a small side file (calibration, timestamps, image list): ValueError naming the
     file when it is not UTF-8 text (a binary file), OSError naming it when it cannot be read."""
+    check_regular(path)  # a FIFO or a device is refused, never read
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -48,12 +50,12 @@ def find_events_file(path: Path) -> Path:
     """The events text file of ``path`` (the file itself, or the first of EVENT_FILE_NAMES in a folder)."""
     if path.is_dir():
         for name in EVENT_FILE_NAMES:
-            if (path / name).is_file():
+            if is_present(path / name):
                 return path / name
         raise FileNotFoundError(f"{path}: no {' or '.join(EVENT_FILE_NAMES)} in this folder")
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
-    return path
+    return check_regular(path)
 
 
 def _data_lines(raw: bytes) -> list[tuple[int, bytes]]:
@@ -68,7 +70,7 @@ def _data_lines(raw: bytes) -> list[tuple[int, bytes]]:
 
 def count_columns(path: Path) -> int:
     """Number of columns of the first data line of a text events file."""
-    with open(path, "rb") as f:
+    with open(check_regular(path), "rb") as f:
         head = f.read(1 << 16)
     lines = _data_lines(head[: head.rfind(b"\n") + 1] if b"\n" in head else head)
     if not lines:
@@ -111,12 +113,13 @@ def _bad_line(path: Path, chunk: bytes, first_line: int, ncols: int) -> ValueErr
     return ValueError(f"{path}, lines {first_line}..: cannot parse the events")
 
 
-def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> dict:
+def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO, check_order: bool = True) -> dict:
     """Parse the text events of ``path`` chunk by chunk; write ``t x y p`` rows (float64) to ``out``.
 
     Raises ValueError naming the file and the line for a malformed or truncated line, a non-finite
     value, a polarity outside {-1, 0, 1}, a polarity of the other convention than the lines before
-    (-1 after 0 or 0 after -1: ``{0, 1}`` and ``{-1, +1}`` do not mix) or a time that goes backwards.
+    (-1 after 0 or 0 after -1: ``{0, 1}`` and ``{-1, +1}`` do not mix) or, with ``check_order``, a time
+    that goes backwards (without it the caller sorts the rows: ``sort=True``).
     """
     ncols = len(columns)
     pick = [columns.index(c) for c in ("t", "x", "y", "p")]
@@ -149,7 +152,9 @@ def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> di
                 if arr.shape[1] != ncols:
                     raise _bad_line(path, chunk, line_no, ncols)
                 rows = arr if pick == [0, 1, 2, 3] else np.ascontiguousarray(arr[:, pick])
-                off_polarity = _check_rows(path, chunk, line_no, rows, t_last, off_polarity)
+                off_polarity = _check_rows(
+                    path, chunk, line_no, rows, t_last if check_order else math.nan, off_polarity, check_order
+                )
                 if len(rows):
                     if n == 0:
                         t_first = float(rows[0, 0])
@@ -176,7 +181,13 @@ def parse_text_events(path: Path, columns: tuple[str, ...], out: BinaryIO) -> di
 
 
 def _check_rows(
-    path: Path, chunk: bytes, line_no: int, rows: np.ndarray, t_prev: float, off_polarity: float | None
+    path: Path,
+    chunk: bytes,
+    line_no: int,
+    rows: np.ndarray,
+    t_prev: float,
+    off_polarity: float | None,
+    check_order: bool = True,
 ) -> float | None:
     """ValueError naming the line of the first bad row; returns the OFF polarity value seen so far."""
 
@@ -200,17 +211,22 @@ def _check_rows(
                 f"{first:+.0f} polarities: use {{0, 1}} or {{-1, +1}}, not both"
             )
         off_polarity = first
+    if not check_order:
+        return off_polarity
     t = rows[:, 0]
     previous = np.concatenate([[-np.inf if math.isnan(t_prev) else t_prev], t[:-1]])
     back = np.flatnonzero(t < previous)
     if len(back):
-        raise ValueError(f"{where(int(back[0]))}: time goes backwards (events must be sorted by time)")
+        raise ValueError(
+            f"{where(int(back[0]))}: time goes backwards (events must be sorted by time; "
+            "open_recording(..., sort=True) sorts them)"
+        )
     return off_polarity
 
 
 def read_calib(path: Path) -> tuple[Camera | None, tuple[int, int] | None]:
     """``calib.txt``: line 1 ``fx fy cx cy [k1 k2 p1 p2 [k3]]``, optional line 2 ``W H``."""
-    if not path.is_file():
+    if not is_present(path):
         return None, None
     text = read_text_file(path)
     lines = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
@@ -253,6 +269,9 @@ class TextRecording(CachedTableReads, Recording):
         Where the binary cache goes (default ``$CMAX_TAICHI_CACHE`` or ``~/.cache/cmax_taichi``).
     cache : bool
         False: decode into a temporary file that is dropped with the recording.
+    sort : bool
+        Sort the events by time when they are out of order (stable), instead of refusing the file;
+        the sorted table is what the cache keeps. ``rows_out_of_order`` says how many rows were.
     """
 
     format = "text"
@@ -268,6 +287,7 @@ class TextRecording(CachedTableReads, Recording):
         undistorted: bool | None = None,
         cache_dir: str | os.PathLike | None = None,
         cache: bool = True,
+        sort: bool = False,
     ) -> None:
         path = Path(path)
         self.events_file = find_events_file(path)
@@ -277,10 +297,12 @@ class TextRecording(CachedTableReads, Recording):
             self.events_file,
             "text",
             {"columns": names},
-            lambda out: parse_text_events(self.events_file, names, out),
+            lambda out: parse_text_events(self.events_file, names, out, check_order=not sort),
             cache_dir=cache_dir,
             use_cache=cache,
+            sort=bool(sort),
         )
+        self.rows_out_of_order = int(self._meta.get("rows_out_of_order", 0))
         calib_camera, calib_size = read_calib(self.folder / "calib.txt")
         meta = self._meta
         integer = bool(meta["integer_coords"])

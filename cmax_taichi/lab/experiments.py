@@ -452,12 +452,21 @@ def complexity(settings: Settings, progress: bool = True) -> list[dict]:
 
 
 # --- driver ------------------------------------------------------------------------------------------
-def default_data_dir() -> Path:
-    """``$CMAX_SHARED_DATA/ecd_rotation``, else ``../shared/data/ecd_rotation`` beside the checkout."""
+def shared_data_root() -> Path:
+    """The shared recordings: ``$CMAX_SHARED_DATA``, else ``shared/data`` beside the checkout.
+
+    "Beside the checkout" is ``../shared/data`` seen from the checkout's root (this file is
+    ``<checkout>/cmax_taichi/lab/experiments.py``), the folder that ``tests/conftest.py`` reads too.
+    """
     env = os.environ.get("CMAX_SHARED_DATA")
     if env:
-        return Path(env) / "ecd_rotation"
-    return Path(__file__).resolve().parents[2] / "shared" / "data" / "ecd_rotation"
+        return Path(env)
+    return Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+def default_data_dir() -> Path:
+    """The ECD rotation cuts of table 3: ``ecd_rotation`` in :func:`shared_data_root`."""
+    return shared_data_root() / "ecd_rotation"
 
 
 def reproduce(
@@ -523,7 +532,11 @@ def reproduce(
             files += [out / f"{name}.md", out / f"{name}.csv", out / f"{name}.json"]
         elif name == "table3":
             if not data_dir.is_dir() and what == "all":
-                _say(f"table3: skipped, no ECD rotation data at {data_dir} (pass --data)", True)
+                _say(
+                    f"table3: skipped, no ECD rotation data at {data_dir} "
+                    "(pass --data or set CMAX_SHARED_DATA)",
+                    True,
+                )
                 continue
             result = rotation_table(data_dir, settings, progress)
             md = rotation_table_markdown(result)

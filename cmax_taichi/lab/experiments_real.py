@@ -1,7 +1,7 @@
 """Real-data results of the estimation pipeline on the shared recordings (``../shared/data``).
 
 Run ``python -m cmax_taichi.lab.experiments_real [--data DIR]``; it prints the tables that
-docs/results-real.md quotes. Four experiments:
+docs/results-real.md quotes. Five experiments:
 
 1. MVSEC indoor_flying1, the first 30,000 events, ``zoom1`` and ``mitrokhin4``, both objectives, with
    no regularizer, the whitening baseline, and divergence, deformation and both at every weight of
@@ -17,6 +17,9 @@ docs/results-real.md quotes. Four experiments:
 3. ECD slider_depth, ``translation2`` (undistorted with ``calib.txt``): the flow of the whole 50,000
    event chunk as one window, and per window of 10,000 events.
 4. zoom1 on a dense grid of ``h_z T`` beyond the search box (the time-to-contact bound).
+5. The whitening baseline with ``rotation3`` on poster_rotation: J with and without whitening along a
+   ray of ever larger rotations (kernels and the float64 reference), and what the default search
+   returns with whitening: the whitening's own collapse.
 
 Every problem uses the library defaults (t_ref = first event, blur sigma = 1 px, polarity ignored,
 normalised objective) and :func:`cmax_taichi.maximize` with its defaults (global grid search over
@@ -26,7 +29,6 @@ normalised objective) and :func:`cmax_taichi.maximize` with its defaults (global
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 import warnings
@@ -36,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 import cmax_taichi as cm
+from cmax_taichi.lab.experiments import shared_data_root
 from cmax_taichi.metrics import (
     COLLAPSE_SHARE,
     angular_velocity_error,
@@ -50,9 +53,9 @@ ROTATION_CUTS = ("shapes_rotation", "boxes_rotation", "dynamic_rotation", "poste
 
 
 def default_data_dir() -> Path:
-    """``$CMAX_SHARED_DATA`` or ``../shared/data`` beside the checkout."""
-    env = os.environ.get("CMAX_SHARED_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data"
+    """``$CMAX_SHARED_DATA``, else ``../shared/data`` beside the checkout
+    (:func:`cmax_taichi.lab.experiments.shared_data_root`)."""
+    return shared_data_root()
 
 
 def _fmt_vec(v) -> str:
@@ -376,6 +379,108 @@ def dense_grid_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# --- 5. whitening and rotation3 ------------------------------------------------------------------------
+#: the rotation that a global search once returned for rotation3 with whitening on poster_rotation (rad/s)
+WHITENING_RAY = (78.0, -78.0, 130.0)
+WHITENING_STEPS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)
+
+
+def whitening_rows(
+    folder: Path, ray=WHITENING_RAY, steps=WHITENING_STEPS, method: str = "adam", **options
+) -> Iterator[dict]:
+    """``rotation3`` with and without whitening on one ECD cut, J at ``s * ray`` for each ``s`` of
+    ``steps`` (kernels and the float64 reference :mod:`cmax_taichi.testing.reference`), then what
+    :func:`cmax_taichi.maximize` returns with whitening, against J at the gyro and at the unwhitened
+    estimate. The values at the points do not depend on any search."""
+    from cmax_taichi import io
+    from cmax_taichi.testing import reference
+
+    with io.open_recording(folder) as rec:
+        events = rec.read()
+        camera = rec.camera
+        w_gt = np.asarray(rec.angular_velocity(0.5 * (rec.t_start + rec.t_end)), dtype=np.float64)
+    white = cm.ContrastMaximization(events, warp="rotation3", camera=camera, whitening=True)
+    plain = cm.ContrastMaximization(events, warp="rotation3", camera=camera)
+    ev = white.events  # undistorted, as the problems see them
+    geometry = dict(center=(camera.cx, camera.cy), focal=(camera.fx, camera.fy))
+    dt = ev.t - ev.t[0]
+    for s in steps:
+        theta = s * np.asarray(ray, dtype=np.float64)
+        xw, yw, _, _ = reference.warp_events(
+            "rotation3", ev.x, ev.y, dt, theta, duration=white.duration, **geometry
+        )
+        kept = np.isfinite(xw)
+        spread = float(np.sqrt(np.max(np.linalg.eigvalsh(np.cov(xw[kept], yw[kept], bias=True)))))
+        xs, ys = reference.whiten(xw, yw, ev.x, ev.y)
+        votes = np.sort(
+            reference.bilinear_votes(xs, ys, np.ones_like(xs), white.width, white.height), axis=None
+        )
+        ref = reference.evaluate(
+            ev.x,
+            ev.y,
+            ev.t,
+            ev.p,
+            theta,
+            warp="rotation3",
+            sensor_size=(white.width, white.height),
+            whitening=True,
+            **geometry,
+        )
+        yield {
+            "label": f"{s:g} x ray",
+            "theta": theta,
+            "angle": float(np.linalg.norm(theta) * white.duration),
+            "behind": int(np.sum(~kept)),
+            "spread": spread,
+            "top10": float(np.sum(votes[-10:]) / len(xs)),
+            "J_white": white.value(theta),
+            "J_white_ref": float(ref["J"]),
+            "J_plain": plain.value(theta),
+        }
+    t0 = time.perf_counter()
+    found = cm.maximize(white, method=method, **options)
+    seconds = time.perf_counter() - t0
+    estimate = cm.maximize(plain, method=method, **options).theta
+    for label, theta in (
+        (f"maximize with whitening ({seconds:.0f} s)", found.theta),
+        ("gyro (motion.txt)", w_gt),
+        ("maximize without whitening", estimate),
+    ):
+        yield {
+            "label": label,
+            "theta": np.asarray(theta, dtype=np.float64),
+            "angle": float(np.linalg.norm(theta) * white.duration),
+            "behind": None,
+            "spread": None,
+            "top10": None,
+            "J_white": white.value(theta),
+            "J_white_ref": None,
+            "J_plain": plain.value(theta),
+        }
+
+
+WHITENING_HEADER = (
+    "| point | w (rad/s) | rotation over the window (rad) | events behind the camera | "
+    "spread of the warped events (px) | whitened events in the 10 fullest pixels | "
+    "J with whitening | J with whitening, float64 reference | J without whitening |\n"
+    "|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def whitening_line(r: dict) -> str:
+    """One row; the spread is the square root of the largest eigenvalue of the warped events'
+    covariance (what whitening divides by), the share is of all the window's events."""
+    behind = "-" if r["behind"] is None else str(r["behind"])
+    spread = "-" if r["spread"] is None else f"{r['spread']:.0f}"
+    top10 = "-" if r["top10"] is None else f"{100 * r['top10']:.1f}%"
+    ref = "-" if r["J_white_ref"] is None else f"{r['J_white_ref']:.4f}"
+    w = "(" + ", ".join(f"{v:+.2f}" for v in r["theta"]) + ")"
+    return (
+        f"| {r['label']} | {w} | {r['angle']:.2f} | {behind} | {spread} | {top10} | {r['J_white']:.4f} | "
+        f"{ref} | {r['J_plain']:.4f} |"
+    )
+
+
 def _emit(text: str = "") -> None:
     print(text, flush=True)
 
@@ -385,7 +490,12 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m cmax_taichi.lab.experiments_real",
         description="Reproduce the real-data tables of docs/results-real.md on ../shared/data.",
     )
-    parser.add_argument("--data", type=Path, default=None, help="shared data folder (default ../shared/data)")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="shared data folder (default $CMAX_SHARED_DATA, else ../shared/data beside the checkout)",
+    )
     parser.add_argument("--method", default="adam", choices=METHODS)
     parser.add_argument(
         "--arch", default=None, help="cpu | gpu | cuda | ... (default $CMAX_TAICHI_ARCH or cpu)"
@@ -393,7 +503,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--only",
         default=None,
-        choices=["collapse", "rotation", "slider", "beyond"],
+        choices=["collapse", "rotation", "slider", "beyond", "whitening"],
         help="run one experiment only",
     )
     parser.add_argument(
@@ -406,7 +516,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     data = args.data or default_data_dir()
     if not data.is_dir():
-        print(f"experiments_real: error: data folder {data} not found (pass --data)", file=sys.stderr)
+        print(
+            f"experiments_real: error: data folder {data} not found (pass --data or set CMAX_SHARED_DATA)",
+            file=sys.stderr,
+        )
         return 2
     if args.lam is not None and not args.lam > 0:
         print(f"experiments_real: error: --lam must be > 0, got {args.lam}", file=sys.stderr)
@@ -468,6 +581,12 @@ def main(argv: list[str] | None = None) -> int:
         _emit(BEYOND_HEADER)
         for row in beyond_box_rows(data / "mvsec_indoor_flying1", lam=lam):
             _emit(beyond_line(row))
+    if args.only in (None, "whitening"):
+        ray = ", ".join(f"{v:g}" for v in WHITENING_RAY)
+        _emit(f"\n### Whitening and rotation3 on poster_rotation: J along s x ({ray}) rad/s\n")
+        _emit(WHITENING_HEADER)
+        for row in whitening_rows(data / "ecd_rotation" / "poster_rotation", method=args.method):
+            _emit(whitening_line(row))
     _emit(f"\ntotal {time.perf_counter() - t_all:.0f} s")
     return 0
 

@@ -29,7 +29,8 @@ __all__ = [
 #: The weight lambda of each regularizer that the project's experiments use (the paper's weights are
 #: not known). Selected by ``python -m cmax_taichi.lab.experiments_real``: the smallest weight of its grid
 #: (1, 2, 5, 10, 20) at which none of the 12 regularized configurations (zoom1 and mitrokhin4; variance
-#: and gradient magnitude; divergence, deformation, both) collapses on the real MVSEC cut; then used
+#: and gradient magnitude; divergence, deformation, both) collapses on the real MVSEC cut (re-derived
+#: with the cut's corrected, rectified camera on 2026-12-01: still 10); then used
 #: unchanged on the ECD rotation cuts and the simulated tables (``cmax-taichi reproduce``). The
 #: objective is normalised by the identity warp's, so it is comparable across windows; it is not a
 #: universal constant: README.md, "Results on real recordings", shows how the outcome depends on it

@@ -110,7 +110,10 @@ class ContrastMaximization(SetupView):
     normalize : bool
         Use ``G(theta) / G(0)`` (default) rather than the raw objective in J.
     whitening : bool
-        Whitening baseline: build the IWE from whitened warped positions.
+        Whitening baseline: build the IWE from whitened warped positions. A baseline, not a remedy:
+        it does not prevent collapse, and with ``rotation3`` it has a collapse of its own (a rotation
+        that throws a few events far away inflates their covariance, and whitening shrinks the rest
+        into a few pixels: docs/results-real.md).
 
     Attributes
     ----------

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from cmax_taichi.core import backend, limits, workspace
+from cmax_taichi.core import backend, checks, limits, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.models.objectives import OBJECTIVES, Objective
@@ -104,7 +104,8 @@ def gaussian_taps(blur_sigma: float) -> tuple[int, np.ndarray | None]:
     if blur_sigma <= 0:
         return 0, None
     r = int(math.ceil(3 * blur_sigma))
-    taps = np.exp(-(np.arange(-r, r + 1) ** 2) / (2 * blur_sigma**2))
+    with np.errstate(over="ignore"):  # (k / sigma)^2 = inf for a tiny sigma: a tap of 0, not 0 / 0 = NaN
+        taps = np.exp(-0.5 * (np.arange(-r, r + 1) / blur_sigma) ** 2)
     return r, taps / taps.sum()
 
 
@@ -200,17 +201,8 @@ class ProblemSetup:
 
         if len(events) < 2:
             raise ValueError(f"a CMax problem needs at least 2 events, got {len(events)}")
-        user_weights = None
-        if weights is not None:
-            try:
-                user_weights = np.asarray(weights, dtype=np.float64).reshape(-1)
-            except (TypeError, ValueError, OverflowError) as err:
-                n = len(events)
-                raise TypeError(f"weights must be {n} finite numbers, one per event ({err})") from None
-            if user_weights.size != len(events):
-                raise ValueError(f"weights has {user_weights.size} values for {len(events)} events")
-            if not np.all(np.isfinite(user_weights)):
-                raise ValueError("weights has non-finite values")
+        # real, finite, one per event and small enough not to overflow the image (checks.vote_weights)
+        user_weights = None if weights is None else checks.vote_weights(weights, len(events))
         kept = np.ones(len(events), dtype=bool)
         if camera is not None and camera.has_distortion and not events.undistorted:
             events, kept = events.undistort(camera, return_mask=True)

@@ -17,14 +17,30 @@ cameras), ``motions`` (exact motion per warp model), ``scenes`` (layers, scenes,
   pixel's log intensity crosses one of its contrast thresholds, with sensor effects (module docstring
   of ``simulator``).
 
+* Depth scenes (``depth``, ``rigid``): textured 3-D planes seen by a moving camera, each under its own
+  rigid motion (:class:`PlaneMotion`, :func:`plane_layer`); the renderer draws the nearest surface at
+  every pixel. Presets :data:`DEPTH_PRESETS` (``planes``, ``room``, ``object``), :func:`simulate_depth`.
+
 Ground truth of a :class:`SimulatedRecording`: ``theta_at(t)`` per layer, the dense flow ``flow(t_a, t_b)``
 between any two times (px, indexed at the start positions, the front-most layer at each pixel), and a
-label per event (layer index; -1 for noise and hot-pixel events). :meth:`SimulatedRecording.write` saves it in
+label per event (layer index; -1 for noise and hot-pixel events); for every scene ``velocity(t)`` (the
+dense instantaneous flow, px/s), ``label_map(t)`` and ``warp_events(t_ref)`` (each event moved exactly
+to ``t_ref``), and for depth scenes ``depth(t)``. :meth:`SimulatedRecording.write` saves it in
 the MVSEC-like layout read by :func:`read_simulation` (and by the dataset readers).
 """
 
+from cmax_taichi.sim.depth import (
+    DEPTH_PRESETS,
+    DepthExample,
+    DepthPreset,
+    depth_example,
+    depth_scene,
+    plane_layer,
+    simulate_depth,
+)
 from cmax_taichi.sim.motions import DEFAULT_THETAS, Motion
 from cmax_taichi.sim.recording import SimulatedRecording, SimulationData, read_simulation
+from cmax_taichi.sim.rigid import PlaneMotion, RigidMotion
 from cmax_taichi.sim.scenes import PRESETS, Layer, Preset, Scene, multi_object_scene, preset_scene, warp_scene
 from cmax_taichi.sim.simulator import Simulator, SimulatorConfig, simulate, simulate_preset
 from cmax_taichi.sim.textures import SENSORS, TEXTURES, default_camera, load_texture
@@ -50,4 +66,13 @@ __all__ = [
     "simulate",
     "simulate_preset",
     "read_simulation",
+    "RigidMotion",
+    "PlaneMotion",
+    "plane_layer",
+    "DepthPreset",
+    "DEPTH_PRESETS",
+    "depth_scene",
+    "simulate_depth",
+    "DepthExample",
+    "depth_example",
 ]

@@ -102,16 +102,88 @@ class SimulatedRecording:
     def flow(self, t_a: float, t_b: float) -> np.ndarray:
         """Dense ground-truth flow (2, H, W), px: where the scene point seen at each pixel at ``t_a``
         is at ``t_b``, minus the pixel (MVSEC's ``*_flow_dist`` convention: indexed at the start
-        positions). Each pixel follows the front-most layer covering it at ``t_a``."""
+        positions). Each pixel follows the front-most layer covering it at ``t_a`` (for depth scenes
+        the nearest surface); NaN where no layer covers it."""
         W, H = self.sensor_size
         yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
-        _, label = self.simulator.render(t_a)
-        out = np.zeros((2, H, W))
+        label = self.label_map(t_a)
+        out = np.full((2, H, W), np.nan)
         for k in range(len(self.scene.layers)):
             mask = label == k
             if np.any(mask):
                 out[:, mask] = self.displacement(t_a, t_b, xx[mask], yy[mask], layer=k)
         return out
+
+    def label_map(self, t: float) -> np.ndarray:
+        """(H, W) int16: the layer seen at each pixel at time ``t`` s (coverage > 0.5; for depth scenes
+        the nearest surface, -1 where none)."""
+        return self.simulator.render(float(t))[1]
+
+    def velocity(self, t: float) -> np.ndarray:
+        """Dense instantaneous ground-truth flow (2, H, W), px/s, at time ``t`` s: the image velocity
+        of the scene point seen at each pixel (the layer of :meth:`label_map`; NaN where none). Closed
+        form for 3-D planes (:meth:`PlaneMotion.velocity`); for 2-D motions the central difference of
+        the exact motion over +-1 us."""
+        W, H = self.sensor_size
+        yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+        label = self.label_map(t)
+        out = np.full((2, H, W), np.nan)
+        for k, layer in enumerate(self.scene.layers):
+            mask = label == k
+            if not np.any(mask):
+                continue
+            if hasattr(layer.motion, "velocity"):
+                out[:, mask] = layer.motion.velocity(t, xx[mask], yy[mask], self.camera)
+            else:
+                h = 1e-6
+                fwd = self.displacement(t, t + h, xx[mask], yy[mask], layer=k)
+                back = self.displacement(t, t - h, xx[mask], yy[mask], layer=k)
+                out[:, mask] = (fwd - back) / (2 * h)
+        return out
+
+    def depth(self, t: float) -> np.ndarray:
+        """(H, W) depth (m, along the optical axis) of the surface seen at each pixel at time ``t`` s,
+        for depth scenes (:attr:`Scene.has_depth`); NaN where no surface is seen."""
+        if not self.scene.has_depth:
+            raise ValueError("only a depth scene (3-D planes, cmax_taichi.sim.depth) has a depth")
+        W, H = self.sensor_size
+        yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+        label = self.label_map(t)
+        out = np.full((H, W), np.nan)
+        for k, layer in enumerate(self.scene.layers):
+            mask = label == k
+            if np.any(mask):
+                out[mask] = layer.motion.depth(t, xx[mask], yy[mask], self.camera)
+        return out
+
+    def warp_events(self, t_ref: float, t0: float | None = None, t1: float | None = None):
+        """Exact positions at ``t_ref`` s of the scene points that produced the events of
+        ``[t0, t1)`` (:meth:`events`): ``(x, y)`` px, each event moved by the exact motion of its layer
+        (its label) from its own time to ``t_ref``; NaN for noise and hot-pixel events (label -1).
+
+        The image of warped events with these positions is the sharpest any warp can give (up to the
+        pixel quantisation of the events): the reference of a dense-flow estimate's IWE."""
+        lo, hi = self._range(t0, t1)
+        x, y, t, lab = self.x[lo:hi], self.y[lo:hi], self.t[lo:hi], self.labels[lo:hi]
+        xw = np.full(len(x), np.nan)
+        yw = np.full(len(x), np.nan)
+        cam = self.camera
+        for k, layer in enumerate(self.scene.layers):
+            sel = np.flatnonzero(lab == k)
+            if not len(sel):
+                continue
+            m = layer.motion
+            G_ref = m.matrix(float(t_ref), cam)
+            if hasattr(m, "matrices"):
+                G = m.matrices(t[sel], cam)
+            else:
+                G = np.stack([m.matrix(float(tk), cam) for tk in t[sel]])
+            src = np.stack([x[sel], y[sel], np.ones(len(sel))], axis=1)
+            at0 = np.linalg.solve(G, src[:, :, None])[:, :, 0]
+            q = at0 @ G_ref.T
+            xw[sel] = q[:, 0] / q[:, 2]
+            yw[sel] = q[:, 1] / q[:, 2]
+        return xw, yw
 
     def frame_times(self, frame_rate: float) -> np.ndarray:
         """Ground-truth frame timestamps ``t_start + k / frame_rate`` within the recording, s."""
@@ -127,11 +199,14 @@ class SimulatedRecording:
         (p in {-1, +1}), ``davis/left/labels`` (N,) int16, attributes ``fx fy cx cy width height`` on
         ``davis/left``; ``ground_truth/t`` (M,) s and ``ground_truth/theta`` (M, P) of the camera
         (layer 0) motion with attribute ``warp``; ``ground_truth/layers/<k>/{t,theta}`` with attributes
-        ``warp``, ``segment``, ``name`` for every layer; and the simulator settings as a JSON attribute.
+        ``warp``, ``segment``, ``name`` for every layer (depth scenes: no ``theta``, and per layer the
+        plane and its motions as the JSON attribute ``plane``, see :meth:`PlaneMotion.describe`);
+        ``davis/left/image_raw_ts``, the frame times (MVSEC's grey-scale frame times, which set its
+        evaluation windows); and the simulator settings as a JSON attribute.
         And ``<out_dir>/<name>_gt_flow_dist.npz``: ``timestamps`` (M,), ``x_flow_dist``, ``y_flow_dist``
         (M, H, W) float32, the flow in px from ``timestamps[i]`` to ``timestamps[i + 1]`` (the last one to
         ``timestamps[-1] + 1 / frame_rate``, within the recording when it is long enough, else
-        extrapolated by the exact motion).
+        extrapolated by the exact motion); 0 (MVSEC's mark) where a pixel has no ground truth.
 
         Returns
         -------
@@ -160,17 +235,26 @@ class SimulatedRecording:
             # the layout the MVSEC reader (cmax_taichi.io) takes intrinsics from
             calib = [cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist]
             left.create_dataset("calibration", data=np.asarray(calib, dtype=np.float64))
+            # the ground-truth frame times, where MVSEC has its grey-scale frames (evaluation windows)
+            left.create_dataset("image_raw_ts", data=ts)
             gt = f.create_group("ground_truth")
             gt.create_dataset("t", data=ts)
-            gt.create_dataset("theta", data=np.stack([self.theta_at(t) for t in ts]))
-            gt.attrs["warp"] = self.warp
+            depth = self.scene.has_depth
+            if depth:  # 3-D planes: no warp parameters, the geometry and motions instead
+                gt.attrs["warp"] = ""
+            else:
+                gt.create_dataset("theta", data=np.stack([self.theta_at(t) for t in ts]))
+                gt.attrs["warp"] = self.warp
             layers = gt.create_group("layers")
             for k, layer in enumerate(self.scene.layers):
                 g = layers.create_group(str(k))
                 g.create_dataset("t", data=ts)
-                g.create_dataset("theta", data=np.stack([layer.motion.theta_at(t) for t in ts]))
-                g.attrs["warp"] = layer.motion.warp
-                g.attrs["segment"] = float(layer.motion.segment or 0.0)
+                if depth:
+                    g.attrs["plane"] = json.dumps(layer.motion.describe())
+                else:
+                    g.create_dataset("theta", data=np.stack([layer.motion.theta_at(t) for t in ts]))
+                    g.attrs["warp"] = layer.motion.warp
+                    g.attrs["segment"] = float(layer.motion.segment or 0.0)
                 g.attrs["name"] = layer.name
             f.attrs["simulator"] = json.dumps(
                 {
@@ -182,6 +266,7 @@ class SimulatedRecording:
                 }
             )
         flows = np.stack([self.flow(t, t + 1.0 / frame_rate) for t in ts]).astype(np.float32)
+        flows[~np.isfinite(flows)] = 0.0  # MVSEC's mark of a pixel without ground truth
         np.savez_compressed(npz_path, timestamps=ts, x_flow_dist=flows[:, 0], y_flow_dist=flows[:, 1])
         return h5_path, npz_path
 
@@ -217,7 +302,8 @@ def read_simulation(h5_path) -> SimulationData:
         camera = Camera(float(a["fx"]), float(a["fy"]), float(a["cx"]), float(a["cy"]))
         sensor = (int(a["width"]), int(a["height"]))
         gt_t = f["ground_truth/t"][()]
-        gt_theta = f["ground_truth/theta"][()]
+        # a depth scene has no warp parameters (an empty (M, 0) array)
+        gt_theta = f["ground_truth/theta"][()] if "ground_truth/theta" in f else np.zeros((len(gt_t), 0))
         warp = str(f["ground_truth"].attrs["warp"])
         meta = json.loads(f.attrs["simulator"])
     d = np.load(npz_path)

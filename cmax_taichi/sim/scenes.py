@@ -12,6 +12,7 @@ import numpy as np
 from cmax_taichi.core.events import Camera
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.sim.motions import Motion, default_theta
+from cmax_taichi.sim.rigid import PlaneMotion
 from cmax_taichi.sim.textures import default_camera, fit_texture, load_texture, resize_image
 
 __all__ = ["Layer", "Scene", "warp_scene", "multi_object_scene", "Preset", "PRESETS", "preset_scene"]
@@ -33,13 +34,16 @@ class Layer:
     ----------
     texture : numpy.ndarray
         (Ht, Wt) linear intensity in [0, 1].
-    motion : Motion
-        Its image motion.
+    motion : Motion or PlaneMotion
+        Its image motion: a 2-D motion of a warp model (:class:`Motion`), or a 3-D plane seen by a
+        moving camera (:class:`~cmax_taichi.sim.rigid.PlaneMotion`, which needs a metric
+        ``placement``: see :func:`~cmax_taichi.sim.depth.plane_layer`).
     alpha : numpy.ndarray, optional
         (Ht, Wt) coverage in [0, 1] (an object's shape, anti-aliased); default: opaque.
     placement : numpy.ndarray, optional
         3x3 homography from texel coordinates (column, row) to image px at time 0; default: texture
-        centre at the principal point, one texel per pixel.
+        centre at the principal point, one texel per pixel. For a :class:`PlaneMotion` it is required
+        and scaled by depth: ``K [s e_u, s e_v, X_origin]`` (texel size s, metres).
     wrap : {"mirror", "none"}
         ``"mirror"``: an infinite plane tiled by the mirrored texture (backgrounds); ``"none"``:
         transparent outside the texture (objects).
@@ -68,8 +72,10 @@ class Layer:
             if not np.all(np.isfinite(a)) or a.min() < 0.0 or a.max() > 1.0:
                 raise ValueError("alpha values must be in [0, 1]")
             self.alpha = a
-        if not isinstance(self.motion, Motion):
-            raise TypeError(f"motion must be a Motion, got {type(self.motion).__name__}")
+        if not isinstance(self.motion, (Motion, PlaneMotion)):
+            raise TypeError(f"motion must be a Motion or a PlaneMotion, got {type(self.motion).__name__}")
+        if isinstance(self.motion, PlaneMotion) and self.placement is None:
+            raise ValueError("a layer with a PlaneMotion needs its metric placement (see plane_layer)")
         if self.wrap not in ("mirror", "none"):
             raise ValueError(f"wrap must be 'mirror' or 'none', got {self.wrap!r}")
         if self.placement is not None:
@@ -114,9 +120,21 @@ class Scene:
             raise ValueError("at most 100 layers (labels are stored as int8)")
         if self.camera is None:
             self.camera = default_camera(self.sensor_size)
+        kinds = {isinstance(layer.motion, PlaneMotion) for layer in self.layers}
+        if len(kinds) > 1:
+            raise ValueError(
+                "a scene's layers are either all 3-D planes (PlaneMotion, drawn by depth) or all 2-D "
+                "motions (Motion, drawn in layer order), not a mixture"
+            )
         for layer in self.layers:
             if layer.placement is None:
                 layer.placement = _placement_centred(layer.texture.shape, self.camera.cx, self.camera.cy)
+
+    @property
+    def has_depth(self) -> bool:
+        """True when every layer is a 3-D plane (:class:`PlaneMotion`): the renderer then draws the
+        nearest surface in front, and the ground truth has a depth per pixel."""
+        return isinstance(self.layers[0].motion, PlaneMotion)
 
 
 def _disk_alpha(size: int, radius: float) -> np.ndarray:

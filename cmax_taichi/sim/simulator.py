@@ -25,6 +25,7 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import simulator as ksim
 from cmax_taichi.sim.recording import SimulatedRecording
+from cmax_taichi.sim.rigid import PlaneMotion
 from cmax_taichi.sim.scenes import PRESETS, Scene, preset_scene
 
 __all__ = ["SimulatorConfig", "Simulator", "simulate", "simulate_preset"]
@@ -158,6 +159,7 @@ def _build_sensor_fields(ns: SimpleNamespace, W: int, H: int, cap: int) -> None:
 
 
 _NEVER = -1.0e9  # "last event time" of a pixel that has not fired yet, s
+_EVENT_LABEL_COVER = 0.02  # coverage from which a surface's edge labels the events of a pixel (depth scenes)
 
 
 class Simulator:
@@ -207,15 +209,17 @@ class Simulator:
         self._host_scene = (tex.astype(npr), alpha.astype(npr), shapes)
         mirror = tuple(layer.wrap == "mirror" for layer in scene.layers)
         opaque = tuple(layer.alpha is None for layer in scene.layers)
+        # 3-D planes know their depth: the nearest surface is drawn in front (occlusion by depth)
+        self.depth_test = scene.has_depth
         cap = int(config.capacity) if config.capacity is not None else max(2**20, 4 * W * H)
         self.capacity = cap
         gen = self._backend.generation
         # Fields are pooled by shape: kernels take them as templates, so new fields mean new compiles.
         self._sf = _pooled(("scene", gen, L, ht, wt), lambda ns: _build_scene_fields(ns, L, ht, wt))
         self._pf = _pooled(("sensor", gen, W, H, cap), lambda ns: _build_sensor_fields(ns, W, H, cap))
-        key = ("render", gen, mirror, opaque, W, H)
+        key = ("render", gen, mirror, opaque, W, H, self.depth_test)
         if key not in _KERNELS:
-            _KERNELS[key] = ksim.make_render_kernel(mirror, opaque, W, H)
+            _KERNELS[key] = ksim.make_render_kernel(mirror, opaque, W, H, depth_test=self.depth_test)
         self._render_kernel = _KERNELS[key]
         self._placements = [layer.placement for layer in scene.layers]
         self.n_steps = 0
@@ -237,21 +241,56 @@ class Simulator:
         return self.scene.layers[k].motion.matrix(t, self.scene.camera) @ self._placements[k]
 
     def _max_displacement(self, t0: float, t1: float) -> float:
-        """Largest motion (px) of a point of a 5x5 grid over the image (corners included) between two
-        times, over all layers."""
+        """Largest motion (px) between two times of a point of a grid over the image (corners
+        included), over all layers: 5x5 points for 2-D motions; for 3-D planes 9x9 points plus the
+        corners and centre of a finite layer's texture, only those where the layer is in front of the
+        camera (and inside its texture), so that a plane seen edge-on does not stall the simulation."""
         W, H = self.width, self.height
         gx, gy = np.meshgrid(np.linspace(0, W - 1, 5), np.linspace(0, H - 1, 5))
         pts = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)])
+        gx, gy = np.meshgrid(np.linspace(0, W - 1, 9), np.linspace(0, H - 1, 9))
+        fine = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)])
         worst = 0.0
         cam = self.scene.camera
-        for layer in self.scene.layers:
+        for k, layer in enumerate(self.scene.layers):
             D = layer.motion.matrix(t1, cam) @ np.linalg.inv(layer.motion.matrix(t0, cam))
-            q = D @ pts
+            if isinstance(layer.motion, PlaneMotion):
+                sample = self._visible_points(k, t0, fine)
+                if sample.shape[1] == 0:
+                    continue
+            else:
+                sample = pts
+            q = D @ sample
             q = q[:2] / q[2]
-            worst = max(worst, float(np.max(np.hypot(q[0] - pts[0], q[1] - pts[1]))))
+            worst = max(worst, float(np.max(np.hypot(q[0] - sample[0], q[1] - sample[1]))))
         return worst
 
-    def _render(self, t: float, out_log, out_label) -> None:
+    def _visible_points(self, k: int, t: float, grid: np.ndarray) -> np.ndarray:
+        """The points of ``grid`` (3, N homogeneous px) where layer ``k`` (a 3-D plane) is in front of
+        the camera at time ``t`` and inside its texture, plus the projections of a finite texture's
+        corners and centre that are in front of the camera."""
+        layer = self.scene.layers[k]
+        L = self.layer_matrix(k, t)
+        h, w = layer.texture.shape
+        if layer.wrap != "mirror":
+            corners = np.array([[0.0, w - 1, 0.0, w - 1, (w - 1) / 2], [0.0, 0.0, h - 1, h - 1, (h - 1) / 2]])
+            q = L @ np.vstack([corners, np.ones(5)])
+            front = q[2] > 1e-12
+            extra = q[:, front] / q[2, front]
+            grid = np.hstack([grid, extra])
+        X = np.linalg.solve(L, grid)  # texel coordinates / depth
+        keep = X[2] > 1e-12
+        if layer.wrap != "mirror":
+            u, v = X[0] / np.where(keep, X[2], 1.0), X[1] / np.where(keep, X[2], 1.0)
+            tol = 1e-6  # the corners themselves
+            keep &= (u >= -tol) & (v >= -tol) & (u <= w - 1 + tol) & (v <= h - 1 + tol)
+        return grid[:, keep]
+
+    def _render(self, t: float, out_log, out_label, label_cover: float = _EVENT_LABEL_COVER) -> None:
+        """Render at ``t`` s. Depth scenes label the pixels of the simulation's renders (whose labels go
+        to the events) by the nearest surface with any coverage ``> label_cover``, so that the events
+        of a surface's anti-aliased edge carry that surface's label; the ground-truth maps
+        (:meth:`render`) take coverage > 0.5."""
         self._load_scene()
         sf = self._sf
         hinv = np.stack([np.linalg.inv(self.layer_matrix(k, t)) for k in range(len(self.scene.layers))])
@@ -262,6 +301,7 @@ class Simulator:
             sf.tex_shape,
             sf.hinv,
             float(self.config.log_eps),
+            float(label_cover),
             out_log,
             out_label,
         )
@@ -271,7 +311,7 @@ class Simulator:
         layer per pixel) at time ``t`` seconds. Does not disturb a running simulation."""
         self._check_alive()
         pf = self._pf
-        self._render(float(t), pf.scratch_log, pf.scratch_label)
+        self._render(float(t), pf.scratch_log, pf.scratch_label, label_cover=0.5)
         return pf.scratch_log.to_numpy().astype(np.float64), pf.scratch_label.to_numpy().astype(np.int16)
 
     def _check_alive(self) -> None:
@@ -331,6 +371,9 @@ class Simulator:
                     pf.cneg,
                     pf.total,
                     pf.max_change,
+                    pf.label_now,
+                    pf.label_prev,
+                    int(self.depth_test),
                 )
                 change = float(pf.max_change[None])
                 n_new = int(pf.total[None])

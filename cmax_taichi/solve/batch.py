@@ -16,8 +16,16 @@ Outputs, for an output folder ``OUT``:
 
 A re-run with the same ``OUT`` skips the windows in the checkpoints and continues each recording from
 its last written window, warm-started from that window's estimate, so that it gives the same results
-as an uninterrupted run. A worker process that dies (killed, out of memory) is replaced and its
-recording continues from its checkpoint, up to ``max_restarts`` times.
+as an uninterrupted run; a recording that changed since its checkpoint (size, modification time or
+the content fingerprint of :func:`cmax_taichi.io._cache.content_fingerprint`) is refused. A worker
+process that dies (killed, out of memory) is replaced; the recording it held continues from its
+checkpoint, up to ``max_restarts`` times, and only that recording fails when they are used up. Workers
+die with their driver (``PR_SET_PDEATHSIG`` on Linux, else a watchdog thread): a driver killed with
+SIGKILL leaves no worker writing into ``OUT``.
+
+Before any work, the driver refuses an ``OUT`` that is or holds a recording, recording names that
+clash with its own tables, a second batch on the same ``OUT`` (a lock, see :mod:`cmax_taichi.io.outputs`)
+and files it would replace that no batch wrote.
 
 Ray is optional (``pip install -e ".[ray]"``) and imported only by ``engine="ray"``.
 """
@@ -25,22 +33,32 @@ Ray is optional (``pip install -e ".[ray]"``) and imported only by ``engine="ray
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 import sys
-import tempfile
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
 import numpy as np
 
+from cmax_taichi.core.checks import EventsDroppedWarning
+from cmax_taichi.io import outputs
+from cmax_taichi.io._files import check_regular
 from cmax_taichi.models.warps import get_warp
+from cmax_taichi.solve.checkpoints import (
+    CHECKPOINT_NAME,
+    _changed,
+    _jsonable,
+    _mtime,
+    _read_checkpoint,
+    _write_checkpoint,
+    read_progress,
+    recording_identity,
+)
 from cmax_taichi.solve.sequence import (
     ProgressBar,
     SequenceResult,
@@ -63,12 +81,14 @@ __all__ = [
 ]
 
 ENGINES = ("local", "ray")
-CHECKPOINT_NAME = "checkpoint.json"
-CHECKPOINT_VERSION = 1
+#: the batch's own files in ``OUT``: no recording may take these names
+TABLE_NAMES = ("summary.csv", "windows.csv")
 
 #: Test hook: ``NAME:K:MARKER`` makes the worker of recording NAME exit abruptly (``os._exit``) right
 #: after writing the checkpoint of window K, once: only while the file MARKER does not exist (the hook
-#: creates it). Used by the tests to check that a dead worker is replaced and its recording resumed.
+#: creates it). ``NAME:K:`` (no marker) makes it exit after every window from K on, in every attempt (a
+#: recording that always kills its worker). Used by the tests to check that a dead worker is replaced,
+#: its recording resumed, and that the deaths are charged to that recording alone.
 CRASH_HOOK_ENV = "CMAX_TAICHI_BATCH_CRASH"
 
 #: keyword arguments of :func:`~cmax_taichi.solve.sequence.process` that :func:`run` passes on
@@ -80,6 +100,7 @@ PROCESS_OPTIONS = (
     "n_events",
     "duration",
     "stride",
+    "keep_tail",
     "method",
     "warm_start",
     "compute_fwl",
@@ -124,6 +145,10 @@ class RecordingSummary:
         Why the recording failed ("" when done).
     files : list of str
         Files written.
+    events : int
+        Events of the recording (0 when unknown).
+    not_estimated : int
+        Events not estimated (see ``SequenceResult.events`` for the reasons).
     """
 
     name: str
@@ -135,6 +160,8 @@ class RecordingSummary:
     seconds: float = 0.0
     error: str = ""
     files: list[str] = field(default_factory=list)
+    events: int = 0
+    not_estimated: int = 0
 
 
 @dataclass
@@ -198,86 +225,6 @@ def recording_names(paths: Sequence[str | os.PathLike]) -> list[str]:
             return [f"{n}_{i}" for i, n in enumerate(names)]
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``, so
-    that a reader (or a re-run after a crash) sees the old file or the new one, never a partial one."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _jsonable(value: Any) -> Any:
-    """Settings as plain JSON values (to compare a checkpoint's settings with this run's)."""
-    if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if value is None or isinstance(value, (bool, int, float, str)):
-        return value
-    if hasattr(value, "fx"):  # a Camera
-        return [value.fx, value.fy, value.cx, value.cy, *value.dist]
-    return repr(value)
-
-
-def _write_checkpoint(
-    folder: Path,
-    result: SequenceResult,
-    key: dict,
-    total: int | None,
-    done: bool,
-    warm_state: WarmState | None = None,
-) -> None:
-    data = result.as_dict()
-    data["checkpoint"] = {
-        "version": CHECKPOINT_VERSION,
-        "key": key,
-        "total_windows": total,
-        "complete": done,
-        # the last window's warm start for the next one (with that window's index): a run resumed
-        # after it continues exactly as an uninterrupted one
-        "warm_state": None
-        if warm_state is None or not result.windows
-        else {"index": result.windows[-1].index, **warm_state.as_dict()},
-    }
-    _atomic_write_text(folder / CHECKPOINT_NAME, json.dumps(data, indent=1))
-
-
-def _read_checkpoint(folder: Path) -> tuple[SequenceResult, dict] | None:
-    path = folder / CHECKPOINT_NAME
-    if not path.exists():
-        return None
-    result = read_results(path)  # ValueError naming the file when it is not a results file
-    meta = json.loads(path.read_text()).get("checkpoint")
-    if not isinstance(meta, dict) or meta.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: not a cmax-taichi batch checkpoint (version {CHECKPOINT_VERSION})")
-    return result, meta
-
-
-def read_progress(folder: Path) -> tuple[int, int | None]:
-    """(windows written, total windows if known) of a recording's checkpoint; (0, None) when none."""
-    try:
-        data = json.loads((folder / CHECKPOINT_NAME).read_text())
-        return len(data["windows"]), data["checkpoint"]["total_windows"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return 0, None
-
-
-def _mtime(path: Path) -> int:
-    try:
-        return path.stat().st_mtime_ns
-    except OSError:
-        return 0
-
-
 # ---------------------------------------------------------------------------------------------------
 # the worker
 
@@ -288,11 +235,14 @@ def _crash_hook(spec: str | None, name: str) -> Callable[[int], None]:
         return lambda index: None
     target, _, rest = spec.partition(":")
     at, _, marker = rest.partition(":")
-    if target != name or not at or not marker:
+    if target != name or not at:
         return lambda index: None
 
     def hook(index: int) -> None:
-        if index == int(at) and not os.path.exists(marker):
+        if not marker:  # every attempt dies
+            if index >= int(at):
+                os._exit(70)
+        elif index == int(at) and not os.path.exists(marker):
             Path(marker).touch()
             os._exit(70)  # abrupt, like a killed process: no cleanup, no exception
 
@@ -345,95 +295,144 @@ def estimate_recording(
         if unknown:
             raise TypeError(f"unknown estimation option(s) {sorted(unknown)}; valid: {list(PROCESS_OPTIONS)}")
         backend.init_if_needed(arch, precision)
-        from cmax_taichi import io
-
         folder.mkdir(parents=True, exist_ok=True)
+        with outputs.hold_lock(folder, f"batch worker of {name}"):  # one writer per recording folder
+            precision = backend.info().precision
+            _estimate_into(path, folder, options, format, precision, hooks, crash_hook, summary)
+    except Exception as exc:  # one recording's failure (any error) must not stop the batch
+        summary.status = "failed"
+        summary.error = f"{type(exc).__name__}: {exc}"
+    return summary
+
+
+def _rows_expected(n_total: int, options: Mapping[str, Any]) -> int | None:
+    """The rows a recording's results will have (every window, estimated or not), when known."""
+    total = None
+    n_events, duration = options.get("n_events", 30000), options.get("duration")
+    if duration is None:
+        step = int(n_events if options.get("stride") is None else options["stride"])
+        full = 0 if n_total < n_events else (n_total - n_events) // step + 1
+        total = full + (1 if full * step < n_total else 0)  # the partial tail has a row, kept or not
+    if options.get("max_windows") is not None:
+        limit = int(options["max_windows"])
+        total = limit if total is None else min(total, limit)
+    return total
+
+
+def _estimate_into(
+    path: Path,
+    folder: Path,
+    options: Mapping[str, Any],
+    format: str | None,
+    precision: str,
+    hooks: RecordingHooks | None,
+    crash_hook: str | None,
+    summary: RecordingSummary,
+) -> None:
+    """The body of :func:`estimate_recording`, with the folder's lock held; fills ``summary``."""
+    from cmax_taichi import io
+
+    previous = _read_checkpoint(folder)
+    if previous is None and any((folder / f).exists() for f in ("results.csv", "results.json")):
+        raise ValueError(
+            f"{folder} holds results that no batch run wrote (no {CHECKPOINT_NAME}): not overwritten"
+        )
+    crash = _crash_hook(crash_hook, folder.name)
+    t0 = time.perf_counter()
+    with io.open_recording(path, format=format) as rec:
         key = {
             "path": str(path.resolve()),
             "format": format,
-            "precision": backend.info().precision,
+            "precision": precision,
             "options": _jsonable(options),
+            "identity": recording_identity(rec),
         }
-        previous = _read_checkpoint(folder)
-        if previous is None and (folder / "results.csv").exists():
-            raise ValueError(
-                f"{folder} holds results that no batch run wrote (no {CHECKPOINT_NAME}): not overwritten"
-            )
+        summary.events = rec.n_events
         done_rows: list[WindowResult] = []
+        done_skipped: list[WindowResult] = []
         if previous is not None:
             prev_result, meta = previous
-            if meta.get("key") != key:
+            old = meta.get("key") if isinstance(meta.get("key"), dict) else {}
+            if old.get("identity") != key["identity"]:
                 raise ValueError(
-                    f"{folder / CHECKPOINT_NAME} was written with other settings or another recording; "
+                    f"{path} changed since {folder / CHECKPOINT_NAME} was written "
+                    f"({_changed(old.get('identity') or {}, key['identity'])}): not resumed, so that the "
+                    f"windows of two recordings never mix; use another output folder, or delete {folder} "
+                    "to start over"
+                )
+            if old != key:
+                raise ValueError(
+                    f"{folder / CHECKPOINT_NAME} was written with other settings; "
                     "use another output folder (or delete it) to start over"
                 )
-            done_rows = prev_result.windows
+            done_rows, done_skipped = prev_result.windows, prev_result.skipped
             if meta.get("complete") and (folder / "results.json").exists():
                 summary.status = "done"
                 summary.windows = len(done_rows)
-                summary.resumed_from = (done_rows[-1].index + 1) if done_rows else 0
+                summary.resumed_from = max((w.index + 1 for w in prev_result.rows()), default=0)
+                summary.not_estimated = _not_estimated(prev_result)
                 summary.files = [str(folder / "results.csv"), str(folder / "results.json")]
-                return summary
-        first = (done_rows[-1].index + 1) if done_rows else 0
+                return
+        first = max((w.index + 1 for w in [*done_rows, *done_skipped]), default=0)
         summary.resumed_from = first
-        warm = options.get("warm_start", True)
         warm_state = None
-        if done_rows and warm:
+        if done_rows and options.get("warm_start", True):
             saved = (previous[1] if previous else {}).get("warm_state")
             if saved and saved.get("index") == done_rows[-1].index:
                 warm_state = WarmState.from_dict(saved)
             else:  # a checkpoint without the last window's state: its estimate and J
                 warm_state = WarmState(theta=done_rows[-1].theta, value=done_rows[-1].value)
-        crash = _crash_hook(crash_hook, name)
-        t0 = time.perf_counter()
-        with io.open_recording(path, format=format) as rec:
-            total = None
-            n_events, duration = options.get("n_events", 30000), options.get("duration")
-            stride = options.get("stride")
-            if duration is None:
-                step = int(n_events if stride is None else stride)
-                total = 0 if rec.n_events < n_events else (rec.n_events - n_events) // step + 1
-            if options.get("max_windows") is not None:
-                total = (
-                    int(options["max_windows"]) if total is None else min(total, int(options["max_windows"]))
-                )
-            model = get_warp(options.get("warp", "translation2"))
-            written = SequenceResult(warp=model.name, param_names=model.params, units=model.units)
-            written.windows = list(done_rows)  # earlier runs' rows first, then this run's
+        total = _rows_expected(rec.n_events, options)
+        model = get_warp(options.get("warp", "translation2"))
+        written = SequenceResult(warp=model.name, param_names=model.params, units=model.units)
+        written.windows = list(done_rows)  # earlier runs' rows first, then this run's
+        written.skipped = list(done_skipped)
+        last_state: list[WarmState | None] = [warm_state]
 
-            last_state: list[WarmState | None] = [warm_state]
+        def on_window(row: WindowResult, prob: Any, res: Any) -> None:
+            written.windows.append(row)
+            last_state[0] = WarmState.after(row, res)
+            _write_checkpoint(folder, written, key, total, done=False, warm_state=last_state[0])
+            if hooks is not None:
+                hooks.window(folder, row, prob, res)
+            crash(row.index)
 
-            def on_window(row: WindowResult, prob: Any, res: Any) -> None:
-                written.windows.append(row)
-                last_state[0] = WarmState.after(row, res)
-                _write_checkpoint(folder, written, key, total, done=False, warm_state=last_state[0])
-                if hooks is not None:
-                    hooks.window(folder, row, prob, res)
-                crash(row.index)
+        result = process(
+            rec,
+            **options,
+            progress=False,
+            first_window=first,
+            warm_state=warm_state,
+            on_window=on_window,
+            on_skipped=written.skipped.append,
+        )
+    result.windows, result.skipped = written.windows, written.skipped
+    summary.seconds = time.perf_counter() - t0
+    if not result.windows:
+        raise ValueError(f"{path}: no window to estimate ({_why_none(result)})")
+    files = [result.to_csv(folder / "results.csv"), result.to_json(folder / "results.json")]
+    if hooks is not None:
+        files += hooks.finished(folder, result)
+    _write_checkpoint(folder, result, key, len(result.rows()), done=True, warm_state=last_state[0])
+    summary.status = "done"
+    summary.windows = len(result.windows)
+    summary.new_windows = len(result.windows) - len(done_rows)
+    summary.not_estimated = _not_estimated(result)
+    summary.files = [str(f) for f in files]
 
-            result = process(
-                rec,
-                **options,
-                progress=False,
-                first_window=first,
-                warm_state=warm_state,
-                on_window=on_window,
-            )
-        result.windows = written.windows
-        summary.seconds = time.perf_counter() - t0
-        if not result.windows:
-            raise ValueError(f"{path}: no window to estimate ({rec.n_events} events)")
-        files = [result.to_csv(folder / "results.csv"), result.to_json(folder / "results.json")]
-        if hooks is not None:
-            files += hooks.finished(folder, result)
-        _write_checkpoint(folder, result, key, len(result.windows), done=True, warm_state=last_state[0])
-        summary.status = "done"
-        summary.windows = len(result.windows)
-        summary.new_windows = len(result.windows) - len(done_rows)
-        summary.files = [str(f) for f in files]
-    except Exception as exc:  # one recording's failure (any error) must not stop the batch
-        summary.error = f"{type(exc).__name__}: {exc}"
-    return summary
+
+def _not_estimated(result: SequenceResult) -> int:
+    events = result.events or {}
+    return int(events.get("total", 0)) - int(events.get("estimated", 0))
+
+
+def _why_none(result: SequenceResult) -> str:
+    """Why a pass estimated no window, from its event accounting."""
+    events = result.events or {}
+    if not events.get("total"):
+        return "the recording has no events"
+    reasons = {k: v for k, v in events.items() if k not in ("total", "estimated", "windows") and v}
+    return f"{events['total']} events: " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in reasons.items())
 
 
 class RecordingWorker:
@@ -450,6 +449,9 @@ class RecordingWorker:
         for plugin in plugins:  # the user's warps, objectives, regularizers, in this fresh interpreter
             load_plugin(plugin)
         backend.init_if_needed(arch, precision)
+        # the counts of the events not estimated are in each recording's results and in the summary;
+        # the driver warns once with the totals
+        warnings.simplefilter("ignore", EventsDroppedWarning)
 
     def estimate(self, path: str, folder: str, options: Mapping[str, Any], **kwargs: Any) -> RecordingSummary:
         return estimate_recording(path, folder, options, arch=self.arch, precision=self.precision, **kwargs)
@@ -458,17 +460,12 @@ class RecordingWorker:
         return os.getpid()
 
 
-_POOL_WORKER: RecordingWorker | None = None
+def _worker_state(arch: str | None, precision: str | None, plugins: Sequence[str] = ()) -> RecordingWorker:
+    return RecordingWorker(arch, precision, plugins)
 
 
-def _pool_init(arch: str | None, precision: str | None, plugins: Sequence[str] = ()) -> None:
-    global _POOL_WORKER
-    _POOL_WORKER = RecordingWorker(arch, precision, plugins)
-
-
-def _pool_estimate(path: str, folder: str, options: Mapping[str, Any], kwargs: dict) -> RecordingSummary:
-    assert _POOL_WORKER is not None, "the pool initializer did not run"
-    return _POOL_WORKER.estimate(path, folder, options, **kwargs)
+def _estimate_task(worker: RecordingWorker, path: str, folder: str, options: Mapping[str, Any], kwargs: dict):
+    return worker.estimate(path, folder, options, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -516,94 +513,38 @@ def _failed(task: tuple, error: str) -> RecordingSummary:
 def _run_local(
     tasks, workers, arch, precision, kwargs, max_restarts, progress, plugins=()
 ) -> dict[int, RecordingSummary]:
-    import multiprocessing
+    """The local engine: :func:`cmax_taichi.solve.workers.run_tasks` (a dead worker charges only the
+    recording it held; workers die with the driver)."""
+    import functools
 
-    results: dict[int, RecordingSummary] = {}
-    restarts = 0
-    context = multiprocessing.get_context("spawn")  # a fresh interpreter: Taichi does not survive fork
-    while len(results) < len(tasks):
-        pending = [i for i in range(len(tasks)) if i not in results]
-        with ProcessPoolExecutor(
-            max_workers=min(workers, len(pending)),
-            mp_context=context,
-            initializer=_pool_init,
-            initargs=(arch, precision, plugins),
-        ) as pool:
-            futures: dict[Future, int] = {pool.submit(_pool_estimate, *tasks[i], kwargs): i for i in pending}
-            broken = False
-            while futures:
-                finished, _ = wait(futures, timeout=0.5, return_when=FIRST_COMPLETED)
-                for fut in finished:
-                    i = futures.pop(fut)
-                    try:
-                        results[i] = fut.result()
-                    except BrokenProcessPool:
-                        broken = True  # a worker died: this recording resumes in a new pool
-                    except Exception as exc:  # e.g. hooks that do not pickle
-                        results[i] = _failed(tasks[i], f"{type(exc).__name__}: {exc}")
-                progress.poll(len(results))
-        if broken:
-            restarts += 1
-            if restarts > max_restarts:
-                for i in range(len(tasks)):
-                    if i not in results:
-                        error = f"worker process died {restarts} times (max_restarts={max_restarts})"
-                        results[i] = _failed(tasks[i], error)
-    return results
+    from cmax_taichi.solve.workers import run_tasks
+
+    return run_tasks(
+        [(_estimate_task, tuple(task), {"kwargs": kwargs}) for task in tasks],
+        workers,
+        functools.partial(_worker_state, arch, precision, plugins),
+        max_restarts,
+        on_poll=progress.poll,
+        failed=lambda i, error: _failed(tasks[i], error),
+    )
 
 
 def _run_ray(
     tasks, workers, arch, precision, kwargs, max_restarts, progress, address, plugins=()
 ) -> dict[int, RecordingSummary]:
-    try:
-        import ray
-    except ImportError:
-        raise ImportError(
-            'engine="ray" needs Ray: pip install "cmax-taichi[ray]" (or pip install ray)'
-        ) from None
+    """The Ray engine: :func:`cmax_taichi.solve.workers.run_ray` with :class:`RecordingWorker` actors."""
+    from cmax_taichi.solve.workers import run_ray
 
-    started = False
-    if not ray.is_initialized():
-        if address is None and not os.environ.get("RAY_ADDRESS"):
-            # a new local instance sized to the workers, even when a cluster runs on this machine
-            ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
-        else:  # the given cluster (or $RAY_ADDRESS, as ray.init reads it)
-            ray.init(address=address, log_to_driver=False)
-        started = True
-    try:
-        actor_class = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=max_restarts)(
-            RecordingWorker
-        )
-        actors = [actor_class.remote(arch, precision, plugins) for _ in range(min(workers, len(tasks)))]
-        queue = list(range(len(tasks)))
-        running: dict[Any, tuple[int, Any]] = {}
-        results: dict[int, RecordingSummary] = {}
-        idle = list(actors)
-        while queue or running:
-            while queue and idle:
-                actor = idle.pop()
-                i = queue.pop(0)
-                running[actor.estimate.remote(*tasks[i], **kwargs)] = (i, actor)
-            finished, _ = ray.wait(list(running), num_returns=1, timeout=0.5)
-            for ref in finished:
-                i, actor = running.pop(ref)
-                try:
-                    results[i] = ray.get(ref)
-                    idle.append(actor)
-                except ray.exceptions.RayActorError as exc:  # restarts used up: a fresh actor goes on
-                    error = f"worker died (after {max_restarts} restarts): {str(exc).splitlines()[0]}"
-                    results[i] = _failed(tasks[i], error)
-                    idle.append(actor_class.remote(arch, precision, plugins))
-                except ray.exceptions.RayError as exc:  # e.g. arguments that do not pickle
-                    results[i] = _failed(tasks[i], f"{type(exc).__name__}: {str(exc).splitlines()[0]}")
-                    idle.append(actor)
-            progress.poll(len(results))
-        for actor in idle:  # every actor is idle now (dead ones were replaced)
-            ray.kill(actor)
-        return results
-    finally:
-        if started:
-            ray.shutdown()
+    return run_ray(
+        [(tuple(task), kwargs) for task in tasks],
+        workers,
+        RecordingWorker,
+        (arch, precision, plugins),
+        max_restarts,
+        address,
+        on_poll=progress.poll,
+        failed=lambda i, error: _failed(tasks[i], error),
+    )
 
 
 def _loaded_plugins(plugins: Sequence[str]) -> tuple[str, ...]:
@@ -675,6 +616,18 @@ def run(
     BatchResult
         One :class:`RecordingSummary` per recording; a recording that cannot be estimated is reported
         as failed (with the error) and does not stop the others.
+
+    Raises
+    ------
+    ValueError
+        Before any work: bad arguments; a recording given twice or whose name clashes with the batch's
+        tables (``summary.csv``, ``windows.csv``) or machinery
+        (:data:`cmax_taichi.io.outputs.RESERVED_NAMES`);
+        an ``out`` that is or holds a recording; files in ``out`` that this batch would replace and that
+        no batch wrote (:class:`~cmax_taichi.io.outputs.OutputConflictError`).
+    OSError
+        A missing recording, a FIFO or device given as one, or another batch running on ``out``
+        (:class:`~cmax_taichi.io.outputs.OutputBusyError`).
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
@@ -695,25 +648,41 @@ def run(
     for p in paths:
         if not Path(p).exists():
             raise OSError(f"{p}: no such file or folder")
+        if not Path(p).is_dir():
+            check_regular(p)  # a FIFO or a device is refused here, not by a worker that blocks on it
     out = Path(out)
     names = recording_names(paths)
-    out.mkdir(parents=True, exist_ok=True)
-    folders = [out / n for n in names]
-    tasks = [(str(p), str(f), dict(options)) for p, f in zip(paths, folders, strict=True)]
-    kwargs = {"format": format, "hooks": hooks, "crash_hook": os.environ.get(CRASH_HOOK_ENV)}
-    stream = None if progress is False else (sys.stderr if progress is True else progress)
-    bar = _Progress(folders, stream)
-    t0 = time.perf_counter()
-    try:
-        if engine == "local":
-            results = _run_local(tasks, workers, arch, precision, kwargs, max_restarts, bar, plugins)
-        else:
-            results = _run_ray(tasks, workers, arch, precision, kwargs, max_restarts, bar, address, plugins)
-        bar.poll(sum(r.status == "done" for r in results.values()))
-    finally:
-        bar.close()
-    summaries = [results[i] for i in range(len(tasks))]
-    summary_csv, windows_csv = _write_tables(out, summaries)
+    _check_outputs(out, paths, names)
+    with outputs.hold_lock(out, f"batch of {len(paths)} recording(s)"):
+        _check_folders(out, names)
+        folders = [out / n for n in names]
+        tasks = [(str(p), str(f), dict(options)) for p, f in zip(paths, folders, strict=True)]
+        kwargs = {"format": format, "hooks": hooks, "crash_hook": os.environ.get(CRASH_HOOK_ENV)}
+        stream = None if progress is False else (sys.stderr if progress is True else progress)
+        bar = _Progress(folders, stream)
+        t0 = time.perf_counter()
+        try:
+            if engine == "local":
+                results = _run_local(tasks, workers, arch, precision, kwargs, max_restarts, bar, plugins)
+            else:
+                results = _run_ray(
+                    tasks, workers, arch, precision, kwargs, max_restarts, bar, address, plugins
+                )
+            bar.poll(sum(r.status == "done" for r in results.values()))
+        finally:
+            bar.close()
+        summaries = [results[i] for i in range(len(tasks))]
+        summary_csv, windows_csv = _write_tables(out, summaries)
+    left = sum(s.not_estimated for s in summaries)
+    if left:
+        total = sum(s.events for s in summaries if s.status == "done")
+        counted = sum(1 for s in summaries if s.not_estimated)
+        warnings.warn(
+            f"batch {out}: {left} of {total} event(s) not estimated in {counted} recording(s) (counts per "
+            f"recording in {summary_csv.name}, by reason in each results.json)",
+            EventsDroppedWarning,
+            stacklevel=2,
+        )
     return BatchResult(
         out=out,
         recordings=summaries,
@@ -725,13 +694,44 @@ def run(
     )
 
 
+def _check_outputs(out: Path, paths: Sequence[str | os.PathLike], names: Sequence[str]) -> None:
+    """Refuse, before any work, an ``out`` that is or holds a recording and names that clash with the
+    batch's own files (ValueError)."""
+    outputs.check_inputs(out, paths, option="out (--out)")
+    reserved = set(TABLE_NAMES) | set(outputs.RESERVED_NAMES)
+    for p, name in zip(paths, names, strict=True):
+        if name in reserved or name.startswith(outputs.STAGING_PREFIX):
+            raise outputs.OutputConflictError(
+                f"recording {p} would be estimated into {out / name}, a name the batch uses for its own "
+                f"{'table' if name in TABLE_NAMES else 'files'}: rename the recording (or its folder)"
+            )
+
+
+def _check_folders(out: Path, names: Sequence[str]) -> None:
+    """Refuse, before any work, files the batch would replace and that no batch wrote: its tables
+    (not in the folder's manifest) and recording folders with results but no checkpoint."""
+    outputs.refuse_foreign(out, TABLE_NAMES, option="output folder")
+    for name in names:
+        folder = out / name
+        if folder.exists() and not folder.is_dir():
+            raise outputs.OutputConflictError(f"{folder} is a file where the batch writes a recording folder")
+        if folder.is_dir() and not (folder / CHECKPOINT_NAME).exists():
+            foreign = [f for f in ("results.csv", "results.json") if (folder / f).exists()]
+            if foreign:
+                raise outputs.OutputConflictError(
+                    f"{folder} holds {', '.join(foreign)} that no batch run wrote (no {CHECKPOINT_NAME}): "
+                    "not overwritten; choose another output folder or move them away"
+                )
+
+
 def _write_tables(out: Path, summaries: Sequence[RecordingSummary]) -> tuple[Path, Path]:
-    """OUT/summary.csv (one row per recording) and OUT/windows.csv (every window, merged)."""
+    """OUT/summary.csv (one row per recording) and OUT/windows.csv (every window, merged), each through a
+    temporary file renamed when complete, and recorded in OUT's manifest."""
     done = {s.name: read_results(out / s.name / "results.json") for s in summaries if s.status == "done"}
     first = next(iter(done.values()), None)
     params = [f"{n} [{u}]" for n, u in zip(first.param_names, first.units, strict=True)] if first else []
     header = ["recording", "path", "status", "windows", "seconds", *[f"median {p}" for p in params]]
-    header += ["median fwl", "error"]
+    header += ["median fwl", "events", "not estimated", "error"]
     rows = []
     for s in summaries:
         res = done.get(s.name)
@@ -742,14 +742,15 @@ def _write_tables(out: Path, summaries: Sequence[RecordingSummary]) -> tuple[Pat
             fwls = [w.fwl for w in res.windows if math.isfinite(w.fwl)]
             medians.append(repr(float(np.median(fwls))) if fwls else "")
             seconds = f"{sum(w.seconds for w in res.windows):.4f}"
-        rows.append([s.name, s.path, s.status, s.windows, seconds, *medians, s.error])
+        events = [s.events, s.not_estimated] if s.events else ["", ""]
+        rows.append([s.name, s.path, s.status, s.windows, seconds, *medians, *events, s.error])
     summary_csv = out / "summary.csv"
     windows_csv = out / "windows.csv"
-    with summary_csv.open("w", newline="") as fh:
+    with outputs.atomic_path(summary_csv) as tmp, tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(header)
         writer.writerows(rows)
-    with windows_csv.open("w", newline="") as fh:
+    with outputs.atomic_path(windows_csv) as tmp, tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)
         if first is not None:
             writer.writerow(["recording", *first.columns()])
@@ -757,4 +758,5 @@ def _write_tables(out: Path, summaries: Sequence[RecordingSummary]) -> tuple[Pat
             with (out / name / "results.csv").open(newline="") as rf:
                 for row in list(csv.reader(rf))[1:]:
                     writer.writerow([name, *row])
+    outputs.write_manifest(out, TABLE_NAMES, "batch")
     return summary_csv, windows_csv

@@ -5,32 +5,38 @@ MVSEC setup, or by duration), gives each window to one :class:`~cmax_taichi.Cont
 (:meth:`~cmax_taichi.ContrastMaximization.set_events`: its pooled Taichi fields, buffers and compiled
 kernels serve every window), maximizes it warm-started from the previous window (:class:`WarmState`),
 and records one row per window. :class:`SequenceResult` writes
-the rows as CSV and JSON.
+the rows as CSV, JSON and HDF5, each file through a temporary name renamed when complete.
+
+Every event is accounted for (:mod:`cmax_taichi.core.windows`): a window that cannot be estimated
+(fewer than 2 events, all at one time, the partial tail of count windows) gets a row with its
+``status``; each row counts the events its window dropped (``n_dropped``: outside the sensor, lost in
+undistortion); :attr:`SequenceResult.events` has the totals by reason, and one
+:class:`~cmax_taichi.core.checks.EventsDroppedWarning` at the end of :func:`process` gives them.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 import os
 import sys
 import time
 import warnings
-from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, replace
 from typing import Any, TextIO
 
 import numpy as np
 from tqdm import tqdm
 
 from cmax_taichi.core import checks
+from cmax_taichi.core import windows as spans_
 from cmax_taichi.core.events import Camera, Events
+from cmax_taichi.core.windows import ESTIMATED_STATUSES, EventLedger, Span, count_spans, window_status
 from cmax_taichi.metrics import fwl_problem
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.pipeline.problem import ContrastMaximization
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
+from cmax_taichi.solve.results import SequenceResult, WindowResult, read_results
 
 __all__ = [
     "TRACKING_LOSS_RATIO",
@@ -38,6 +44,7 @@ __all__ = [
     "WindowResult",
     "SequenceResult",
     "ProgressBar",
+    "count_events",
     "process",
     "read_results",
 ]
@@ -52,52 +59,6 @@ TRACKING_LOSS_RATIO = 0.8
 #: problem options under which the estimate's own problem measures the FWL (variance, normalised, no
 #: weights or whitening): then its J at the estimate is the FWL and no second problem is built
 _FWL_COMPATIBLE_OPTIONS = {"blur_sigma", "t_ref", "polarity"}
-
-
-@dataclass
-class WindowResult:
-    """The estimate of one window.
-
-    Attributes
-    ----------
-    index : int
-        Window number (0-based).
-    t_start, t_end : float
-        Time of the window's first and last event, s.
-    n_events : int
-        Events in the window (after undistortion, those that stay on the sensor).
-    theta : ndarray
-        Estimate, physical units.
-    value : float
-        Objective J at the estimate.
-    fwl : float
-        Flow Warp Loss of the estimate (NaN when not computed).
-    iterations : int
-        Local iterations of the optimizer.
-    seconds : float
-        Wall time of the window (problem, optimisation, FWL), s.
-    converged : bool
-        The optimizer met a stopping rule.
-    evaluations : int
-        Evaluations of J (with or without gradient) spent on the window.
-    search : str
-        How the window was solved: ``"global"`` (search, then local ascent), ``"warm"`` (refinement
-        of the previous estimate) or ``"warm+global"`` (the refinement lost track, so a global
-        search ran too).
-    """
-
-    index: int
-    t_start: float
-    t_end: float
-    n_events: int
-    theta: np.ndarray
-    value: float
-    fwl: float
-    iterations: int
-    seconds: float
-    converged: bool
-    evaluations: int = 0
-    search: str = ""
 
 
 @dataclass(frozen=True)
@@ -184,202 +145,6 @@ class WarmState:
         return True
 
 
-@dataclass
-class SequenceResult:
-    """Per-window estimates of a recording, with the settings that produced them."""
-
-    warp: str
-    param_names: tuple[str, ...]
-    units: tuple[str, ...]
-    windows: list[WindowResult] = field(default_factory=list)
-    settings: dict = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.windows)
-
-    @property
-    def theta(self) -> np.ndarray:
-        """``(K, P)`` estimates, physical units."""
-        return np.array([w.theta for w in self.windows]).reshape(len(self.windows), len(self.param_names))
-
-    @property
-    def t_mid(self) -> np.ndarray:
-        """``(K,)`` window middle times, s."""
-        return np.array([0.5 * (w.t_start + w.t_end) for w in self.windows])
-
-    def real_time_factor(self, skip_first: bool = True) -> float:
-        """Seconds of data per wall second (above 1: faster than the camera records).
-
-        The data seconds of a window are its span ``t_end - t_start``; ``skip_first`` leaves out the
-        first window, whose time includes compiling the kernels (reported apart by the command line).
-        NaN without windows to count.
-        """
-        rows = self.windows[1:] if skip_first else self.windows
-        wall = sum(w.seconds for w in rows)
-        data = sum(w.t_end - w.t_start for w in rows)
-        return data / wall if rows and wall > 0 else math.nan
-
-    #: the CSV columns before the parameters (times, event count) and after them (the diagnostics)
-    WINDOW_COLUMNS = ("index", "t_start [s]", "t_end [s]", "n_events")
-    DIAGNOSTIC_COLUMNS = (
-        "value",
-        "fwl",
-        "iterations",
-        "seconds",
-        "converged",
-        "evaluations",
-        "search",
-    )
-
-    def columns(self) -> list[str]:
-        """CSV header :attr:`WINDOW_COLUMNS`, the parameters (``name [unit]``), :attr:`DIAGNOSTIC_COLUMNS`."""
-        params = [f"{n} [{u}]" for n, u in zip(self.param_names, self.units, strict=True)]
-        return [*self.WINDOW_COLUMNS, *params, *self.DIAGNOSTIC_COLUMNS]
-
-    def to_csv(self, path: str | os.PathLike) -> Path:
-        """Write one row per window (see :meth:`columns`); returns the path."""
-        path = Path(path)
-        with path.open("w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(self.columns())
-            for w in self.windows:
-                writer.writerow(
-                    [w.index, repr(w.t_start), repr(w.t_end), w.n_events]
-                    + [repr(float(v)) for v in w.theta]
-                    + [
-                        repr(float(w.value)),
-                        repr(float(w.fwl)),
-                        w.iterations,
-                        f"{w.seconds:.4f}",
-                        int(w.converged),
-                        w.evaluations,
-                        w.search,
-                    ]
-                )
-        return path
-
-    def as_dict(self) -> dict:
-        """JSON-friendly: warp, parameter names and units, settings, and one dict per window."""
-
-        def num(v: float) -> float | None:
-            return float(v) if math.isfinite(v) else None
-
-        return {
-            "warp": self.warp,
-            "params": list(self.param_names),
-            "units": list(self.units),
-            "settings": self.settings,
-            "windows": [
-                {
-                    "index": w.index,
-                    "t_start": w.t_start,
-                    "t_end": w.t_end,
-                    "n_events": w.n_events,
-                    "theta": {n: float(v) for n, v in zip(self.param_names, w.theta, strict=True)},
-                    "value": num(w.value),
-                    "fwl": num(w.fwl),
-                    "iterations": w.iterations,
-                    "seconds": w.seconds,
-                    "converged": w.converged,
-                    "evaluations": w.evaluations,
-                    "search": w.search,
-                }
-                for w in self.windows
-            ],
-        }
-
-    def to_json(self, path: str | os.PathLike) -> Path:
-        """Write :meth:`as_dict` as JSON; returns the path."""
-        path = Path(path)
-        path.write_text(json.dumps(self.as_dict(), indent=1))
-        return path
-
-    def to_hdf5(self, path: str | os.PathLike) -> Path:
-        """Write one HDF5 dataset per column (length K, the windows): ``index``, ``t_start``,
-        ``t_end`` (s), ``n_events``, each parameter by name (attribute ``unit``), ``value``, ``fwl``,
-        ``iterations``, ``seconds``, ``converged``. File attributes: ``warp``, ``params``, ``units``,
-        ``columns`` (the dataset order) and each setting (numbers and strings as they are, anything
-        else as JSON text; all of them also in ``settings_json``). Returns the path."""
-        import h5py
-
-        diagnostics = (
-            "index", "t_start", "t_end", "n_events", "value", "fwl", "iterations", "evaluations", "seconds"
-        )  # fmt: skip
-        clash = set(self.param_names) & {*diagnostics, "converged"}
-        if clash:
-            raise ValueError(f"parameter names {sorted(clash)} clash with the result columns")
-        ws = self.windows
-        theta = self.theta
-        columns: dict[str, tuple[np.ndarray, str]] = {
-            "index": (np.array([w.index for w in ws], dtype=np.int64), ""),
-            "t_start": (np.array([w.t_start for w in ws], dtype=np.float64), "s"),
-            "t_end": (np.array([w.t_end for w in ws], dtype=np.float64), "s"),
-            "n_events": (np.array([w.n_events for w in ws], dtype=np.int64), ""),
-        }
-        for i, (name, unit) in enumerate(zip(self.param_names, self.units, strict=True)):
-            columns[name] = (theta[:, i].astype(np.float64), unit)
-        columns.update(
-            value=(np.array([w.value for w in ws], dtype=np.float64), ""),
-            fwl=(np.array([w.fwl for w in ws], dtype=np.float64), ""),
-            iterations=(np.array([w.iterations for w in ws], dtype=np.int64), ""),
-            evaluations=(np.array([w.evaluations for w in ws], dtype=np.int64), ""),
-            seconds=(np.array([w.seconds for w in ws], dtype=np.float64), "s"),
-            converged=(np.array([w.converged for w in ws], dtype=bool), ""),
-        )
-        path = Path(path)
-        with h5py.File(path, "w") as f:
-            for name, (data, unit) in columns.items():
-                ds = f.create_dataset(name, data=data)
-                if unit:
-                    ds.attrs["unit"] = unit
-            f.attrs["warp"] = self.warp
-            f.attrs["params"] = list(self.param_names)
-            f.attrs["units"] = list(self.units)
-            f.attrs["columns"] = list(columns)
-            f.attrs["settings_json"] = json.dumps(self.settings, default=str)
-            for key, value in self.settings.items():
-                plain = isinstance(value, (str, bool, int, float)) and not isinstance(value, np.generic)
-                f.attrs[f"setting_{key}"] = value if plain else json.dumps(value, default=str)
-        return path
-
-
-def read_results(path: str | os.PathLike) -> SequenceResult:
-    """Read a JSON file written by :meth:`SequenceResult.to_json` (ValueError naming what is wrong)."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not a results JSON file ({exc})") from None
-    try:
-        names = tuple(data["params"])
-        result = SequenceResult(
-            warp=data["warp"],
-            param_names=names,
-            units=tuple(data["units"]),
-            settings=data.get("settings", {}),
-        )
-        for w in data["windows"]:
-            result.windows.append(
-                WindowResult(
-                    index=int(w["index"]),
-                    t_start=float(w["t_start"]),
-                    t_end=float(w["t_end"]),
-                    n_events=int(w["n_events"]),
-                    theta=np.array([float(w["theta"][n]) for n in names]),
-                    value=math.nan if w["value"] is None else float(w["value"]),
-                    fwl=math.nan if w["fwl"] is None else float(w["fwl"]),
-                    iterations=int(w["iterations"]),
-                    seconds=float(w["seconds"]),
-                    converged=bool(w["converged"]),
-                    evaluations=int(w.get("evaluations", 0)),
-                    search=str(w.get("search", "")),
-                )
-            )
-    except (KeyError, TypeError) as exc:
-        raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
-    return result
-
-
 class ProgressBar:
     """Progress over windows on stderr (or ``stream``), drawn by :mod:`tqdm`.
 
@@ -446,34 +211,143 @@ class ProgressBar:
             self._bar = None
 
 
-def _count_windows(n_total: int, n_events: int, stride: int | None) -> int:
-    step = n_events if stride is None else stride
-    return 0 if n_total < n_events else (n_total - n_events) // step + 1
+@dataclass
+class _Plan:
+    """One pass of windows over a source: its spans, how to read one, and what to say about it."""
+
+    spans: Iterator[Span]
+    read: Callable[[Span], tuple[Events, np.ndarray | None]]  # events on the sensor, and which rows
+    n_total: int  # events of the source
+    total: int | None  # spans of the pass, if known (for the progress bar)
+    camera: Camera | None
+    undistorted: bool  # coordinates already undistorted
+    desc: dict
 
 
-def _windows_of(
-    source, n_events: int, duration: float | None, stride
-) -> tuple[Iterator[Events], int | None, Camera | None, dict]:
-    """(window iterator, number of windows if known, the source's camera, a description)."""
+def _plan(source, n_events: int, duration: float | None, stride, keep_tail: bool) -> _Plan:
+    """The pass of windows over an Events or an open Recording (arguments checked, timestamps checked)."""
     if isinstance(source, Events):
+        n = len(source)
+        if n > 1 and source.t[0] == source.t[-1]:
+            raise ValueError(
+                f"all {n} events have the same time t = {source.t[0]:.9f} s: no window spans a positive time"
+            )
         if duration is not None:
-            it: Iterator[Events] = source.windows_by_duration(duration, stride)
+            ranges = checks.time_windows(
+                float(source.t[0]) if n else 0.0,
+                float(source.t[-1]) if n else 0.0,
+                n,
+                duration,
+                stride,
+                lambda t: int(np.searchsorted(source.t, t, side="left")),
+                lambda i: float(source.t[i]),
+            )
+            spans: Iterator[Span] = spans_.time_spans(ranges)
             total = None
-            if len(source) > 1:
+            if n > 1:
                 step = duration if stride is None else float(stride)
                 total = int((source.t[-1] - source.t[0]) // step) + 1
         else:
-            it = source.windows_by_count(n_events, None if stride is None else int(stride))
-            total = _count_windows(len(source), n_events, None if stride is None else int(stride))
-        return it, total, None, {"source": f"Events(n={len(source)})"}
-    if hasattr(source, "windows"):  # an open Recording
-        it = source.windows(n_events=n_events, duration=duration, stride=stride)
-        total = None
-        if duration is None:
-            total = _count_windows(source.n_events, n_events, None if stride is None else int(stride))
+            spans = count_spans(n, n_events, stride, keep_tail)
+            total = _count_spans(n, n_events, stride, keep_tail)
+        return _Plan(
+            spans, lambda span: (source[span.start : span.stop], None), n, total, None,
+            source.undistorted, {"source": f"Events(n={n})"},
+        )  # fmt: skip
+    if hasattr(source, "window_spans"):  # an open Recording
+        spans = source.window_spans(n_events=n_events, duration=duration, stride=stride, keep_tail=keep_tail)
+        total = None if duration is not None else _count_spans(source.n_events, n_events, stride, keep_tail)
         desc = {"source": str(getattr(source, "path", source)), "format": getattr(source, "format", None)}
-        return it, total, getattr(source, "camera", None), desc
+        return _Plan(
+            spans, lambda span: source._span_events(span.start, span.stop), source.n_events, total,
+            getattr(source, "camera", None), bool(getattr(source, "undistorted", False)), desc,
+        )  # fmt: skip
     raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
+
+
+def _count_spans(n_total: int, n_events: int, stride: int | None, keep_tail: bool) -> int:
+    """The windows of a count pass that may be estimated (for the progress bar): the full windows, and
+    the partial tail when ``keep_tail`` keeps it."""
+    step = n_events if stride is None else int(stride)
+    full = 0 if n_total < n_events else (n_total - n_events) // step + 1
+    tail = n_total - full * step
+    return full + (1 if keep_tail and tail >= spans_.min_tail_events(n_events) else 0)
+
+
+def _window_fate(span: Span, plan: _Plan, camera: Camera | None, lossy: checks.UndistortionTally):
+    """Read a window and decide its fate: ``(events used, on-sensor mask or None, undistortion mask or
+    None, status)``; undistorted here (once) when ``camera`` is given, so that the losses are counted."""
+    events, inside = plan.read(span)  # the events on the sensor (inside: which rows)
+    used, kept = events, None
+    if camera is not None and span.keep and len(events):
+        used, kept = events.undistort(camera, return_mask=True)
+        lossy.add(events, used)
+    return used, inside, kept, window_status(span, len(used), used.duration)
+
+
+def count_events(
+    source: Events | Any | str | os.PathLike,
+    *,
+    camera: Camera | None = None,
+    n_events: int = 30000,
+    duration: float | None = None,
+    stride: int | float | None = None,
+    max_windows: int | None = None,
+    keep_tail: bool = False,
+    format: str | None = None,
+) -> dict:
+    """Where :func:`process` would take each event, without estimating anything: the
+    :attr:`SequenceResult.events` dict of a run with these windows (``total``, ``estimated``, each
+    reason of :data:`cmax_taichi.core.windows.CATEGORIES`, ``after_max_windows`` and the windows per
+    status). The arguments are those of :func:`process` and are checked the same way. No warning."""
+    if isinstance(source, (str, os.PathLike)):
+        from cmax_taichi import io
+
+        with io.open_recording(source, format=format) as rec:
+            return count_events(
+                rec, camera=camera, n_events=n_events, duration=duration, stride=stride,
+                max_windows=max_windows, keep_tail=keep_tail,
+            )  # fmt: skip
+    if duration is None:
+        n_events = checks.whole_number("n_events", n_events, 2)
+    if max_windows is not None:
+        max_windows = checks.whole_number("max_windows", max_windows, 1)
+    plan = _plan(source, n_events, duration, stride, keep_tail)
+    camera = camera if camera is not None else plan.camera
+    undistort = camera is not None and camera.has_distortion and not plan.undistorted
+    ledger = EventLedger(plan.n_total)
+    stopped_early = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", checks.EventsDroppedWarning)
+        for span in plan.spans:
+            if max_windows is not None and span.index >= max_windows:
+                stopped_early = True
+                break
+            _, inside, kept, status = _window_fate(
+                span, plan, camera if undistort else None, checks.UndistortionTally()
+            )
+            ledger.add(span, status, inside, kept)
+    ledger.finish(stopped_early)
+    return ledger.as_dict()
+
+
+def _skipped_row(span: Span, events: Events, n_used: int, status: str, n_params: int) -> WindowResult:
+    """The row of a window that is not estimated (NaN parameters and values)."""
+    nan = math.nan
+    return WindowResult(
+        index=span.index,
+        t_start=float(events.t[0]) if len(events) else nan,
+        t_end=float(events.t[-1]) if len(events) else nan,
+        n_events=n_used,
+        theta=np.full(n_params, nan),
+        value=nan,
+        fwl=nan,
+        iterations=0,
+        seconds=0.0,
+        converged=False,
+        status=status,
+        n_dropped=len(span) - n_used,
+    )
 
 
 def process(
@@ -486,7 +360,7 @@ def process(
     n_events: int = 30000,
     duration: float | None = None,
     stride: int | float | None = None,
-    method: str = "adam",
+    method: str = "bfgs",
     warm_start: bool = True,
     compute_fwl: bool = True,
     max_windows: int | None = None,
@@ -498,6 +372,8 @@ def process(
     first_window: int = 0,
     warm_state: WarmState | None = None,
     warm_method: str = "bfgs",
+    keep_tail: bool = False,
+    on_skipped: Callable[[WindowResult], None] | None = None,
 ) -> SequenceResult:
     """Estimate the motion of every window of a recording.
 
@@ -516,9 +392,15 @@ def process(
         Window length, s (then windows are by time).
     stride : int or float, optional
         Start-to-start step (events, or s for time windows); default the window size.
+    keep_tail : bool
+        Count windows: estimate the partial tail (the events after the last full window) as a shorter
+        window when it holds at least half a window (:func:`cmax_taichi.core.windows.min_tail_events`;
+        status ``"short_tail"``). Default: the tail gets a row with status ``"partial_tail"`` and its
+        events are counted as not estimated.
     method : str
         Local optimizer of :func:`~cmax_taichi.maximize` after a global search (the first window, and
-        every window without ``warm_start`` or after a tracking loss).
+        every window without ``warm_start`` or after a tracking loss); default ``"bfgs"``, which with
+        the default coarse-to-fine search solves a first window in at most 150 evaluations.
     warm_start : bool
         Refine the previous window's estimate (``maximize(init="warm", method=warm_method)``: the
         previous estimate and the identity are the candidates, a few quasi-Newton steps follow); the
@@ -529,7 +411,8 @@ def process(
     compute_fwl : bool
         Compute the FWL of each estimate on the window's events.
     max_windows : int, optional
-        Stop after this many windows.
+        Stop after this many windows (estimated or not); the events after them are counted
+        (``after_max_windows``).
     progress : bool or stream
         Show progress on stderr (or on the given stream): a tqdm bar on a terminal, one line per 10%
         elsewhere (:class:`ProgressBar`); False shows nothing.
@@ -540,9 +423,11 @@ def process(
         More keyword arguments of ``maximize`` (``init``, ``n_init``, ``lr``, ...). An ``init`` given
         here applies to every window (no warm-start search).
     on_window : callable, optional
-        ``on_window(row, prob, result)`` after each window (e.g. to save figures). ``prob`` is one
-        problem for the whole sequence (:meth:`~cmax_taichi.ContrastMaximization.set_events` gives it
-        each next window): use it inside the callback; it holds the next window afterwards.
+        ``on_window(row, prob, result)`` after each estimated window (e.g. to save figures). ``prob``
+        is one problem for the whole sequence (:meth:`~cmax_taichi.ContrastMaximization.set_events`
+        gives it each next window): use it inside the callback; it holds the next window afterwards.
+    on_skipped : callable, optional
+        ``on_skipped(row)`` after each window that is not estimated (its row, with the status).
     format : str, optional
         Format name when ``source`` is a path.
     first_window : int
@@ -557,6 +442,8 @@ def process(
     Returns
     -------
     SequenceResult
+        ``windows``: the estimated windows; ``skipped``: the rows of the others (``status`` says why);
+        ``events``: where every event went (they sum to the source's events).
 
     Raises
     ------
@@ -566,11 +453,15 @@ def process(
     ValueError
         Before any window is read: ``n_events < 2``; a count ``stride`` below 1 or not whole (0,
         0.5); a ``duration`` or time ``stride`` that is not a positive finite number of seconds;
-        ``max_windows < 1``; time windows far shorter than the event spacing or too many of them
-        (see :meth:`cmax_taichi.io.Recording.windows`).
+        ``max_windows < 1``; time windows far shorter than the event spacing or too many of them;
+        timestamps out of order or not finite (naming the file, the dataset and the first bad
+        row), or all equal (see :meth:`cmax_taichi.io.Recording.windows`).
 
-    Events dropped by undistortion are reported by the first window that drops some, then once
-    more at the end with the totals over all windows (not once per window).
+    Every event that is not estimated is counted: one
+    :class:`~cmax_taichi.core.checks.EventsDroppedWarning` at the end gives the totals by reason
+    (partial tail, outside the sensor, undistortion, windows too small or of zero duration, gaps
+    between windows, after ``max_windows``). Undistortion also warns once for the first window that
+    loses events, with the details.
     """
     if duration is None:
         n_events = checks.whole_number("n_events", n_events, 2)
@@ -604,18 +495,23 @@ def process(
                 first_window=first_window,
                 warm_state=warm_state,
                 warm_method=warm_method,
+                keep_tail=keep_tail,
+                on_skipped=on_skipped,
             )
     if first_window < 0:
         raise ValueError(f"first_window must be >= 0, got {first_window}")
     model = get_warp(warp)
-    windows, total, rec_camera, desc = _windows_of(source, n_events, duration, stride)
-    camera = camera if camera is not None else rec_camera
+    plan = _plan(source, n_events, duration, stride, keep_tail)
+    total, desc = plan.total, plan.desc
+    camera = camera if camera is not None else plan.camera
     if model.needs_camera and camera is None:
         raise ValueError(f"warp {model.name!r} needs a camera: the recording has none, pass camera=")
     popts = dict(problem_options or {})
     oopts = dict(optimize_options or {})
     if max_windows is not None:
         total = min(total, int(max_windows)) if total is not None else int(max_windows)
+    if total is not None:
+        total = max(0, total - first_window)
     settings = {
         **desc,
         "warp": model.name,
@@ -625,6 +521,7 @@ def process(
         "window_events": None if duration is not None else int(n_events),
         "window_duration": duration,
         "stride": stride,
+        "keep_tail": bool(keep_tail),
         "method": method,
         "warm_start": warm_start,
         "problem_options": {k: v for k, v in popts.items() if isinstance(v, (int, float, str, bool))},
@@ -642,28 +539,47 @@ def process(
         and not any(float(w) for w in (regularizers or {}).values())
         and set(popts) <= _FWL_COMPATIBLE_OPTIONS
     )
-    lossy = checks.UndistortionTally()
+    lossy = checks.UndistortionTally()  # holds back the undistortion warnings after the first lossy window
+    ledger = EventLedger(plan.n_total)
+    undistort = camera is not None and camera.has_distortion and not plan.undistorted
+    weights = popts.pop("weights", None)
     prob = fprob = None  # built on the first window, then given each next window (set_events)
+    stopped_early = False
     try:
         with warnings.catch_warnings():  # restores the filter that the tally adds
-            for index, events in enumerate(_limited(windows, max_windows)):
-                if index < first_window:
-                    continue  # done by an earlier, interrupted run
+            for span in plan.spans:
+                if max_windows is not None and span.index >= max_windows:
+                    stopped_early = True
+                    break
+                index = span.index
                 t0 = time.perf_counter()
-                if len(events) < 2 or not events.duration > 0:
-                    continue  # nothing to estimate (a window with all events at one time stamp)
+                used, inside, kept, status = _window_fate(span, plan, camera if undistort else None, lossy)
+                ledger.add(span, status, inside, kept)
+                if index < first_window:
+                    continue  # done by an earlier, interrupted run (accounted for all the same)
+                if status not in ESTIMATED_STATUSES:
+                    row = _skipped_row(span, used, len(used), status, model.n_params)
+                    result.add(row)
+                    if on_skipped is not None:
+                        on_skipped(row)
+                    if bar is not None and span.keep:  # the bar counts the windows that could be estimated
+                        bar.update(status)
+                    continue
+                window_weights = weights
+                if weights is not None and kept is not None and np.shape(weights) == kept.shape:
+                    window_weights = np.asarray(weights)[kept]  # as the problem's own undistortion does
                 if prob is None:
                     prob = ContrastMaximization(
-                        events,
+                        used,
                         warp=model,
                         objective=objective,
                         regularizers=regularizers,
                         camera=camera,
+                        weights=window_weights,
                         **popts,
                     )
                 else:  # the same problem takes the next window: its fields, kernels and buffers stay
-                    prob.set_events(events, weights=popts.get("weights"))
-                lossy.add(events, prob.events)
+                    prob.set_events(used, weights=window_weights)
                 res, search = _solve_window(prob, state if warm_start else None, method, warm_method, oopts)
                 value_fwl = math.nan
                 if compute_fwl:
@@ -671,21 +587,14 @@ def process(
                         value_fwl = res.value  # the estimate's problem is the FWL problem
                     else:
                         if fprob is None:
-                            fprob = fwl_problem(
-                                prob.events,  # already undistorted: the same events as the estimate
-                                model,
-                                camera=camera,
-                                blur_sigma=prob.blur_sigma,
-                                t_ref=popts.get("t_ref", "first"),
-                                polarity=prob.polarity,
-                            )
+                            fprob = _fwl_problem(prob, model, camera, popts.get("t_ref", "first"))
                         else:
                             fprob.set_events(prob.events)
                         value_fwl = fprob.value(res.theta)
                 row = WindowResult(
                     index=index,
-                    t_start=float(events.t[0]),
-                    t_end=float(events.t[-1]),
+                    t_start=float(used.t[0]),
+                    t_end=float(used.t[-1]),
                     n_events=prob.n_events,
                     theta=np.asarray(res.theta, dtype=np.float64),
                     value=float(res.value),
@@ -695,8 +604,10 @@ def process(
                     converged=res.converged,
                     evaluations=res.n_evaluations,
                     search=search,
+                    status=status,
+                    n_dropped=len(span) - prob.n_events,
                 )
-                result.windows.append(row)
+                result.add(row)
                 if on_window is not None:
                     on_window(row, prob, res)
                 state = WarmState.after(row, res)
@@ -705,8 +616,26 @@ def process(
     finally:
         if bar is not None:
             bar.close()
-    lossy.report()
+    ledger.finish(stopped_early)
+    result.events = ledger.as_dict()
+    ledger.warn(desc["source"], n_events if duration is None else None, max_windows, stacklevel=2)
     return result
+
+
+def _fwl_problem(prob: ContrastMaximization, model, camera: Camera | None, t_ref) -> ContrastMaximization:
+    """The problem whose J is the FWL of ``prob``'s window (the same, already undistorted, events).
+
+    For a variance problem with regularizers on the fused path: the same regularizers at weight 0, so
+    that it runs on the estimate's compiled kernel (the weights are data); a problem without them would
+    compile a kernel of its own on the first window (about a second of front end and code generation).
+    """
+    options = dict(camera=camera, blur_sigma=prob.blur_sigma, t_ref=t_ref, polarity=prob.polarity)
+    if prob.regularizer_weights and prob.path == "fused" and prob.objective.name == "variance":
+        zero = {name: 0.0 for name in prob.regularizer_weights}
+        return ContrastMaximization(
+            prob.events, warp=model, objective="variance", regularizers=zero, **options
+        )
+    return fwl_problem(prob.events, model, **options)
 
 
 def _solve_window(
@@ -741,10 +670,3 @@ def _solve_window(
         ),
         "warm+global",
     )
-
-
-def _limited(windows: Iterable[Events], max_windows: int | None) -> Iterator[Events]:
-    for k, w in enumerate(windows):
-        if max_windows is not None and k >= max_windows:
-            return
-        yield w

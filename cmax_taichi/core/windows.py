@@ -1,0 +1,315 @@
+"""Windows over a source's events as index spans, and the ledger that accounts for every event.
+
+A pass of windows (:meth:`cmax_taichi.io.Recording.windows`, :func:`cmax_taichi.solve.sequence.process`)
+is planned as :class:`Span` s, event index ranges ``[start, stop)`` of the source in time order, and
+every event of the source ends in exactly one category of :data:`CATEGORIES`:
+
+``estimated``
+    in a window that was estimated (or, for ``Recording.windows``, given to the caller);
+``outside_sensor``
+    outside the sensor (undistorted coordinates a little off it, a rectification map's edge);
+``undistortion``
+    moved off the sensor by undistortion, or where the distortion model does not invert;
+``partial_tail``
+    in the last, shorter window of count windows, not estimated (``keep_tail=False``, or a tail below
+    :func:`min_tail_events`);
+``too_few_events``
+    in a window of fewer than :data:`MIN_WINDOW_EVENTS` events (after the drops above);
+``zero_duration``
+    in a window whose events all share one timestamp;
+``between_windows``
+    in no window: a stride longer than the window leaves gaps;
+``after_max_windows``
+    after the last window that ``max_windows`` allowed.
+
+So ``n_total == sum(counts.values())`` for any window size, stride, duration and gap (the property
+``tests/test_input_properties.py`` checks). Overlapping windows (a stride below the window) count each
+event once: it is ``estimated`` when any estimated window used it, else it takes the reason of the window
+that came closest to using it (the order of :data:`CATEGORIES`, reversed). Drops by the sensor and by
+undistortion depend on the event alone, so overlapping windows agree on them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from cmax_taichi.core.checks import EventsDroppedWarning, whole_number
+
+__all__ = [
+    "CATEGORIES",
+    "ESTIMATED",
+    "ESTIMATED_STATUSES",
+    "MIN_WINDOW_EVENTS",
+    "PARTIAL_TAIL",
+    "SHORT_TAIL",
+    "STATUSES",
+    "TAIL_FRACTION",
+    "TOO_FEW_EVENTS",
+    "ZERO_DURATION",
+    "EventLedger",
+    "Span",
+    "count_spans",
+    "min_tail_events",
+    "time_spans",
+    "window_status",
+]
+
+#: the fewest events a window needs to be estimated (after the drops)
+MIN_WINDOW_EVENTS = 2
+#: with ``keep_tail``, the partial tail of count windows is estimated when it holds at least this share of a
+#: window (see :func:`min_tail_events`); a shorter tail is counted as ``partial_tail``
+TAIL_FRACTION = 0.5
+
+#: window statuses: estimated, and the reasons a window is not
+ESTIMATED = "estimated"
+SHORT_TAIL = "short_tail"  # the partial tail, estimated as a shorter window (keep_tail)
+PARTIAL_TAIL = "partial_tail"
+TOO_FEW_EVENTS = "too_few_events"
+ZERO_DURATION = "zero_duration"
+ESTIMATED_STATUSES = (ESTIMATED, SHORT_TAIL)
+STATUSES = (ESTIMATED, SHORT_TAIL, PARTIAL_TAIL, TOO_FEW_EVENTS, ZERO_DURATION)
+
+#: where the events went; an event's code is its position here (higher codes win, see the module docstring)
+CATEGORIES = (
+    "between_windows",
+    "partial_tail",
+    "too_few_events",
+    "zero_duration",
+    "outside_sensor",
+    "undistortion",
+    "estimated",
+)
+_CODE = {name: code for code, name in enumerate(CATEGORIES)}
+#: the category of the events of a window that is not estimated
+_STATUS_CODE = {PARTIAL_TAIL: 1, TOO_FEW_EVENTS: 2, ZERO_DURATION: 3}
+_AFTER = "after_max_windows"  # not an event code: only the remainder after a pass stopped by max_windows
+
+
+@dataclass(frozen=True)
+class Span:
+    """One window of a pass: events ``start:stop`` of the source (time order).
+
+    Attributes
+    ----------
+    index : int
+        Window number (0-based, in the pass).
+    start, stop : int
+        Event index range.
+    tail : bool
+        The partial tail of count windows (fewer events than the others).
+    keep : bool
+        False for a partial tail that is counted, not estimated.
+    """
+
+    index: int
+    start: int
+    stop: int
+    tail: bool = False
+    keep: bool = True
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+
+def min_tail_events(n_events: int) -> int:
+    """The fewest events a partial tail needs to be estimated with ``keep_tail``: ``ceil(TAIL_FRACTION *
+    n_events)``, at least :data:`MIN_WINDOW_EVENTS` (15,000 for windows of 30,000 events)."""
+    return max(MIN_WINDOW_EVENTS, math.ceil(TAIL_FRACTION * n_events))
+
+
+def count_spans(n_total: int, n_events, stride=None, keep_tail: bool = False) -> Iterator[Span]:
+    """The spans of windows of ``n_events`` events starting every ``stride`` events (default: no
+    overlap) over ``n_total`` events, then the partial tail (the events from the next start to the
+    end), marked ``keep`` when ``keep_tail`` and it holds at least :func:`min_tail_events`.
+
+    ``n_events`` (>= 2) and ``stride`` (>= 1) are whole numbers, checked when this is called
+    (TypeError / ValueError)."""
+    n = whole_number("n_events", n_events, 2)
+    step = n if stride is None else whole_number("stride (events)", stride, 1)
+    return _count_spans(int(n_total), n, step, bool(keep_tail))
+
+
+def _count_spans(n_total: int, n: int, step: int, keep_tail: bool) -> Iterator[Span]:
+    index = start = 0
+    while start + n <= n_total:
+        yield Span(index, start, start + n)
+        index += 1
+        start += step
+    if start < n_total:
+        yield Span(index, start, n_total, tail=True, keep=keep_tail and n_total - start >= min_tail_events(n))
+
+
+def time_spans(ranges: Iterator[tuple[int, int]]) -> Iterator[Span]:
+    """The spans of the index ranges of :func:`~cmax_taichi.core.checks.time_windows`, numbered; the
+    first range is taken now, so that the arguments are checked by this call."""
+    first = next(ranges, None)
+    return _numbered(first, ranges)
+
+
+def _numbered(first, ranges) -> Iterator[Span]:
+    if first is None:
+        return
+    yield Span(0, *first)
+    for index, (i0, i1) in enumerate(ranges, start=1):
+        yield Span(index, i0, i1)
+
+
+def window_status(span: Span, n_used: int, duration: float) -> str:
+    """The status of a window of ``n_used`` events spanning ``duration`` s (after the drops)."""
+    if not span.keep:
+        return PARTIAL_TAIL
+    if n_used < MIN_WINDOW_EVENTS:
+        return TOO_FEW_EVENTS
+    if not duration > 0:
+        return ZERO_DURATION
+    return SHORT_TAIL if span.tail else ESTIMATED
+
+
+class EventLedger:
+    """Where every event of one pass of windows went (see the module docstring).
+
+    Feed it the spans in order (``start`` and ``stop`` never decrease), each with the fate of its
+    events; memory stays bounded by the events of the open windows.
+
+    Parameters
+    ----------
+    n_total : int
+        Events of the source.
+    """
+
+    def __init__(self, n_total: int) -> None:
+        self.n_total = int(n_total)
+        self.counts = dict.fromkeys((*CATEGORIES, _AFTER), 0)
+        #: windows per status
+        self.windows = dict.fromkeys(STATUSES, 0)
+        self._base = 0  # events before it are final
+        self._fate = np.zeros(0, dtype=np.int8)  # codes of the events base .. base + len
+        self._finished = False
+
+    def add(
+        self,
+        span: Span,
+        status: str,
+        inside: np.ndarray | None = None,
+        kept: np.ndarray | None = None,
+    ) -> None:
+        """Account for one window.
+
+        Parameters
+        ----------
+        span : Span
+        status : str
+            One of :data:`STATUSES`.
+        inside : bool array, optional
+            Per event of the span: on the sensor (default all).
+        kept : bool array, optional
+            Per event on the sensor (``inside.sum()`` values): kept by undistortion (default all).
+        """
+        if span.start < self._base:
+            raise ValueError(f"window spans must come in order: {span} starts before event {self._base}")
+        self.windows[status] += 1
+        self._finalize(span.start)
+        end = self._base + len(self._fate)
+        if span.stop > end:
+            self._fate = np.concatenate([self._fate, np.zeros(span.stop - end, dtype=np.int8)])
+        code = _CODE["estimated"] if status in ESTIMATED_STATUSES else _STATUS_CODE[status]
+        fate = np.full(len(span), code, dtype=np.int8)
+        inside = np.ones(len(span), dtype=bool) if inside is None else np.asarray(inside, dtype=bool)
+        if status in ESTIMATED_STATUSES and kept is not None:
+            on_sensor = fate[inside]
+            on_sensor[~np.asarray(kept, dtype=bool)] = _CODE["undistortion"]
+            fate[inside] = on_sensor
+        fate[~inside] = _CODE["outside_sensor"]
+        segment = self._fate[span.start - self._base : span.stop - self._base]
+        np.maximum(segment, fate, out=segment)
+
+    def _finalize(self, upto: int) -> None:
+        """Count the events before ``upto``: no later window can hold them."""
+        if upto <= self._base:
+            return
+        k = min(upto - self._base, len(self._fate))
+        for code, count in enumerate(np.bincount(self._fate[:k], minlength=len(CATEGORIES))):
+            self.counts[CATEGORIES[code]] += int(count)
+        self.counts["between_windows"] += upto - self._base - k  # beyond every window so far
+        self._fate = self._fate[k:]
+        self._base = upto
+
+    def finish(self, stopped_early: bool = False) -> dict[str, int]:
+        """Close the pass: the events after the last window are ``between_windows``, or
+        ``after_max_windows`` when ``max_windows`` stopped it (``stopped_early``). Returns :attr:`counts`."""
+        if not self._finished:
+            self._finalize(self._base + len(self._fate))
+            rest = self.n_total - self._base
+            if rest > 0:
+                self.counts[_AFTER if stopped_early else "between_windows"] += rest
+            self._base = self.n_total
+            self._finished = True
+        return self.counts
+
+    @property
+    def not_estimated(self) -> int:
+        """Events not estimated (every category but ``estimated``), once :meth:`finish` ran."""
+        return self.n_total - self.counts["estimated"]
+
+    def as_dict(self) -> dict:
+        """``{"total": N, "estimated": ..., <category>: count, ..., "windows": {status: count}}``."""
+        return {"total": self.n_total, **self.counts, "windows": dict(self.windows)}
+
+    def describe(self, n_events: int | None = None, max_windows: int | None = None) -> str:
+        """The counts of the events not estimated, for a message (empty when every event was)."""
+        c, w = self.counts, self.windows
+        parts = []
+        if c["partial_tail"]:
+            hint = ""
+            if n_events is not None:
+                least = min_tail_events(n_events)
+                hint = (
+                    f" (keep_tail=True / --keep-tail keeps a tail of at least {least})"
+                    if c["partial_tail"] >= least
+                    else f" (shorter than the {least} that keep_tail=True / --keep-tail keeps)"
+                )
+            parts.append(f"{c['partial_tail']} in the partial last window{hint}")
+        if c["outside_sensor"]:
+            parts.append(f"{c['outside_sensor']} outside the sensor")
+        if c["undistortion"]:
+            parts.append(
+                f"{c['undistortion']} lost in undistortion (the first such window's warning says why)"
+            )
+        if c["too_few_events"]:
+            parts.append(
+                f"{c['too_few_events']} in {w[TOO_FEW_EVENTS]} window(s) of fewer than "
+                f"{MIN_WINDOW_EVENTS} events"
+            )
+        if c["zero_duration"]:
+            parts.append(f"{c['zero_duration']} in {w[ZERO_DURATION]} window(s) whose events share one time")
+        if c["between_windows"]:
+            parts.append(f"{c['between_windows']} between windows (a stride longer than the window)")
+        if c[_AFTER]:
+            limit = f"={max_windows}" if max_windows is not None else ""
+            parts.append(f"{c[_AFTER]} after the last window of max_windows{limit}")
+        return ", ".join(parts)
+
+    def warn(
+        self,
+        where: str,
+        n_events: int | None = None,
+        max_windows: int | None = None,
+        verb: str = "not estimated",
+        stacklevel: int = 2,
+    ) -> None:
+        """The one summary warning of a pass, an :class:`EventsDroppedWarning`
+        ``"<where>: K of N event(s) <verb>: <counts by reason>"``; nothing when no event was left out.
+        ``n_events`` (count windows) and ``max_windows`` make the message name the remedies."""
+        import warnings
+
+        detail = self.describe(n_events, max_windows)
+        if detail:
+            warnings.warn(
+                f"{where}: {self.not_estimated} of {self.n_total} event(s) {verb}: {detail}",
+                EventsDroppedWarning,
+                stacklevel=stacklevel + 1,
+            )
