@@ -92,6 +92,21 @@ def test_the_checker_names_a_wrong_det(user):
     assert "x' against the float64 reference" in report.passed  # the warp itself is right
 
 
+def test_a_twin_under_another_name_is_named_in_the_note(user):
+    """The twin is found by the model's name; one registered under another (a recipe's built-in name
+    beside a user model) is named, so the skipped reference checks are not missed."""
+    model = user.affine_model("test_misnamed_twin")
+    reference.register_reference_warp(user.affine_twin("test_misnamed"))
+    try:
+        report = cm.check_model(model, precisions=("f64",), problem=False)
+    finally:
+        reference.unregister_reference_warp("test_misnamed")
+    assert report.ok
+    note = "\n".join(report.notes)
+    assert "no float64 NumPy twin named 'test_misnamed_twin'" in note and "test_misnamed" in note
+    assert not any("float64 reference" in p for p in report.passed)
+
+
 @pytest.mark.parametrize("name", BUILTIN_OBJECTIVES)
 def test_every_registered_objective_passes_the_checker(name):
     report = cm.check_objective(name, warps=("translation2",)).raise_if_failed()

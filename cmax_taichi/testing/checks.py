@@ -440,7 +440,7 @@ def check_model(
     CheckReport
         ``report.ok``; ``str(report)`` lists what failed; ``report.raise_if_failed()``.
     """
-    from cmax_taichi.models.warps import get_warp
+    from cmax_taichi.models.warps import get_warp, warp_names
     from cmax_taichi.testing import reference, reference_warps
 
     model = get_warp(model)
@@ -461,9 +461,16 @@ def check_model(
         )
         twin = None
     if twin is None:
+        unclaimed = [  # a twin registered under another name than its model's (a typo, a renamed model)
+            n
+            for n, w in reference_warps.REFERENCE_WARPS.items()
+            if w.n_params == model.n_params and n not in warp_names()
+        ]
+        hint = f" (unclaimed twins of {model.n_params} parameters: {', '.join(unclaimed)})" * bool(unclaimed)
         report.notes.append(
-            "no float64 NumPy twin is registered (testing.reference.register_reference_warp): values are "
-            "checked for consistency only, not against the reference"
+            f"no float64 NumPy twin named {model.name!r} is registered (testing.reference."
+            f"register_reference_warp, under the model's name){hint}: values are checked for consistency "
+            "only, not against the reference"
         )
     if model.param_jac is None:
         report.notes.append("no param_jac: problems with this model run on the generic autodiff chain")
