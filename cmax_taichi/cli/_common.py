@@ -24,6 +24,7 @@ __all__ = [
     "PLUGIN_HELP",
     "T_REF_NAMES",
     "add_plugin_argument",
+    "add_sensor_size_argument",
     "load_plugins",
     "names",
     "warp_listing",
@@ -48,6 +49,16 @@ def add_plugin_argument(parser) -> None:
     """``--plugin FILE.py|MODULE`` (repeatable), on a parser or an argument group. :func:`load_plugins`
     imports them before the parser is built; this declaration documents them and accepts them."""
     parser.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE", help=PLUGIN_HELP)
+
+
+SENSOR_SIZE_HELP = (
+    "sensor size in px, for text files without one (default: the format's or the reader's guess)"
+)
+
+
+def add_sensor_size_argument(parser, help: str = SENSOR_SIZE_HELP) -> None:
+    """``--sensor-size W H`` (px, integers; default None: the format's)."""
+    parser.add_argument("--sensor-size", type=int, nargs=2, default=None, metavar=("W", "H"), help=help)
 
 
 def load_plugins(argv: list[str]) -> list[str]:
@@ -136,15 +147,7 @@ def add_recording_arguments(
         )
     parser.add_argument("--format", default=None, help=f"{names(FORMATS)} (default: detected)")
     if sensor_size:
-        parser.add_argument(
-            "--sensor-size",
-            type=int,
-            nargs=2,
-            default=None,
-            metavar=("W", "H"),
-            help="sensor size in px, for text files without one "
-            "(default: the format's or the reader's guess)",
-        )
+        add_sensor_size_argument(parser)
     example_note = ", or the example's model" if examples is not None else ""
     parser.add_argument(
         "--warp",
