@@ -36,42 +36,56 @@ def rss_mb() -> float:
 
 
 class SyntheticStream:
-    """A recording-like source: ``windows(n_events=...)`` yields fresh windows of moving edges.
+    """A recording-like source of fresh windows of moving edges (the protocol of an open Recording
+    that :func:`~cmax_taichi.solve.sequence.process` reads: ``window_spans`` and ``_span_events``).
 
-    ``sizes`` gives the number of events of each window; events are generated on demand from the
-    window's seed, at :data:`RATE` events per second, so that the stream's clock advances like a
-    camera's and nothing but the current window is held.
+    ``sizes`` gives the number of events of each window; a window's events are generated when it is
+    read, from its own seed, at :data:`RATE` events per second, so that the stream's clock advances like
+    a camera's and nothing but the current window is held.
     """
 
     format = "synthetic"
     camera = None
+    undistorted = False
+    sensor_size = SENSOR
 
     def __init__(self, sizes: np.ndarray, seed: int = 0) -> None:
         self.sizes = np.asarray(sizes, dtype=np.int64)
         self.n_events = int(self.sizes.sum())
         self.path = f"synthetic stream of {len(self.sizes)} windows"
-        self._rng = np.random.default_rng(seed)
+        self._seed = seed
+        self._starts = np.concatenate([[0], np.cumsum(self.sizes)])
+        rng = np.random.default_rng(seed)
         W, H = SENSOR
         k = 60
-        self._centres = self._rng.uniform([0.1 * W, 0.1 * H], [0.9 * W, 0.9 * H], size=(k, 2))
-        self._angles = self._rng.uniform(0, np.pi, k)
+        self._centres = rng.uniform([0.1 * W, 0.1 * H], [0.9 * W, 0.9 * H], size=(k, 2))
+        self._angles = rng.uniform(0, np.pi, k)
 
-    def windows(self, n_events=None, duration=None, stride=None):
+    def window_spans(self, n_events=None, duration=None, stride=None, keep_tail=False):
+        """The stream's own windows (``sizes``) as index spans; the arguments are ignored."""
+        from cmax_taichi.core.windows import Span
+
+        for i, (start, stop) in enumerate(zip(self._starts[:-1], self._starts[1:], strict=True)):
+            yield Span(i, int(start), int(stop))
+
+    def _span_events(self, start: int, stop: int):
         import cmax_taichi as cm
 
+        i = int(np.searchsorted(self._starts, start, side="right")) - 1
+        if self._starts[i] != start or self._starts[i + 1] != stop:
+            raise ValueError(f"events {start}:{stop} are not one window of the synthetic stream")
+        n = stop - start
+        rng = np.random.default_rng((self._seed, i))
         W, H = SENSOR
-        t_start = 0.0
-        for n in self.sizes:
-            rng = self._rng
-            which = rng.integers(0, len(self._angles), n)
-            s = rng.uniform(-20, 20, n)
-            t = t_start + np.sort(rng.uniform(0, n / RATE, n))
-            x = self._centres[which, 0] + s * np.cos(self._angles[which]) + VELOCITY[0] * (t - t_start)
-            y = self._centres[which, 1] + s * np.sin(self._angles[which]) + VELOCITY[1] * (t - t_start)
-            x = np.clip(x + rng.normal(0, 0.3, n), 0, W - 1)
-            y = np.clip(y + rng.normal(0, 0.3, n), 0, H - 1)
-            yield cm.Events(x, y, t, rng.integers(0, 2, n), SENSOR)
-            t_start = float(t[-1]) + 1e-6
+        t_start = start / RATE
+        which = rng.integers(0, len(self._angles), n)
+        s = rng.uniform(-20, 20, n)
+        t = t_start + np.sort(rng.uniform(0, n / RATE, n))
+        x = self._centres[which, 0] + s * np.cos(self._angles[which]) + VELOCITY[0] * (t - t_start)
+        y = self._centres[which, 1] + s * np.sin(self._angles[which]) + VELOCITY[1] * (t - t_start)
+        x = np.clip(x + rng.normal(0, 0.3, n), 0, W - 1)
+        y = np.clip(y + rng.normal(0, 0.3, n), 0, H - 1)
+        return cm.Events(x, y, t, rng.integers(0, 2, n), SENSOR), np.ones(n, dtype=bool)
 
 
 def run(n_windows: int, n_events: int, varying: bool, warp: str, out: Path, seed: int = 0) -> dict:

@@ -592,6 +592,22 @@ def test_special_files_are_refused_at_open(tmp_path, capsys, kind):
     assert time.perf_counter() - start < 30  # refused, not read
 
 
+def test_a_refused_input_ends_the_command_in_one_line_figure_process_included(tmp_path):
+    """A fresh ``estimate`` forks its figure process before it reads the input; the refusal ends both
+    without a traceback (the child once inherited the command's SIGTERM handler and raised in it)."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "events.txt"
+    os.mkfifo(path)
+    args = [sys.executable, "-m", "cmax_taichi.cli", "estimate", str(path), "--out", str(tmp_path / "o")]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert re.search(r"error: .*events.txt: is a FIFO \(named pipe\)", proc.stderr), proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_fifo_where_a_side_file_is_expected_is_refused(tmp_path):
     folder = _write_text(tmp_path / "seq", ["0.0 1 2 1", "0.1 3 4 0", "0.2 5 6 1"])
     os.mkfifo(folder / "calib.txt")  # Path.is_file() would say False and hide it

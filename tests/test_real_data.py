@@ -87,7 +87,10 @@ def test_mvsec_zoom_collapses_without_a_regularizer_and_not_with_both():
 def test_mvsec_mitrokhin4_divergence_alone_needs_the_recommended_lambda():
     """The hardest configuration of the lambda sweep (mitrokhin4, gradient magnitude, divergence
     alone): it collapses at lambda = 1 and not at RECOMMENDED_LAMBDA, the weight that
-    ``experiments_real`` selects."""
+    ``experiments_real`` selects. The sweep searches globally with the thorough grid
+    (``init="grid"``, as ``lab.experiments`` does): maximize's default coarse-to-fine search stays
+    near the motion here and does not reach the collapse at lambda = 1 either (FWL 1.26 on this
+    window), which says nothing about the weight."""
     from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 
     with io.open_recording(shared_data_dir("mvsec_indoor_flying1")) as rec, warnings.catch_warnings():
@@ -103,7 +106,7 @@ def test_mvsec_mitrokhin4_divergence_alone_needs_the_recommended_lambda():
             camera=camera,
             regularizers={"divergence": lam},
         )
-        theta = cm.maximize(prob).theta
+        theta = cm.maximize(prob, init="grid").theta
         outcome[lam] = (fprob.value(theta), covered_share(fprob, theta))
     fwl, share = outcome[1.0]
     assert fwl > 3.0 and share < 0.5, outcome

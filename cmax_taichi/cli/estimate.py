@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import importlib.util
 import math
+import signal
 import sys
 from pathlib import Path
 
@@ -274,6 +275,11 @@ _DRAW = {"window": _draw_window_figure, "parameters": _draw_parameters_figure}
 def _figure_worker(conn) -> None:
     """The figure process: import matplotlib at once (while the estimate runs), then draw each
     ``(kind, path, data)`` it receives until None; send back the list of errors."""
+    # The fork inherited the command's SIGTERM handler (raise in the main thread): the parent, which
+    # owns the outputs, decides; this child ends quietly when terminated and ignores the terminal's
+    # Ctrl-C (the parent handles it and terminates the child).
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import matplotlib.backends.backend_agg  # noqa: F401 - the import is the point: it runs in parallel
     import matplotlib.figure  # noqa: F401
 
@@ -619,7 +625,9 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
     events = result.events
     if events.get("total"):
         left = events["total"] - events["estimated"]
-        note = f"; {left} not estimated ({len(result.skipped)} window(s) not estimated)" if left else ""
+        counted = {k: v for k, v in events.items() if k not in ("total", "estimated", "windows") and v}
+        reasons = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counted.items())
+        note = f"; {left} not estimated ({reasons}; {len(result.skipped)} window(s) skipped)" if left else ""
         print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
     if example is not None:
         _report_example(example, result, area_scales, regs, folder.path("truth.json"))
