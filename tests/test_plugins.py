@@ -114,6 +114,19 @@ def test_bad_plugins_give_one_line(capsys, tmp_path):
         load_plugin(str(tmp_path / "missing.py"))
 
 
+def test_a_plugin_before_the_command_is_the_command_s_option(user, capsys):
+    """``cmax-taichi --plugin F.py COMMAND ...`` reads as ``cmax-taichi COMMAND --plugin F.py ...``."""
+    from cmax_taichi.cli import _plugins_after_the_command
+
+    code, out, _ = run_main(capsys, "--plugin", str(PLUGIN), "info")
+    assert code == 0 and "user_affine6" in out
+    args = ["--plugin", "a.py", "--plugin=b.py", "estimate", "x.txt", "--plugin", "c.py"]
+    assert _plugins_after_the_command(args) == [
+        "estimate", "--plugin", "a.py", "--plugin=b.py", "x.txt", "--plugin", "c.py"
+    ]
+    assert _plugins_after_the_command(["--plugin", "a.py"]) == ["--plugin", "a.py"]
+
+
 @pytest.mark.parametrize(
     "argv, fragments",
     [
