@@ -1,11 +1,22 @@
-"""Median ``value_and_grad`` of a few benchmark windows through the library's benchmark implementation:
-``python benchmarks/ab_rows.py [--small]``. Run it with each version's environment, alternating, to
-compare two versions on one machine (docs/performance.md, issue 16). By default six windows, small and
-large (100 calls each, 15 at 1M events); ``--small``: the eight small rows that one pair of full runs
-showed slower after issue 16 (60 calls each)."""
+"""Median ``value_and_grad`` of a few benchmark rows through the library's benchmark implementation:
+``python benchmarks/ab_rows.py [--small | --issue20] [--repeats-scale S]``. Run it with each version's
+environment, alternating, to compare two versions on one machine (docs/performance.md).
 
+Row sets: by default six windows, small and large (100 calls each, 15 at 1M events); ``--small``: the
+eight small rows that one pair of full runs showed slower after issue 16 (60 calls each); ``--issue20``:
+rows of issue 20's grid (the full sweep's textured and uniform windows of ``cmax_taichi/lab/
+bench_windows.py``, which this script loads from its own checkout, so that an older version runs the
+same windows; the textured streams come from the shared cache, simulated once). Each row prints the
+wall median and the CPU time per call (all threads, ``getrusage``: on a shared machine the wall time
+mostly measures the other processes).
+"""
+
+import functools
+import importlib.util
+import resource
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -30,31 +41,82 @@ SMALL_ROWS = [
     (10000, "240x180", "translation2", "none"),
     (10000, "346x260", "rotation3", "none"),
 ]
+#: (events, sensor, warp, regularizers, window kind): issue 20's targets and the 1M rows
+ISSUE20_ROWS = [
+    (1000, "240x180", "translation2", "none", "textured"),
+    (1000, "240x180", "translation2", "none", "uniform"),
+    (5000, "1280x720", "translation2", "none", "textured"),
+    (5000, "1280x720", "translation2", "none", "uniform"),
+    (5000, "1280x720", "mitrokhin4", "div+def", "textured"),
+    (300000, "240x180", "translation2", "none", "edges"),
+    (300000, "240x180", "rotation3", "none", "edges"),
+    (300000, "240x180", "translation2", "none", "textured"),
+    (300000, "240x180", "rotation3", "none", "textured"),
+    (1000000, "346x260", "mitrokhin4", "div+def", "textured"),
+    (1000000, "346x260", "translation2", "none", "edges"),
+]
+STREAM_EVENTS = 1_000_000  # the full sweep's textured stream length (its prefixes are the windows)
 
 
-def median_ms(n: int, sensor: str, warp: str, regs: str, repeats: int) -> float:
-    """Median wall time of one ``value_and_grad`` (ms) after three warm-up calls."""
+@functools.lru_cache(maxsize=1)
+def _windows_module():
+    """``cmax_taichi/lab/bench_windows.py`` of this script's checkout (an older version has none)."""
+    path = Path(__file__).resolve().parents[1] / "cmax_taichi" / "lab" / "bench_windows.py"
+    spec = importlib.util.spec_from_file_location("ab_bench_windows", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def time_row(n: int, sensor: str, warp: str, regs: str, repeats: int, kind: str = "edges"):
+    """``(wall median ms, CPU ms per call)`` of one ``value_and_grad`` after three warm-up calls."""
     cfg = bench_impls.BenchConfig(n, sensor, warp, regs)
-    win = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+    if kind == "edges":
+        win = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+    else:
+        win = _windows_module().window(kind, n, cfg.sensor, seed=n % 9973, stream_events=STREAM_EVENTS)
     impl = bench_impls.build_taichi(win, cfg)
     theta = np.asarray(bench_impls.THETAS[warp], dtype=np.float64)
     for _ in range(3):
         impl.vg(theta)
     times = []
+    c0 = _cpu_seconds()
     for _ in range(repeats):
         t = time.perf_counter()
         impl.vg(theta)
         times.append(time.perf_counter() - t)
-    return float(np.median(times)) * 1e3
+    cpu = (_cpu_seconds() - c0) / repeats
+    return float(np.median(times)) * 1e3, cpu * 1e3
+
+
+def median_ms(n: int, sensor: str, warp: str, regs: str, repeats: int) -> float:
+    """Median wall time of one ``value_and_grad`` (ms) on the synthetic edges (the earlier interface)."""
+    return time_row(n, sensor, warp, regs, repeats)[0]
 
 
 def main(argv: list[str]) -> int:
-    small = "--small" in argv
     backend.init(precision="f64")
-    for n, sensor, warp, regs in SMALL_ROWS if small else DEFAULT_ROWS:
-        repeats = 60 if small else (15 if n >= 1_000_000 else 100)
-        ms = median_ms(n, sensor, warp, regs, repeats)
-        print(f"{n:8d} {sensor:9s} {warp:13s} {regs:8s} {ms:8.3f} ms", flush=True)
+    scale = 1.0
+    if "--repeats-scale" in argv:
+        scale = float(argv[argv.index("--repeats-scale") + 1])
+    if "--issue20" in argv:
+        rows = ISSUE20_ROWS
+        repeats = [max(5, int(scale * (15 if n >= 300_000 else 100))) for n, *_ in rows]
+    elif "--small" in argv:
+        rows = [(*r, "edges") for r in SMALL_ROWS]
+        repeats = [max(5, int(scale * 60))] * len(rows)
+    else:
+        rows = [(*r, "edges") for r in DEFAULT_ROWS]
+        repeats = [max(5, int(scale * (15 if n >= 1_000_000 else 100))) for n, *_ in rows]
+    for (n, sensor, warp, regs, kind), reps in zip(rows, repeats, strict=True):
+        wall, cpu = time_row(n, sensor, warp, regs, reps, kind)
+        line = f"{n:8d} {sensor:9s} {kind:9s} {warp:13s} {regs:8s} {wall:8.3f} ms  cpu {cpu:8.3f} ms"
+        print(line, flush=True)
     return 0
 
 

@@ -4,10 +4,11 @@ Why: the chain of small kernels of ``iwe.py`` / ``objectives.py`` / ``maps.py`` 
 Taichi's reverse mode spends its time in atomics (compare-and-swap loops for float adds on the CPU,
 ~15 ns each: every scatter, every transposed blur, every reduction into a 0-D *vector* field, which
 Taichi does not make thread-local) and in kernel launches (~10-40 us each from Python). Here one
-kernel ``run(n, ev, a0..a7, grad, out)`` holds every stage as its own task (Taichi runs the
+kernel ``run(n, ev, params, grad, out)`` holds every stage as its own task (Taichi runs the
 top-level loops of a kernel one after the other, each in parallel):
 
-1. serial: theta into 0-D fields, reductions cleared;
+1. serial: theta and the window's constants (``params``, :func:`params_layout`) into 0-D fields,
+   reductions cleared;
 2. splat: each event is warped and votes bilinearly into the IWE channels, the count ``C`` and the
    map numerators ``N_r`` of ``acc[s, y, x, k]``. On the CPU the events are split into one chunk per
    thread ``s``, each voting with plain loads and stores into its own slice ``s``; on a GPU one
@@ -25,7 +26,8 @@ top-level loops of a kernel one after the other, each in parallel):
    ``dJ/dtheta = sum_k sum_corners d/dtheta [beta_k (b_k adj_ch + |b_k| adj_C + |b_k| sum_r q_rk adj_r)]``
    with ``adj`` held fixed, using the closed-form parameter Jacobians each model declares
    (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop);
-8. serial: ``out = (J, G_raw, dJ/dtheta)``.
+8. serial: ``out = (J, G_raw, dJ/dtheta, J with G0 = G_raw)`` (the last: at the identity, the
+   normalised J of every later evaluation there).
 
 Each accumulation buffer is cleared by the pass that consumes it: no call launches a fill, and
 nothing is allocated per call. Warps without closed-form parameter Jacobians (user models) take the
@@ -41,7 +43,16 @@ import taichi as ti
 
 from . import blocks as _b
 
-MAX_PARAMS = 8  # theta travels as 8 scalar kernel arguments (cheaper than one vector argument)
+MAX_PARAMS = 8  # theta's slots in ``params``
+
+
+def params_layout(n_regs: int) -> dict:
+    """Where each value sits in the kernel's float64 ``params`` array (a NumPy array the driver fills:
+    one argument in place of a launch per field write): ``theta`` (``MAX_PARAMS`` slots), ``ctx``
+    (``cx, cy, fx, fy, T``), ``g0``, ``lam`` (``lambda_r`` then ``s_r``); ``size`` the length."""
+    n_lam = max(2 * n_regs, 1)
+    return {"theta": 0, "ctx": MAX_PARAMS, "g0": MAX_PARAMS + 5, "lam": MAX_PARAMS + 6,
+            "n_lam": n_lam, "size": MAX_PARAMS + 6 + n_lam}  # fmt: skip
 QUANTITY_KINDS = ("div", "absdet")  # per-event quantities the hand-written backward differentiates
 
 
@@ -150,6 +161,22 @@ def _read_gy(src: ti.template(), c, y, x):
     return src[y, x, 2 * c + 1]
 
 
+def _composed_warp_terms(warp_fn, det_fn, param_jac):
+    """``warp_terms`` of a model that declares none: its ``warp``, ``det`` and ``param_jac`` side by side."""
+
+    has_det = det_fn is not None
+
+    @ti.func
+    def warp_terms(p, dt, th, ctx):
+        jx, ddet, ddiv = param_jac(p, dt, th, ctx)
+        d = 1.0 + 0.0 * dt
+        if ti.static(has_det):
+            d = det_fn(p, dt, th, ctx)
+        return warp_fn(p, dt, th, ctx), d, jx, ddet, ddiv
+
+    return warp_terms
+
+
 def make_fused_kernels(
     fields: FusedFields,
     warp_fn,
@@ -177,6 +204,9 @@ def make_fused_kernels(
     param_jac=None,
     quantity_kinds: tuple = (),
     constant: tuple = (),
+    det_fn=None,
+    warp_terms=None,
+    positive_det: bool = True,
 ):
     """Build the kernel ``run`` closed over ``fields`` (see the module docstring).
 
@@ -192,6 +222,12 @@ def make_fused_kernels(
     ``quantity_kinds`` names each quantity "div" or "absdet". ``constant[r]`` says quantity ``r``
     is the same for every event: its map is that value
     wherever ``C > 0``, so ``R_r = s_r P_r(q_r)`` (``sum m > 0``) and nothing is voted for it.
+    ``det_fn`` is the model's ``det`` (the "absdet" quantities are its absolute value, and where
+    ``positive_det`` is False ``d|det|/dtheta = sign(det) ddet``). ``warp_terms(p, dt, th, ctx) ->
+    (warp, det, jx, ddet, ddiv)`` is the model's optional joint evaluation (e.g.
+    ``kernels/warps/rotation3.py``: one rotation of the ray serves all five); without it the kernels
+    compose it from ``warp_fn``, ``det_fn`` and ``param_jac``. The event loops use only what they need
+    of it (the rest is dead code to the compiler).
     """
     if n_params > MAX_PARAMS:
         raise ValueError(f"the fused pipeline takes at most {MAX_PARAMS} parameters")
@@ -206,6 +242,10 @@ def make_fused_kernels(
     if len(constant) != R:
         raise ValueError("constant needs one flag per quantity")
     voted = tuple(r for r in range(R) if not constant[r])  # voted quantity -> its regularizer
+    if det_fn is None and any(quantity_kinds[r] == "absdet" for r in voted):
+        raise ValueError("a voted 'absdet' quantity needs the model's det (det_fn)")
+    if warp_terms is None:
+        warp_terms = _composed_warp_terms(warp_fn, det_fn, param_jac)
     # CPU: images of fewer than 512 rows are reduced in one band, in row order, so that J and its
     # reductions are the same from run to run (Taichi's default CPU scheduling ran them serially too);
     # taller images in bands of about H / (2 threads) rows, a power of two; a GPU keeps its default
@@ -228,6 +268,8 @@ def make_fused_kernels(
     i_w, i_ch = 3, (4 if weighted else 3)
     ev_type = ti.types.ndarray(dtype=ti.types.vector(k_ev, real), ndim=1)
     out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
+    lay = params_layout(R)
+    p_theta, p_ctx, p_g0, p_lam, n_lam = lay["theta"], lay["ctx"], lay["g0"], lay["lam"], lay["n_lam"]
     tap_x_votes = _b.make_tap_sum(_read_slice0, r_, 1, W, H)
     tap_x = _b.make_tap_sum(_b.read_hwc, r_, 1, W, H)
     tap_y = _b.make_tap_sum(_b.read_hwc, r_, 0, W, H)
@@ -263,11 +305,14 @@ def make_fused_kernels(
         return ti.Vector([e[0], e[1]]), e[2], b, ch
 
     @ti.func
-    def quantities(p, dt, theta, c):
-        """The voted quantities of one event."""
+    def quantities(p, dt, theta, c, det):
+        """The voted quantities of one event (``det``: its determinant, from ``warp_terms``)."""
         vals = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
         for v in ti.static(range(RV)):
-            vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
+            if ti.static(quantity_kinds[voted[v]] == "absdet"):
+                vals[v] = ti.abs(det)
+            else:
+                vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
         return vals
 
     @ti.func
@@ -282,8 +327,9 @@ def make_fused_kernels(
         p, dt, b, ch = event(e)
         # everything that depends on theta only (trigonometry) must be computed unconditionally at
         # the top of the event loop, or LLVM cannot hoist it out of the loop
-        q = warp_fn(p, dt, theta, c)
-        vals = quantities(p, dt, theta, c)
+        terms = warp_terms(p, dt, theta, c)  # its Jacobians are dead code here
+        q = terms[0]
+        vals = quantities(p, dt, theta, c, terms[1])
         if _b.in_window(q, W, H):
             ix, iy, ax, ay = _b.bilinear_footprint(q)
             ab = ti.abs(b)
@@ -317,9 +363,15 @@ def make_fused_kernels(
     def event_grad(e, theta, c):
         """dJ/dtheta contribution of one event (hand-written, float64)."""
         p, dt, b, ch = event(e)
-        q = warp_fn(p, dt, theta, c)
-        vals = quantities(p, dt, theta, c)
-        jx, ddet, ddiv = param_jac(p, dt, theta, c)  # unconditionally: see splat_event
+        terms = warp_terms(p, dt, theta, c)  # unconditionally: see splat_event
+        q = terms[0]
+        vals = quantities(p, dt, theta, c, terms[1])
+        jx = terms[2]
+        ddet = terms[3]
+        ddiv = terms[4]
+        if ti.static(not positive_det and "absdet" in quantity_kinds):  # noqa: SIM102 - compile-time if
+            if terms[1] < 0.0:  # d|det| = -d det where det < 0
+                ddet = -ddet
         g = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
         if _b.in_window(q, W, H):
             ix, iy, ax, ay = _b.bilinear_footprint(q)
@@ -340,7 +392,7 @@ def make_fused_kernels(
                 for v in ti.static(range(RV)):
                     if ti.static(quantity_kinds[voted[v]] == "div"):
                         gj += gv[v] * ddiv[j]
-                    else:  # |det| = det: the built-in determinants are >= 0
+                    else:  # d|det|/dtheta (signed above where the model's det may be negative)
                         gj += gv[v] * ddet[j]
                 g[j] = ti.cast(gj, ti.f64)
         return g
@@ -380,22 +432,19 @@ def make_fused_kernels(
     def run(
         n: ti.i32,
         ev: ev_type,
-        a0: real,
-        a1: real,
-        a2: real,
-        a3: real,
-        a4: real,
-        a5: real,
-        a6: real,
-        a7: real,
+        params: out_type,
         grad: ti.i32,
         out: out_type,
     ):
-        # --- 1. serial: theta, cleared reductions ------------------------------------------------
-        args = ti.Vector([a0, a1, a2, a3, a4, a5, a6, a7])
+        # --- 1. serial: theta, the window's constants, cleared reductions -----------------------------
         for j in ti.static(range(P)):
-            f.thv[None][j] = args[j]
+            f.thv[None][j] = ti.cast(params[p_theta + j], real)
             gsum[j][None] = 0.0
+        for j in ti.static(range(5)):
+            f.ctx[None][j] = ti.cast(params[p_ctx + j], real)
+        for j in ti.static(range(n_lam)):
+            f.lam[None][j] = ti.cast(params[p_lam + j], real)
+        f.g0[None] = ti.cast(params[p_g0], real)
         for j in ti.static(range(len(red))):
             red[j][None] = 0.0
         # --- 2. splat ----------------------------------------------------------------------------
@@ -604,5 +653,12 @@ def make_fused_kernels(
         out[1] = ti.cast(f.graw[None], ti.f64)
         for j in ti.static(range(P)):
             out[2 + j] = gsum[j][None]
+        # J as if G0 were this G: at the identity, the J of every later evaluation there (the same
+        # operations as stage 5, in the same order), so that the driver need not evaluate it again
+        jself = f.graw[None] / f.graw[None]
+        if ti.static(R > 0):
+            for r in ti.static(range(R)):
+                jself -= f.lam[None][r] * f.rvals[r]
+        out[2 + P] = ti.cast(jself, ti.f64)
 
     return run

@@ -167,6 +167,34 @@ def test_stage_profiler_prints_every_task(tmp_path):
     assert bad.returncode == 2 and "--sensor must be one of" in bad.stderr
 
 
+def test_call_overhead_times_every_part(tmp_path):
+    """benchmarks/call_overhead.py (the fixed cost per call in docs/performance.md) launches the library's
+    kernel both ways, with its current signature, and reports every part of a call."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "overhead.json"
+    proc = subprocess.run(
+        [sys.executable, "benchmarks/call_overhead.py", "--repeats", "50", "--json", str(out)],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = json.loads(out.read_text())
+    assert set(rows) == {"2 events 16x12", "1000 events 240x180"}
+    for row in rows.values():
+        for name in ("value_and_grad", "value", "kernel, ordinary call (Kernel.__call__)",
+                     "kernel, C++ launch (no Python)"):  # fmt: skip
+            median, fastest, cpu = row[name]
+            assert 0 < fastest <= median and cpu > 0, (name, row[name])
+        assert "python work (value_and_grad - C++ launch)" in row
+
+
 def test_cli_refuses_a_gpu_arch_that_falls_back_to_the_cpu(tmp_path, capsys):
     """`cmax-taichi bench --arch cuda` without CUDA: one error, no CPU timing sold as a GPU one."""
     import cmax_taichi as cm
@@ -222,3 +250,49 @@ def test_realtime_factor_report(tmp_path):
     assert (tmp_path / "out" / "realtime.csv").read_text().count("\n") == 3
     with pytest.raises(ValueError, match="--sim-seconds must be a positive number of seconds"):
         realtime.run_realtime(tmp_path, tmp_path / "out", sim_seconds=0.0, cases=cases)
+
+
+def test_benchmark_windows(tmp_path, monkeypatch):
+    """lab/bench_windows.py: a textured stream is simulated once and then read from the cache (the same
+    events), its prefixes are the smaller windows; uniform windows cover the sensor; the agreement check
+    passes on both kinds."""
+    from cmax_taichi.lab import bench_windows
+
+    monkeypatch.setenv("CMAX_TAICHI_CACHE", str(tmp_path))
+    monkeypatch.setattr(bench_windows, "_STREAMS", {})
+    sensor = (64, 48)
+    logs = []
+    x, y, t, p = bench_windows.window("textured", 800, sensor, stream_events=1500, log=logs.append)
+    assert len(x) == 800 and np.all(np.diff(t) >= 0) and t[0] == 0.0 and set(np.unique(p)) <= {0.0, 1.0}
+    assert x.min() >= 0 and x.max() <= sensor[0] - 1 and y.min() >= 0 and y.max() <= sensor[1] - 1
+    assert any("simulated" in line for line in logs)
+    assert len(list((tmp_path / "bench").glob("textured_64x48_1500_*.npz"))) == 1
+    monkeypatch.setattr(bench_windows, "_STREAMS", {})
+    logs.clear()
+    again = bench_windows.window("textured", 1500, sensor, stream_events=1500, log=logs.append)
+    assert not logs  # from the cache
+    np.testing.assert_array_equal(again[0][:800], x)
+    xu, yu, tu, _ = bench_windows.window("uniform", 2000, sensor, seed=1)
+    assert np.ptp(xu) > 0.9 * (sensor[0] - 1) and np.ptp(yu) > 0.9 * (sensor[1] - 1) and tu[-1] == 0.05
+    with pytest.raises(ValueError, match="unknown window kind"):
+        bench_windows.window("spiral", 10, sensor)
+    for kind in ("textured", "uniform"):
+        cfg = bench.BenchConfig(800, TINY, "rotation3", "none", impls=("taichi", "numpy"), window=kind)
+        cfg.stream_events = 1500
+        win = bench_windows.window(kind, cfg.n, cfg.sensor, stream_events=1500, log=logs.append)
+        assert bench.check_agreement(_impls(cfg, win, ("taichi", "numpy")), win, cfg, "f64") == {
+            "taichi": "ok",
+            "numpy": "ok",
+        }
+
+
+def test_full_plan_has_the_issue_20_grid():
+    plan = bench.full_plan()
+    grid = {(c.n, c.sensor_name, c.warp, c.regs, c.window) for c in plan.configs}
+    for n in bench.GRID_EVENTS:
+        for sensor in bench.SENSORS:
+            for warp, regs in bench.GRID_CONFIGS:
+                for kind in ("textured", "uniform"):
+                    assert (n, sensor, warp, regs, kind) in grid
+    textured = [c for c in plan.configs if c.window == "textured"]
+    assert all("torch" in c.impls and c.stream_events == max(bench.GRID_EVENTS) for c in textured)

@@ -44,6 +44,7 @@ import numpy as np
 
 from cmax_taichi.core import backend
 from cmax_taichi.core.events import Events
+from cmax_taichi.lab import bench_windows
 from cmax_taichi.lab.bench_impls import (
     REGS,
     SENSORS,
@@ -122,6 +123,7 @@ class Row:
     regs: str
     precision: str
     status: str
+    window: str = "edges"  # the kind of event window (lab/bench_windows.py)
     measured: str = ""  # "value_and_grad" or "value"
     median_ms: float = float("nan")
     min_ms: float = float("nan")
@@ -169,8 +171,10 @@ class Plan:
 
 def quick_plan(precision: str = "f64") -> Plan:
     """About two minutes (most of it compiling): 346x260, N = 1e3 and 3e4, translation2 without and
-    mitrokhin4 with both regularizers, mitrokhin4 with both at 1e6 (Taichi and PyTorch); the generic
-    chain at the headline configuration (3e4, mitrokhin4, both)."""
+    mitrokhin4 with both regularizers, mitrokhin4 with both at 1e6 (Taichi and PyTorch), on the synthetic
+    edges; the generic chain at the headline configuration (3e4, mitrokhin4, both); rotation3 at 5e3
+    events on a textured and a uniform 240x180 window (the full sweep's kinds; the textured stream of
+    5,000 events takes a few seconds to simulate once)."""
     cfgs = []
     for n in (1_000, 30_000):
         for warp, regs in (("translation2", "none"), ("mitrokhin4", "div+def")):
@@ -179,6 +183,9 @@ def quick_plan(precision: str = "f64") -> Plan:
                 impls += ("taichi-chain",)
             cfgs.append(BenchConfig(n, "346x260", warp, regs, precision, impls))
     cfgs.append(BenchConfig(1_000_000, "346x260", "mitrokhin4", "div+def", precision, ("taichi", "torch")))
+    for window in ("textured", "uniform"):
+        impls = ("taichi", "numpy")
+        cfgs.append(BenchConfig(5_000, "240x180", "rotation3", "none", precision, impls, window))
     notes = [
         "NumPy reference: value only (its gradient by central differences would cost 2P values).",
         "taichi-chain = the generic kernel chain differentiated by Taichi autodiff (before the fused "
@@ -187,34 +194,47 @@ def quick_plan(precision: str = "f64") -> Plan:
     return Plan(cfgs, min_repeats=3, max_repeats=10, budget_s=0.4, label="quick", notes=notes)
 
 
-def full_plan(precision: str = "f64") -> Plan:
-    """The sweep of issue 5: N = 1e3 .. 1e7, four sensors, three warps, with / without regularizers.
+#: issue 20's grid: events per window, and the three configurations of each (N, sensor)
+GRID_EVENTS = (1_000, 5_000, 30_000, 300_000, 1_000_000)
+GRID_CONFIGS = (("translation2", "none"), ("rotation3", "none"), ("mitrokhin4", "div+def"))
 
-    Limits, to stay within about 20 minutes on a 2-core machine (said in the report): N = 3e4 (the
-    headline size) on 346x260 only; N = 1e7 on 346x260 with translation2 and mitrokhin4 only; the
-    NumPy reference (value only) up to 1e5 events; the generic Taichi chain (the "before") on 346x260
-    with translation2 and mitrokhin4 at N = 3e4 and 1e6.
+
+def full_plan(precision: str = "f64") -> Plan:
+    """The full sweep: N = 1e3, 5e3, 3e4, 3e5, 1e6 events on the four sensors for translation2,
+    rotation3 (no regularizer) and mitrokhin4 with both regularizers, on textured windows (the event
+    simulator's, lab/bench_windows.py) with PyTorch and the NumPy reference beside (NumPy up to 1e5
+    events), and the same on uniformly spread events (Taichi and, up to 3e4 events, the reference);
+    then, on the synthetic edges of the earlier sweeps, N = 1e7 on 346x260 (translation2, mitrokhin4
+    with both) and the generic Taichi chain (the "before" of the fused kernels) at 3e4 and 1e6.
+
+    About 15 minutes on this 2-core machine, plus a few minutes once to simulate the textured streams
+    (cached, see lab/bench_windows.py).
     """
     cfgs = []
-    for n in (1_000, 10_000, 30_000, 100_000, 1_000_000, 10_000_000):
+    stream = max(GRID_EVENTS)
+    for n in GRID_EVENTS:
         for sensor in SENSORS:
-            if n in (30_000, 10_000_000) and sensor != "346x260":
-                continue
-            for warp in THETAS:
-                if n == 10_000_000 and warp == "rotation3":
-                    continue
-                for regs in REGS:
-                    impls = ["taichi", "torch"]
-                    if n <= 100_000:
-                        impls.append("numpy")
-                    if sensor == "346x260" and warp != "rotation3" and n in (30_000, 1_000_000):
-                        impls.append("taichi-chain")
-                    cfgs.append(BenchConfig(n, sensor, warp, regs, precision, tuple(impls)))
+            for warp, regs in GRID_CONFIGS:
+                impls = ("taichi", "torch") + (("numpy",) if n <= 100_000 else ())
+                textured = dict(window="textured", stream_events=stream)
+                cfgs.append(BenchConfig(n, sensor, warp, regs, precision, impls, **textured))
+                impls = ("taichi",) + (("numpy",) if n <= 30_000 else ())
+                cfgs.append(BenchConfig(n, sensor, warp, regs, precision, impls, window="uniform"))
+    for warp, regs in (("translation2", "none"), ("mitrokhin4", "div+def")):
+        cfgs.append(BenchConfig(10_000_000, "346x260", warp, regs, precision, ("taichi", "torch")))
+        for n in (30_000, 1_000_000):
+            cfgs.append(BenchConfig(n, "346x260", warp, regs, precision, ("taichi", "taichi-chain")))
     notes = [
-        "NumPy reference: value only (its gradient by central differences would cost 2P values), N <= 1e5.",
-        "N = 3e4 and N = 1e7: sensor 346x260 only; N = 1e7 without rotation3 (time budget of the run).",
+        "Windows (column `window`, lab/bench_windows.py): `textured` = the first N events of the event "
+        "simulator watching a textured plane translate at (120, -80) px/s (events where the edges are, as "
+        "a camera records them; one stream per sensor); `uniform` = events uniformly spread over the sensor "
+        "and 50 ms (the worst case for work that follows the touched pixels); `edges` = 40 synthetic "
+        "straight edges plus 10% noise (the windows of the sweeps before issue 20).",
+        "NumPy reference: value only (its gradient by central differences would cost 2P values), N <= 1e5 "
+        "(textured), N <= 3e4 (uniform).",
+        "N = 1e7 on 346x260 only, translation2 and mitrokhin4 with both regularizers (time budget).",
         "taichi-chain = the generic kernel chain differentiated by Taichi autodiff (the state before the "
-        "fused kernels), measured in the same run: 346x260, translation2 and mitrokhin4, N = 3e4 and 1e6.",
+        "fused kernels), measured in the same run: 346x260, N = 3e4 and 1e6.",
     ]
     return Plan(cfgs, min_repeats=3, max_repeats=15, budget_s=1.5, segment=True, label="full", notes=notes)
 
@@ -255,10 +275,13 @@ def _torch_available() -> bool:
 
 def run_config(cfg: BenchConfig, plan: Plan, log: Callable[[str], None]) -> list[Row]:
     """Check and time every implementation of one configuration."""
-    win = make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+    win = bench_windows.window(
+        cfg.window, cfg.n, cfg.sensor, seed=cfg.n % 9973, stream_events=cfg.stream_events, log=log
+    )
     impls: dict[str, Impl] = {}
     rows: dict[str, Row] = {}
     base = dict(n=cfg.n, sensor=cfg.sensor_name, warp=cfg.warp, regs=cfg.regs, precision=cfg.precision)
+    base["window"] = cfg.window
     peak: dict[str, float] = {}
     for name in cfg.impls:
         if name == "torch" and not _torch_available():

@@ -61,6 +61,8 @@ class BenchConfig:
     regs: str
     precision: str = "f64"
     impls: tuple[str, ...] = ("taichi", "torch", "numpy")
+    window: str = "edges"  # lab/bench_windows.py: "textured", "uniform" or "edges"
+    stream_events: int | None = None  # textured windows: the length of the sensor's stream (its prefix)
 
     @property
     def sensor(self) -> tuple[int, int]:

@@ -112,16 +112,17 @@ def markdown_report(
         "(value to 1e-9 relative in f64, gradient to 1e-6 against PyTorch and to 1e-4 against central "
         "differences of the reference up to 1e4 events); a `DISAGREES` row has no time.",
         "",
-        "| N | sensor | warp | regularizers | impl | measured | median ms | Mev/s | x torch "
+        "| N | sensor | window | warp | regularizers | impl | measured | median ms | Mev/s | x torch "
         "| first call s | peak RSS MB | fields MB |",
-        "|---:|---|---|---|---|---|---:|---:|---:|---:|---:|---:|",
+        "|---:|---|---|---|---|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
+        head = f"| {r.n} | {r.sensor} | {r.window} | {r.warp} | {r.regs} | {r.impl} |"
         if r.status != "ok":
-            lines.append(f"| {r.n} | {r.sensor} | {r.warp} | {r.regs} | {r.impl} | {r.status} | | | | | | |")
+            lines.append(f"{head} {r.status} | | | | | | |")
             continue
         lines.append(
-            f"| {r.n} | {r.sensor} | {r.warp} | {r.regs} | {r.impl} | {r.measured} | {_fmt(r.median_ms)} | "
+            f"{head} {r.measured} | {_fmt(r.median_ms)} | "
             f"{_fmt(r.events_per_s / 1e6)} | {_fmt(r.vs_torch)} | {_fmt(r.first_call_s)} | "
             f"{_fmt(r.peak_rss_mb)} | {_fmt(r.field_mb)} |"
         )
@@ -160,7 +161,10 @@ def write_plot(rows: list[Row], path: Path) -> bool:
     if not ok:
         return False
     sensor = "346x260" if any(r.sensor == "346x260" for r in ok) else ok[0].sensor
-    sel = [r for r in ok if r.sensor == sensor]
+    kinds = {r.window for r in ok if r.sensor == sensor}
+    kind = next(k for k in ("textured", "edges", "uniform") if k in kinds) if kinds <= {
+        "textured", "edges", "uniform"} else sorted(kinds)[0]  # fmt: skip
+    sel = [r for r in ok if r.sensor == sensor and r.window == kind]
     combos = sorted({(r.warp, r.regs) for r in sel})
     fig, axes = plt.subplots(2, len(combos), figsize=(3.2 * len(combos), 6.0), squeeze=False)
     colors = {"taichi": "C0", "taichi-chain": "C2", "torch": "C1", "numpy": "C3"}
@@ -183,7 +187,7 @@ def write_plot(rows: list[Row], path: Path) -> bool:
         ax2.set_xlabel("events N")
         ax2.axhline(1.0, color="k", lw=0.5)
         if j == 0:
-            ax.set_ylabel(f"ms per evaluation ({sensor})")
+            ax.set_ylabel(f"ms per evaluation ({sensor}, {kind})")
             ax2.set_ylabel("speed-up over PyTorch")
             ax.legend(fontsize=7)
     fig.tight_layout()

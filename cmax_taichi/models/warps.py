@@ -42,6 +42,10 @@ SCALE_KINDS = ("velocity", "rate", "focal")
 _KIND_OF_UNIT = {"px/s": "velocity", "1/s": "rate", "rad/s": "rate"}
 
 
+#: the optional Taichi functions of a model module (besides warp and flow) that from_module reads
+_MODULE_FUNCTIONS = ("det", "div", "param_jac", "warp_terms")
+
+
 @dataclass(frozen=True)
 class WarpModel:
     """A motion model that warps events to the reference time, with its declared capabilities.
@@ -67,6 +71,11 @@ class WarpModel:
         Declaring it puts the model on the fused pipeline (one kernel launch per value-and-gradient);
         without it, value and gradient run on the generic autodiff chain (slower, and
         :class:`~cmax_taichi.ChainPathWarning` says so once).
+    warp_terms : ti.func, optional
+        ``warp_terms(p, dt, th, ctx) -> (warp, det, jx, ddet, ddiv)``: the four above computed together,
+        for a model whose functions share costly intermediate values (``rotation3`` rotates the ray
+        once); the fused kernels then call it in place of ``warp``, ``det`` and ``param_jac``. It must
+        return exactly what those return. Default: the fused kernels call them side by side.
     constant_quantities : tuple of str
         Which of :data:`QUANTITY_KINDS` do not depend on the event (e.g. ``("div",)`` when ``div v``
         depends on theta only): the fused pipeline then does not vote their maps. Declare only what
@@ -95,6 +104,7 @@ class WarpModel:
     det: Callable | None = None
     div: Callable | None = None
     param_jac: Callable | None = None
+    warp_terms: Callable | None = None
     constant_quantities: tuple[str, ...] = ()
     positive_det: bool = False
     scale_kinds: tuple[str, ...] | None = None
@@ -112,6 +122,8 @@ class WarpModel:
             raise ValueError(
                 f"warp {self.name!r}: constant_quantities {unknown} are not among {QUANTITY_KINDS}"
             )
+        if self.warp_terms is not None and self.param_jac is None:
+            raise ValueError(f"warp {self.name!r}: warp_terms joins warp, det and param_jac; pass them too")
         if self.param_jac is not None and (self.det is None or self.div is None):
             raise ValueError(
                 f"warp {self.name!r}: param_jac differentiates the closed forms det and div; pass them too"
@@ -126,13 +138,13 @@ class WarpModel:
     @classmethod
     def from_module(cls, module: ModuleType, **overrides) -> WarpModel:
         """The model of a module of Taichi functions: its ``warp``, ``flow`` and (those present) ``det``,
-        ``div``, ``param_jac``, with the fields its dict ``MODEL`` declares (``name``, ``params``,
-        ``units`` and any other field of this class); ``overrides`` replace declared fields."""
+        ``div``, ``param_jac``, ``warp_terms``, with the fields its dict ``MODEL`` declares (``name``,
+        ``params``, ``units`` and any other field of this class); ``overrides`` replace declared fields."""
         declared = getattr(module, "MODEL", None)
         if not isinstance(declared, dict):
             raise TypeError(f"module {module.__name__} declares no MODEL dict (kernels/warps/__init__.py)")
         allowed = {f.name for f in fields(cls) if f.init and not f.name.startswith("_")}
-        allowed -= {"warp", "flow", "det", "div", "param_jac"}
+        allowed -= {"warp", "flow", *_MODULE_FUNCTIONS}
         metadata = {**declared, **overrides}
         unknown = sorted(set(metadata) - allowed)
         if unknown:
@@ -143,7 +155,7 @@ class WarpModel:
         missing = [k for k in ("warp", "flow") if not hasattr(module, k)]
         if missing:
             raise TypeError(f"module {module.__name__} has no {' or '.join(missing)} function")
-        fns = {k: getattr(module, k) for k in ("det", "div", "param_jac") if hasattr(module, k)}
+        fns = {k: getattr(module, k) for k in _MODULE_FUNCTIONS if hasattr(module, k)}
         for key in ("params", "units", "constant_quantities", "scale_kinds"):
             if metadata.get(key) is not None:
                 metadata[key] = tuple(metadata[key])

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl as ti_impl
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
@@ -95,22 +96,60 @@ def regularizer_gap(reg: Regularizer) -> str:
     return ""
 
 
-def _abs_det_param_jac(model: WarpModel):
-    """``model.param_jac`` with ``d|det|/d theta = sign(det) d det/d theta`` in place of ``d det/d theta``
-    (for a model that does not declare ``positive_det``); one Taichi function per model."""
-    key = "abs_det_param_jac"
-    if key not in model._fallbacks:
-        param_jac, det = model.param_jac, model.det
+class _DirectLaunch:
+    """One compiled Taichi kernel launched through its C++ launch context.
 
-        @ti.func
-        def signed(p, dt, th, ctx):
-            jx, ddet, ddiv = param_jac(p, dt, th, ctx)
-            if det(p, dt, th, ctx) < 0.0:  # d|det| = -d det where det < 0
-                ddet = -ddet
-            return jx, ddet, ddiv
+    ``Kernel.__call__`` of Taichi 1.7.4 spends ~60-80 us of Python per launch of the fused kernel
+    (12 arguments: template mapping, type checks and conversion of each, the compiled-kernel lookup);
+    the kernel itself runs in tens of us for a small window. After one ordinary call has compiled it,
+    this holds the compiled kernel and one launch context: a call sets the arguments that changed and
+    launches (a few us). Taichi internals (the version is pinned in pyproject.toml): where they differ,
+    :meth:`make` returns None and the ordinary call serves. Valid while Taichi runs the program it was
+    made in (:meth:`valid`: a reset or re-initialisation makes a new one).
+    """
 
-        model._fallbacks[key] = signed
-    return model._fallbacks[key]
+    def __init__(self, kernel, args: tuple) -> None:
+        primal = kernel._primal
+        key = primal.ensure_compiled(*args)
+        self._t_kernel = primal.compiled_kernels[key]
+        prog = self._prog = ti_impl.get_runtime().prog
+        self._data = prog.compile_kernel(prog.config(), prog.get_device_caps(), self._t_kernel)
+        self.ctx = self._t_kernel.make_launch_context()
+
+    @classmethod
+    def make(cls, kernel, args: tuple) -> _DirectLaunch | None:
+        try:
+            return cls(kernel, args)
+        except (AttributeError, KeyError, TypeError, RuntimeError):
+            return None
+
+    def valid(self) -> bool:
+        return ti_impl.get_runtime().prog is self._prog
+
+    def set_array(self, index: int, array) -> None:
+        """Array argument ``index``: a Taichi ndarray, or a :class:`_HostArray`. Before every launch: a
+        launch replaces the arrays in the context with device pointers."""
+        if isinstance(array, _HostArray):
+            self.ctx.set_arg_external_array_with_shape((index,), array.address, array.nbytes, array.shape, 0)
+        else:
+            self.ctx.set_arg_ndarray((index,), array.arr)
+
+    def launch(self) -> None:
+        self._prog.launch_kernel(self._data, self.ctx)
+
+
+class _HostArray:
+    """A C-contiguous NumPy array passed to a kernel as an external array (on the CPU, Taichi reads it in
+    place: no copy), with what the launch context needs (its address, size, shape without the vector
+    dimension)."""
+
+    def __init__(self, array: np.ndarray, vector: bool = False) -> None:
+        if not array.flags.c_contiguous:
+            raise ValueError("a kernel's host array must be C-contiguous")
+        self.array = array
+        self.address = int(array.ctypes.data)
+        self.nbytes = array.nbytes
+        self.shape = array.shape[:-1] if vector else array.shape
 
 
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
@@ -187,9 +226,6 @@ class FusedPipeline:
         self.n_params = P
         # the declared capabilities (for_problem checked that they are there)
         kinds = tuple(r.kind for r in regs)
-        param_jac = model.param_jac
-        if "absdet" in kinds and not model.positive_det:
-            param_jac = _abs_det_param_jac(model)
         constant = tuple(k in model.constant_quantities for k in kinds)
         n_voted = len(regs) - sum(constant)
 
@@ -264,53 +300,70 @@ class FusedPipeline:
                 split_polarity=split,
                 shared_count=shared,
                 real=real,
-                param_jac=param_jac,
+                param_jac=model.param_jac,
                 quantity_kinds=kinds,
                 constant=constant,
+                det_fn=model.det,
+                warp_terms=model.warp_terms,
+                positive_det=model.positive_det,
             )
         self._run_k = self._ws.kernels[kkey]
 
         self._weighted, self._split, self._atomic = weighted, split, atomic
         self._sensor = (W, H)
-        self._theta = np.zeros(MAX_PARAMS)
-        self._out = np.zeros(2 + P)  # J, G_raw, dJ/dtheta
-        self._event_buffer = None
+        self._layout = kfused.params_layout(len(regs))
+        self._params = _HostArray(np.zeros(self._layout["size"]))  # theta and the window's constants
+        self._out = _HostArray(np.zeros(3 + P))  # J, G_raw, dJ/dtheta, J with G0 = G_raw
+        self._launcher: _DirectLaunch | None = None
+        self._event_buffer = None  # GPU: the pooled device buffer of the events
+        self._packed = None
+        self._taps = None
         self.load_window(problem, vote_w)
 
     def can_take(self, problem, vote_w: np.ndarray | None) -> bool:
         """Whether :meth:`load_window` can serve ``problem``'s new window with these fields and kernels
-        (same options; the same sensor, event capacity bucket and use of vote weights)."""
+        (same options: the same sensor and use of vote weights; on a GPU also the same event capacity
+        bucket of the device buffer)."""
         return (
             (problem.width, problem.height) == self._sensor
             and (vote_w is not None) == self._weighted
-            and workspace.capacity_for(problem.n_events) == self._event_buffer.capacity
+            and (
+                self._event_buffer is None
+                or workspace.capacity_for(problem.n_events) == self._event_buffer.capacity
+            )
         )
 
     def load_window(self, problem, vote_w: np.ndarray | None) -> None:
-        """Take ``problem``'s current window: its constants and events (uploaded at the next run)."""
-        # constants, uploaded whenever another problem used the shared fields in between
-        setup = problem.setup  # pipeline/setup.py: the same constants as the generic chain's
-        self._ctx = setup.ctx
-        self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
-        self._lam = setup.lam
-        self._g0 = 1.0
-        self.n_events = problem.n_events
+        """Take ``problem``'s current window: its constants and events.
 
-        # the events as one ndarray of (x, y, dt[, w][, channel]) vectors
+        The window's constants go into ``params`` (read by the kernel at each launch); the events are
+        packed into a host array: on the CPU the kernel reads that array in place (no upload, no device
+        copy), on a GPU it is uploaded into a pooled device buffer at the next run.
+        """
+        setup = problem.setup  # pipeline/setup.py: the same constants as the generic chain's
+        lay, params = self._layout, self._params.array
+        params[lay["ctx"] : lay["ctx"] + 5] = setup.ctx
+        lam = setup.lam
+        params[lay["lam"] : lay["lam"] + len(lam)] = lam
+        params[lay["g0"]] = 1.0
+        taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
+        if self._packed is None or not np.array_equal(taps, self._taps):  # the same blur: no upload
+            self._ws.release()
+        self._taps = taps
+        self.n_events = n = problem.n_events
+
+        # the events as (x, y, dt[, w][, channel]) vectors
         ev = problem.events
         cols = [ev.x, ev.y, ev.t - problem.t_ref]
         if self._weighted:
             cols.append(vote_w)
         if self._split:
             cols.append((ev.p < 0).astype(np.float64))
-        # a pooled buffer (workspace.event_buffer: vector ndarrays are never freed), padded to its
-        # capacity; the kernel reads the first n_events, and the upload happens when another problem
-        # (or another window of this one) used the buffer in between
-        if self._event_buffer is None or self._event_buffer.capacity != workspace.capacity_for(self.n_events):
-            self._event_buffer = workspace.event_buffer(backend.real(), len(cols), self.n_events)
-            self._packed = np.zeros((self._event_buffer.capacity, len(cols)), dtype=backend.numpy_real())
-        else:
-            self._packed[self.n_events :] = 0.0
+        capacity = workspace.capacity_for(n)  # host arrays by powers of two too: few reallocations
+        if self._packed is None or self._packed.shape[0] != capacity:
+            self._packed = np.zeros((capacity, len(cols)), dtype=backend.numpy_real())
+        elif self._atomic:
+            self._packed[n:] = 0.0  # the device buffer is uploaded whole
         # the events ordered by their pixel row (a stable radix sort: time order within a row), so that
         # consecutive events vote into, and gather the adjoints from, the same few rows of the images,
         # which stay in the L1 cache: 10-30% less CPU time per call at 1M events (docs/performance.md).
@@ -318,41 +371,62 @@ class FusedPipeline:
         # (on the CPU only: on a GPU, neighbouring events would contend for the same atomic adds)
         order = slice(None) if self._atomic else np.argsort(_row_keys(ev.y, self._sensor[1]), kind="stable")
         for j, col in enumerate(cols):
-            self._packed[: self.n_events, j] = col[order]
-        self.events = self._event_buffer.array
+            self._packed[:n, j] = col[order]
+        if self._atomic:
+            # a pooled device buffer (workspace.event_buffer: vector ndarrays are never freed), padded to
+            # its capacity; uploaded when another problem (or window) used it in between
+            if self._event_buffer is None or self._event_buffer.capacity != capacity:
+                self._event_buffer = workspace.event_buffer(backend.real(), len(cols), n)
+            self._event_buffer.release()
+            self.events = self._event_buffer.array
+        else:
+            self.events = _HostArray(self._packed[:n], vector=True)
         self.event_bytes = self._packed.nbytes
-        self._event_buffer.release()
-        self._ws.release()
 
     # --- state -----------------------------------------------------------------------------------
     def set_g0(self, g0: float) -> None:
         """Divide G by ``g0`` in J from now on."""
-        self._g0 = float(g0)
-        self._ws.release()  # upload again at the next call
+        self._params.array[self._layout["g0"]] = float(g0)
 
     def _load(self) -> None:
-        self._event_buffer.load(self, self._packed)
+        if self._event_buffer is not None:
+            self._event_buffer.load(self, self._packed)
         ws = self._ws
         if ws.owned_by(self):
             return
-        f = self.fields
-        f.ctx[None] = self._ctx
         if self._taps is not None:
-            f.taps.from_numpy(self._taps)
-        if self._lam:
-            f.lam[None] = self._lam
-        f.g0[None] = self._g0
+            self.fields.taps.from_numpy(self._taps)
         ws.take(self)
 
     def _run(self, theta: np.ndarray, grad: int) -> np.ndarray:
         self._load()
-        args = self._theta
-        args[: theta.size] = theta
-        with backend.per_thread_loops():  # one slice per thread on the CPU
-            self._run_k(self.n_events, self.events, *args.tolist(), grad, self._out)
-        return self._out
+        params = self._params.array
+        params[: theta.size] = theta  # the other parameter slots stay 0
+        launcher = self._launcher
+        if launcher is not None and launcher.valid():
+            ctx = launcher.ctx
+            ctx.set_arg_int((0,), self.n_events)
+            launcher.set_array(1, self.events)
+            launcher.set_array(2, self._params)
+            ctx.set_arg_int((3,), grad)
+            launcher.set_array(4, self._out)
+            launcher.launch()
+            return self._out.array
+        events = self.events.array if isinstance(self.events, _HostArray) else self.events
+        call = (self.n_events, events, params, grad, self._out.array)
+        with backend.per_thread_loops():  # one slice per thread on the CPU (read when it compiles)
+            self._run_k(*call)
+            # the next calls launch the compiled kernel directly
+            # (inside: Taichi's look-up of the compiled kernel is keyed by the configuration too)
+            self._launcher = _DirectLaunch.make(self._run_k, call)
+        return self._out.array
 
     # --- evaluation ------------------------------------------------------------------------------
+    def launch_ready(self) -> bool:
+        """Whether the next call launches the compiled kernel directly (compiled, and Taichi still runs
+        the program it was compiled in)."""
+        return self._launcher is not None and self._launcher.valid()
+
     def value(self, theta: np.ndarray) -> float:
         """J at ``theta`` (float64 array of the model's length)."""
         return float(self._run(theta, 0)[0])
@@ -365,7 +439,16 @@ class FusedPipeline:
     def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """``(J, dJ/dtheta)`` at ``theta``: one kernel launch."""
         out = self._run(theta, 1)
-        return float(out[0]), out[2:].copy()
+        return float(out[0]), out[2 : 2 + self.n_params].copy()
+
+    def self_normalized_value(self) -> float:
+        """J of the last evaluation as if G0 were its own G: evaluated at the identity, the normalised J
+        that every later evaluation there gives (bit for bit: the kernel's own operations)."""
+        return float(self._out.array[2 + self.n_params])
+
+    def event_array(self) -> np.ndarray:
+        """The packed events of the window as the kernel reads them, ``(n_events, columns)`` (tests)."""
+        return self._packed[: self.n_events]
 
     def image(self) -> np.ndarray:
         """The blurred IWE of the last evaluation, (C, H, W) float64."""

@@ -16,7 +16,7 @@ import numpy as np
 from cmax_taichi.core import backend
 from cmax_taichi.models.warps import WarpModel
 
-__all__ = ["NonFiniteResultError", "check_theta", "require_finite"]
+__all__ = ["NonFiniteResultError", "all_finite", "check_theta", "float_limit", "require_finite"]
 
 
 class NonFiniteResultError(ValueError):
@@ -43,13 +43,28 @@ def _format_vector(values: np.ndarray) -> str:
     return "[" + ", ".join(f"{v:.6g}" for v in np.asarray(values, dtype=np.float64).reshape(-1)) + "]"
 
 
-def check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
+def float_limit() -> float:
+    """The largest finite value of the backend's float type (a problem keeps it: it holds until the
+    backend is re-initialised, which the problem detects)."""
+    return _LARGEST[backend.info().precision]
+
+
+def check_theta(theta, n: int, name: str, label: str = "theta", limit: float | None = None) -> np.ndarray:
     """``theta`` as ``n`` finite float64 values that the backend's float type can hold.
 
     Raises TypeError for what is not a sequence of real numbers (None, a string, a complex number, a
     bool) and ValueError for the wrong length, a non-finite value, or a value beyond the largest float
     of the backend (a Python int such as ``10**400``, or above 3.4e38 with ``precision="f32"``).
-    ``label`` names the argument in the messages (``theta0``, ``bounds lo``, ...)."""
+    ``label`` names the argument in the messages (``theta0``, ``bounds lo``, ...); ``limit`` is
+    :func:`float_limit` where the caller holds it (the evaluations: no backend look-up per call)."""
+    if (
+        limit is not None
+        and type(theta) is np.ndarray
+        and theta.dtype == np.float64
+        and theta.shape == (n,)
+        and all(map(limit.__ge__, map(abs, theta.tolist())))  # NaN fails
+    ):
+        return theta  # the optimizers' case, in plain Python (a few us per evaluation)
     what = f"{label} of warp {name!r} ({n} parameter(s))"
     if theta is None or isinstance(theta, (str, bytes, Mapping)):
         raise TypeError(f"{what} must be a sequence of {n} real numbers, got {theta!r}")
@@ -73,7 +88,8 @@ def check_theta(theta, n: int, name: str, label: str = "theta") -> np.ndarray:
                 ) from None
     if arr.size != n:
         raise ValueError(f"warp {name!r} takes {n} parameter(s), got {label} of length {arr.size}")
-    limit = _LARGEST[backend.info().precision]
+    if limit is None:
+        limit = _LARGEST[backend.info().precision]
     if all(-limit <= v <= limit for v in arr.tolist()):  # the common case, in plain Python (NaN fails)
         return arr
     finite = np.isfinite(arr)
@@ -98,6 +114,11 @@ def _all_finite(value) -> bool:
     if value.size <= 64:  # a gradient, a few penalties: plain Python is faster than NumPy here
         return all(map(math.isfinite, value.reshape(-1).tolist()))
     return bool(np.isfinite(value).all())
+
+
+def all_finite(values: list) -> bool:
+    """Whether every number of a list is finite (the hot path of the evaluations: plain Python)."""
+    return all(map(math.isfinite, values))
 
 
 def require_finite(model: WarpModel, theta: np.ndarray, what: str, *values) -> None:

@@ -30,7 +30,9 @@ from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_v
 from cmax_taichi.models.warps import WarpModel, get_warp
 from cmax_taichi.pipeline.flow_field import dense_flow
 from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline, n_slices
+from cmax_taichi.pipeline.parameters import all_finite as _all_finite
 from cmax_taichi.pipeline.parameters import check_theta as _check_theta
+from cmax_taichi.pipeline.parameters import float_limit as _float_limit
 from cmax_taichi.pipeline.parameters import require_finite as _require_finite
 from cmax_taichi.pipeline.setup import (
     POLARITY_MODES,
@@ -160,6 +162,7 @@ class ContrastMaximization(SetupView):
         )
         self.whitening = bool(whitening)
         self._fused = None
+        self._theta_limit = _float_limit()  # holds for this backend generation (_check_alive)
         self._take_window(self._setup_for(events, weights))
 
     def _setup_for(self, events: Events, weights) -> ProblemSetup:
@@ -233,7 +236,8 @@ class ContrastMaximization(SetupView):
         self.G0 = 1.0
         if self._fused is not None:
             self._fused.set_g0(1.0)
-        g0 = self._forward(np.zeros(self.model.n_params))[1]
+        self._identity_value = None
+        j0, g0 = self._forward(np.zeros(self.model.n_params))
         if not (math.isfinite(g0) and g0 > 0):
             raise ValueError(
                 f"the identity warp's {self.objective.name} is {g0}: the events give a flat image "
@@ -242,6 +246,8 @@ class ContrastMaximization(SetupView):
         self.G0 = g0 if self.normalize else 1.0
         self._identity_objective = g0
         if self._fused is not None:
+            # J at the identity is known now: the optimizers' evaluation of it there costs nothing
+            self._identity_value = self._fused.self_normalized_value() if self.normalize else j0
             self._fused.set_g0(self.G0)
 
     # --- fields and kernels ----------------------------------------------------------------------
@@ -464,27 +470,40 @@ class ContrastMaximization(SetupView):
         run_chain_backward(self._kernel_chain(), blurs)
         return self._th.grad.to_numpy().astype(np.float64).reshape(-1)
 
+    # value and value_and_grad run once per evaluation of an optimizer: their Python is kept to a few
+    # us (docs/performance.md, issue 20). On the fused path a launch-ready kernel stands for the alive
+    # check: it holds the Taichi program it was compiled in, and a reset or re-initialisation makes a new
+    # one (then the full check below runs and raises).
     def value(self, theta) -> float:
         """Augmented objective J at ``theta`` (physical units)."""
-        self._check_alive()
-        theta = _check_theta(theta, self.model.n_params, self.model.name)
-        if self._fused is not None:
-            value = self._fused.value(theta)
+        fused = self._fused
+        if fused is None or not fused.launch_ready():
+            self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name, limit=self._theta_limit)
+        if fused is not None:
+            if self._identity_value is not None and not any(theta.tolist()):
+                return self._identity_value  # computed with G0 by the window's set-up
+            value = fused.value(theta)
         else:
             value = self._forward(theta)[0]
-        _require_finite(self.model, theta, "J", value)
+        if not math.isfinite(value):
+            _require_finite(self.model, theta, "J", value)
         return value
 
     def value_and_grad(self, theta) -> tuple[float, np.ndarray]:
-        """``(J, dJ/dtheta)`` at ``theta`` (physical units), by Taichi reverse-mode autodiff."""
-        self._check_alive()
-        theta = _check_theta(theta, self.model.n_params, self.model.name)
-        if self._fused is not None:
-            value, grad = self._fused.value_and_grad(theta)
+        """``(J, dJ/dtheta)`` at ``theta`` (physical units): the fused kernels' hand-written backward, or
+        Taichi's reverse-mode autodiff on the generic chain."""
+        fused = self._fused
+        if fused is None or not fused.launch_ready():
+            self._check_alive()
+        theta = _check_theta(theta, self.model.n_params, self.model.name, limit=self._theta_limit)
+        if fused is not None:
+            value, grad = fused.value_and_grad(theta)
         else:
             value = self._forward(theta)[0]
             grad = self._backward()
-        _require_finite(self.model, theta, "J or dJ/dtheta", value, grad)
+        if not (math.isfinite(value) and _all_finite(grad.tolist())):
+            _require_finite(self.model, theta, "J or dJ/dtheta", value, grad)
         return value, grad
 
     def evaluate(self, theta) -> Evaluation:

@@ -12,6 +12,9 @@ Every model module provides the same ``@ti.func`` set, so that kernels are gener
   ``d div / d theta`` of ``div``. They differentiate exactly the expressions of ``warp``/``det``/``div``
   (same series branches); the tests hold them against Taichi autodiff and finite differences. Their
   trigonometric factors depend on theta only, so the compiler hoists them out of the serial event loop;
+* optionally ``warp_terms(p, dt, th, ctx) -> (warp, det, jx, ddet, ddiv)``: all of the above for one
+  event from one evaluation, for a model whose functions share costly intermediate values (``rotation3``
+  rotates the ray once); the fused kernels call it in place of ``warp``, ``det`` and ``param_jac``;
 
 and the declarations ``MODEL``, a dict of plain values (kernels import nothing from ``cmax_taichi``):
 ``name``, ``params`` and ``units`` (one per parameter: px/s, 1/s, rad/s, ...), and any of
@@ -24,7 +27,12 @@ the fields of :class:`cmax_taichi.WarpModel`, which ``WarpModel.from_module`` bu
 ``th`` is the parameter vector (physical units). ``ctx`` is the 5-vector ``(cx, cy, fx, fy, T)``: the
 centre of the coordinates (principal point or image centre, px), the focal lengths (px, used by
 ``rotation3`` only) and the window duration ``T`` (s, used by ``mitrokhin4`` only). The functions use no
-``floor`` and no dynamic loops, so they work in reverse and forward mode autodiff.
+dynamic loops, so they work in reverse-mode autodiff (``rotation3``'s angle reduction beyond
+``phi = pi / 2`` uses ``floor``, whose adjoint Taichi's reverse mode takes as zero; its forward mode
+refuses ``floor``, and nothing here uses forward mode). No event-loop function should call the maths
+library per event (``sin``, ``cos``, ``exp`` of an event's ``dt``): such a call keeps LLVM from
+vectorizing the gradient gather; ``common.taylor_terms`` and ``common.polynomial`` build truncated
+series exact to the precision in use (``rotation3`` is the example).
 
 Shared helpers (complex arithmetic, constants, finite-difference stand-ins, the dense-flow kernel) are
 in ``common.py``. The built-in models are the modules named in :data:`BUILTIN_MODELS`, registered in

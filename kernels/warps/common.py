@@ -6,6 +6,8 @@ Signatures of a model's functions (see ``__init__.py``): ``warp(p, dt, th, ctx) 
 ``param_jac(p, dt, th, ctx) -> (jx, ddet, ddiv)``.
 """
 
+import math
+
 import taichi as ti
 
 # Below these magnitudes the closed forms divide ~0 by ~0: switch to Taylor series.
@@ -13,6 +15,151 @@ SERIES_EPS = 1e-4
 # A rotated ray with z below this is behind the camera: the event is sent far outside the image.
 MIN_RAY_Z = 1e-6
 OUTSIDE = -1.0e7
+
+
+# --- truncated Taylor series in place of per-event trigonometry ------------------------------------
+def float_epsilon() -> float:
+    """Machine epsilon of the float type the kernels compile with now (Taichi's ``default_fp``: f32 or
+    f64); read inside ``ti.static`` when a kernel compiles, so one source serves both precisions."""
+    return 2.0**-52 if ti.lang.impl.current_cfg().default_fp == ti.f64 else 2.0**-23
+
+
+def taylor_terms(coefficient, u_max: float, floor: float) -> tuple[float, ...]:
+    """The coefficients ``c_0 .. c_{K-1}`` of an alternating series ``sum_k c_k u^k`` (``coefficient(k)``
+    gives ``c_k``, with ``|c_k| u^k`` decreasing for ``0 <= u <= u_max``), truncated at the smallest ``K``
+    whose first omitted term ``|c_K| u_max^K`` is at most ``float_epsilon() / 8`` times ``floor`` (a lower
+    bound of the series' value on ``[0, u_max]``): the truncation error of an alternating series is at
+    most its first omitted term, so the polynomial is exact to an eighth of the precision in use."""
+    tol = float_epsilon() / 8.0 * floor
+    k = 1
+    while abs(coefficient(k)) * u_max**k > tol:
+        k += 1
+    return tuple(float(coefficient(j)) for j in range(k))
+
+
+def taylor_error(coefficient, n_terms: int, u_max: float) -> float:
+    """The bound ``|c_K| u_max^K`` on the truncation error of ``n_terms`` terms (see :func:`taylor_terms`)."""
+    return abs(coefficient(n_terms)) * u_max**n_terms
+
+
+@ti.func
+def _pair(c: ti.template(), m: ti.template(), v):
+    return ti.static(c[2 * m]) + ti.static(c[2 * m + 1]) * v
+
+
+@ti.func
+def polynomial(coefficients: ti.template(), v):
+    """``sum_k c_k v^k`` for a tuple of at least two Python floats (unrolled): Horner's rule in ``v^2``
+    over the pairs ``c_2m + c_2m+1 v``, which halves the chain of dependent multiply-adds (the event
+    loops that call it are bound by that latency, not by the arithmetic)."""
+    c = ti.static(coefficients)
+    n_pairs = ti.static(len(c) // 2)
+    v2 = v * v
+    out = _pair(c, n_pairs - 1, v)
+    if ti.static(len(c) % 2 == 1):
+        out = out + v2 * ti.static(c[len(c) - 1])
+    for m in ti.static(range(n_pairs - 2, -1, -1)):
+        out = _pair(c, m, v) + v2 * out
+    return out
+
+
+def polynomial_derivative(coefficients: tuple[float, ...]) -> tuple[float, ...]:
+    """The coefficients of ``d/du sum_k c_k u^k`` (at least one)."""
+    return tuple(k * c for k, c in enumerate(coefficients) if k > 0) or (0.0,)
+
+
+def _factorial_series(offset: int):
+    """``c_k = (-1)^k / (2k + offset)!``: ``offset = 1`` gives ``sin(phi) / phi``, ``offset = 2``
+    ``(1 - cos(phi)) / phi^2`` as series in ``u = phi^2``."""
+    return lambda k: (-1.0) ** k / math.factorial(2 * k + offset)
+
+
+SIN_OVER_PHI = _factorial_series(1)
+ONE_MINUS_COS_OVER_PHI2 = _factorial_series(2)
+
+#: the half angle ``h = phi / 2`` enters the series up to ``HALF_ANGLE_MAX`` (``phi <= pi / 2``); beyond
+#: it is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]``
+HALF_ANGLE_MAX = math.pi / 4
+#: lower bounds of ``sin(r) / r`` and ``(1 - cos r) / r^2`` on ``|r| <= pi / 4``: the truncation error of
+#: their series is bounded relative to them
+_SINC_FLOOR = math.sin(HALF_ANGLE_MAX) / HALF_ANGLE_MAX
+_VERSINE_FLOOR = (1.0 - math.cos(HALF_ANGLE_MAX)) / HALF_ANGLE_MAX**2
+
+
+def sinc_terms() -> tuple[float, ...]:
+    """Taylor coefficients (in ``v = r^2``) of ``sin(r) / r`` for the precision in use."""
+    return taylor_terms(SIN_OVER_PHI, HALF_ANGLE_MAX**2, _SINC_FLOOR)
+
+
+def versine_terms() -> tuple[float, ...]:
+    """Taylor coefficients (in ``v = r^2``) of ``(1 - cos r) / r^2`` for the precision in use."""
+    return taylor_terms(ONE_MINUS_COS_OVER_PHI2, HALF_ANGLE_MAX**2, _VERSINE_FLOOR)
+
+
+@ti.func
+def _norm(vec):
+    """``|vec|`` scaled by its largest component, so that the squares neither overflow nor underflow
+    (``vec != 0``)."""
+    m = ti.abs(vec[0])
+    for i in ti.static(range(1, vec.n)):
+        m = ti.max(m, ti.abs(vec[i]))
+    scaled = vec / m
+    return m * ti.sqrt(scaled.dot(scaled))
+
+
+@ti.func
+def rodrigues(u, rot):
+    """``(s1, s2, ds1/du, ds2/du)`` with ``s1 = sin(phi) / phi``, ``s2 = (1 - cos(phi)) / phi^2`` at
+    ``u = phi^2 = |rot|^2`` (``rot``: the rotation vector, ``dt w``; ``u`` computed by the caller as a
+    smooth function of theta, since reverse mode differentiates it), from the half angle ``h = phi / 2``.
+
+    ``h <= pi / 4``: ``s1 = S(v) (1 - v C(v))``, ``s2 = S(v)^2 / 2`` with ``v = h^2 = u / 4`` and the
+    Taylor polynomials ``S`` of ``sin(h) / h`` and ``C`` of ``(1 - cos h) / h^2`` (no square root, no
+    division). Beyond (a branch: a square root, a ``floor``, a division): ``h = k pi / 2 + r`` with
+    ``|r| <= pi / 4``, ``sin(r) = r S(r^2)``, ``cos(r) = 1 - r^2 C(r^2)``, and
+    ``sin(h) cos(h) = (-1)^k sin(r) cos(r)``, ``sin(h)^2 = sin(r)^2`` (k even) or ``cos(r)^2`` (k odd).
+    The slopes are the derivatives of exactly these expressions (``dr/du = dh/du = 1 / (8 h)``; k is
+    piecewise constant, and ``floor`` has a zero adjoint in Taichi's reverse mode). The branch takes
+    ``h`` as the scaled norm of ``rot`` (``u`` overflows f32 from ``phi ~ 1.8e19``) and clamps ``r``
+    into ``[-pi/4, pi/4]`` (beyond ``phi ~ 1e7`` in f32, ``1e15`` in f64, the rounding of ``phi`` exceeds
+    pi and the reduction keeps no digit: the values stay finite, as bounded as sin and cos). No call into
+    the maths library, so that LLVM can if-convert the branch and vectorize the gradient gather. Shared by
+    ``rotation3`` (the rotation of a ray by ``phi = |w| dt``) and ``se2`` (the planar rotation
+    ``e^{i theta}`` and ``(e^{i theta} - 1) / (i theta)`` of its exponential).
+    """
+    v = 0.25 * u
+    big = v > HALF_ANGLE_MAX * HALF_ANGLE_MAX
+    r = 0.0 * u
+    k = 0.0 * u
+    ih = 0.0 * u
+    if big:
+        h = 0.5 * _norm(rot)
+        k = ti.floor(h * (2.0 / math.pi) + 0.5)
+        r = ti.min(ti.max(h - k * (0.5 * math.pi), -HALF_ANGLE_MAX), HALF_ANGLE_MAX)
+        ih = 1.0 / h
+        v = r * r
+    S = polynomial(ti.static(sinc_terms()), v)
+    C = polynomial(ti.static(versine_terms()), v)
+    dS = polynomial(ti.static(polynomial_derivative(sinc_terms())), v)
+    dC = polynomial(ti.static(polynomial_derivative(versine_terms())), v)
+    cr = 1.0 - v * C  # cos(r)
+    dcr_dv = -(C + v * dC)
+    # a = +-sin(h) / h and b = +-cos(h) (one sign), and their u-derivatives
+    a = S
+    b = cr
+    da = 0.25 * dS
+    db = 0.25 * dcr_dv
+    if big:
+        dr = 0.125 * ih  # dr/du = dh/du
+        sr = r * S
+        dsr = (S + 2.0 * v * dS) * dr
+        dcr = 2.0 * r * dcr_dv * dr
+        odd = k - 2.0 * ti.floor(0.5 * k) > 0.5  # sin(h) = +-cos(r), cos(h) = -+sin(r)
+        a = ti.select(odd, cr, sr) * ih
+        b = ti.select(odd, -sr, cr)
+        da = ti.select(odd, dcr, dsr) * ih - a * ih * dr
+        db = ti.select(odd, -dsr, dcr)
+    return a * b, 0.5 * a * a, da * b + a * db, a * da
 
 
 @ti.func

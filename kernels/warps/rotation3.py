@@ -1,11 +1,27 @@
 """``rotation3``: 3-DOF camera rotation, theta = (w_x, w_y, w_z [rad/s]) (docs/FORMULAS.md).
 
 Uses the focal lengths ``ctx[2], ctx[3]`` (px).
+
+The rotation of an event's ray is Rodrigues' ``X' = X + dt s1(u) (w x X) + dt^2 s2(u) w x (w x X)``
+with ``u = phi^2 = dt^2 |w|^2``, ``s1 = sin(phi) / phi`` and ``s2 = (1 - cos(phi)) / phi^2``, written
+with the half angle ``h = phi / 2``: ``s1 = (sin(h) / h) cos(h)``, ``s2 = (sin(h) / h)^2 / 2``. Up to
+``phi = pi / 2`` (90 degrees between an event and the reference time) ``sin(h) / h`` and
+``(1 - cos h) / h^2`` are their Taylor polynomials in ``v = h^2 = u / 4``, truncated where the first
+omitted term is below an eighth of the machine epsilon of the precision in use
+(``common.taylor_terms``: 9 and 8 terms in f64, 5 and 5 in f32), so they are exact to the rounding of
+that precision. Beyond, the half angle is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]`` first (in a
+branch: a square root, a ``floor``, a division; the same polynomials), with an error of about the
+rounding of ``phi`` itself. No event calls the maths library: a libm call in the event loop kept LLVM
+from vectorizing the gradient gather (rotation3 cost 8x translation2 per event). ``warp_terms``
+computes the warp, ``det`` and ``param_jac`` of an event from one evaluation (the fused kernels call
+it, so they rotate each ray once); ``warp``, ``det`` and ``param_jac`` are its parts, so they
+differentiate exactly the same expressions (the polynomials' own derivatives). The error bound:
+docs/FORMULAS.md ("rotation3"); ``tests/test_rotation_series.py`` holds it in f32 and f64.
 """
 
 import taichi as ti
 
-from .common import MIN_RAY_Z, OUTSIDE, SERIES_EPS
+from .common import MIN_RAY_Z, OUTSIDE, rodrigues
 
 #: the model's declarations, read by ``cmax_taichi/models/warps.py`` (``WarpModel.from_module``)
 MODEL = {
@@ -19,56 +35,23 @@ MODEL = {
     "description": "3-DOF camera rotation (SO(3), needs intrinsics)",
 }
 
+@ti.func
+def _reciprocal(f):
+    """``1 / f`` for a focal length ``f > 0``, through a select: LLVM (with Taichi's ``reassoc`` flags)
+    rewrites ``x * (1 / f)`` as ``x / f``, a division in every event; the select keeps one division per
+    window, outside the event loop."""
+    return ti.select(f != 0.0, 1.0 / f, 0.0)
+
 
 @ti.func
 def _ray(p, ctx):
-    return ti.Vector([(p[0] - ctx[0]) / ctx[2], (p[1] - ctx[1]) / ctx[3], 1.0])
+    """The calibrated ray ``((x - c_x) / f_x, (y - c_y) / f_y, 1)``."""
+    return ti.Vector([(p[0] - ctx[0]) * _reciprocal(ctx[2]), (p[1] - ctx[1]) * _reciprocal(ctx[3]), 1.0])
 
 
 @ti.func
-def _rotation(dt, th):
-    """exp(dt [w]_x) by Rodrigues, with its series for small angles (no sqrt at 0)."""
-    a = dt * ti.Vector([th[0], th[1], th[2]])
-    A = ti.Matrix([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    phi2 = a.dot(a)
-    s1 = 1.0 - phi2 / 6.0
-    s2 = 0.5 - phi2 / 24.0
-    if phi2 >= SERIES_EPS * SERIES_EPS:
-        phi = ti.sqrt(phi2)
-        s1 = ti.sin(phi) / phi
-        s2 = (1.0 - ti.cos(phi)) / phi2
-    return ti.Matrix.identity(float, 3) + s1 * A + s2 * (A @ A)
-
-
-@ti.func
-def warp(p, dt, th, ctx):
-    Xr = _rotation(dt, th) @ _ray(p, ctx)
-    out = ti.Vector([OUTSIDE, OUTSIDE])
-    if Xr[2] > MIN_RAY_Z:
-        out = ti.Vector([ctx[0] + ctx[2] * Xr[0] / Xr[2], ctx[1] + ctx[3] * Xr[1] / Xr[2]])
-    return out
-
-
-@ti.func
-def det(p, dt, th, ctx):
-    R = _rotation(dt, th)
-    X = _ray(p, ctx)
-    z = ti.max(R[2, 0] * X[0] + R[2, 1] * X[1] + R[2, 2] * X[2], MIN_RAY_Z)
-    return 1.0 / (z * z * z)
-
-
-@ti.func
-def div(p, th, ctx):
-    X = _ray(p, ctx)
-    return -3.0 * (th[1] * X[0] - th[0] * X[1])
-
-
-@ti.func
-def flow(p, th, ctx):
-    X = _ray(p, ctx)
-    dx = th[1] * (1.0 + X[0] * X[0]) - th[0] * X[0] * X[1] - th[2] * X[1]
-    dy = -th[0] * (1.0 + X[1] * X[1]) + th[1] * X[0] * X[1] + th[2] * X[0]
-    return ti.Vector([-ctx[2] * dx, -ctx[3] * dy])
+def _omega(th):
+    return ti.Vector([th[0], th[1], th[2]])
 
 
 @ti.func
@@ -85,45 +68,70 @@ def _cross_basis(j: ti.template(), v):
 
 
 @ti.func
-def param_jac(p, dt, th, ctx):
-    X = ti.Vector([(p[0] - ctx[0]) / ctx[2], (p[1] - ctx[1]) / ctx[3], 1.0])
-    a = dt * ti.Vector([th[0], th[1], th[2]])
-    u = a.dot(a)
-    # s1 = sin(phi) / phi, s2 = (1 - cos(phi)) / phi^2 as _rotation, and their derivatives in u = phi^2
-    s1 = 1.0 - u / 6.0
-    s2 = 0.5 - u / 24.0
-    d1 = -1.0 / 6.0 + 0.0 * u
-    d2 = -1.0 / 24.0 + 0.0 * u
-    if u >= SERIES_EPS * SERIES_EPS:
-        phi = ti.sqrt(u)
-        s1 = ti.sin(phi) / phi
-        s2 = (1.0 - ti.cos(phi)) / u
-        if u < 1e-4:  # the closed forms of the derivatives cancel badly for small phi: series
-            d1 = -1.0 / 6.0 + u / 60.0 - u * u / 1680.0
-            d2 = -1.0 / 24.0 + u / 360.0 - u * u / 13440.0
-        else:
-            d1 = (phi * ti.cos(phi) - ti.sin(phi)) / (2.0 * u * phi)
-            d2 = (phi * ti.sin(phi) - 2.0 * (1.0 - ti.cos(phi))) / (2.0 * u * u)
-    aX = a.cross(X)
-    aaX = a.cross(aX)
-    Xr = X + s1 * aX + s2 * aaX
-    # dXr/da_j = s1 e_j x X + s2 (e_j x (a x X) + a x (e_j x X)) + 2 a_j (d1 a x X + d2 a x (a x X))
-    D = ti.Matrix.zero(float, 3, 3)
-    for j in ti.static(range(3)):
-        col = (
-            s1 * _cross_basis(j, X)
-            + s2 * (_cross_basis(j, aX) + a.cross(_cross_basis(j, X)))
-            + 2.0 * a[j] * (d1 * aX + d2 * aaX)
-        )
-        for i in ti.static(range(3)):
-            D[i, j] = dt * col[i]
-    z = Xr[2]
+def warp_terms(p, dt, th, ctx):
+    """``(warp, det, jx, ddet, ddiv)`` of one event from one evaluation of the rotation (the fused
+    kernels call this; the parts a kernel does not use are dead code there)."""
+    X = _ray(p, ctx)
+    w = _omega(th)
+    dt2 = dt * dt
+    s1, s2, d1, d2 = rodrigues(dt2 * w.dot(w), dt * w)
+    wX = w.cross(X)
+    wwX = w.cross(wX)
+    c1 = dt * s1
+    c2 = dt2 * s2
+    Xr = X + c1 * wX + c2 * wwX
+    out = ti.Vector([OUTSIDE, OUTSIDE])
+    iz = 1.0 / ti.max(Xr[2], MIN_RAY_Z)
+    det_value = iz * iz * iz
     jx = ti.Matrix.zero(float, 2, 3)
     ddet = ti.Vector([0.0, 0.0, 0.0])
-    if z > MIN_RAY_Z:
+    if Xr[2] > MIN_RAY_Z:
+        px = Xr[0] * iz
+        py = Xr[1] * iz
+        out = ti.Vector([ctx[0] + ctx[2] * px, ctx[1] + ctx[3] * py])
+        # X' = X + c1 w x X + c2 w x (w x X), c1 = dt s1(u), c2 = dt^2 s2(u), u = dt^2 |w|^2:
+        # dX'/dw_j = c1 e_j x X + c2 (e_j (w . X) + X_j w - 2 w_j X) + w_j g,
+        # g = 2 dt^2 (dt d1 wX + dt^2 d2 wwX); x' = c + f X'_{x,y} / z: dx'/dw_j = f (D_{x,y} j - p D_zj) / z
+        wdX = w.dot(X)
+        g = 2.0 * dt2 * ((dt * d1) * wX + (dt2 * d2) * wwX)
+        iz4 = -3.0 * det_value * iz
         for j in ti.static(range(3)):
-            jx[0, j] = ctx[2] * (D[0, j] / z - Xr[0] * D[2, j] / (z * z))
-            jx[1, j] = ctx[3] * (D[1, j] / z - Xr[1] * D[2, j] / (z * z))
-            ddet[j] = -3.0 * D[2, j] / (z * z * z * z)
+            col = c1 * _cross_basis(j, X) + c2 * (X[j] * w - 2.0 * w[j] * X) + w[j] * g
+            col[j] += c2 * wdX
+            jx[0, j] = ctx[2] * ((col[0] - px * col[2]) * iz)
+            jx[1, j] = ctx[3] * ((col[1] - py * col[2]) * iz)
+            ddet[j] = iz4 * col[2]
     ddiv = ti.Vector([3.0 * X[1], -3.0 * X[0], 0.0])
-    return jx, ddet, ddiv
+    return out, det_value, jx, ddet, ddiv
+
+
+@ti.func
+def warp(p, dt, th, ctx):
+    terms = warp_terms(p, dt, th, ctx)
+    return terms[0]
+
+
+@ti.func
+def det(p, dt, th, ctx):
+    terms = warp_terms(p, dt, th, ctx)
+    return terms[1]
+
+
+@ti.func
+def param_jac(p, dt, th, ctx):
+    terms = warp_terms(p, dt, th, ctx)
+    return terms[2], terms[3], terms[4]
+
+
+@ti.func
+def div(p, th, ctx):
+    X = _ray(p, ctx)
+    return -3.0 * (th[1] * X[0] - th[0] * X[1])
+
+
+@ti.func
+def flow(p, th, ctx):
+    X = _ray(p, ctx)
+    dx = th[1] * (1.0 + X[0] * X[0]) - th[0] * X[0] * X[1] - th[2] * X[1]
+    dy = -th[0] * (1.0 + X[1] * X[1]) + th[1] * X[0] * X[1] + th[2] * X[0]
+    return ti.Vector([-ctx[2] * dx, -ctx[3] * dy])
