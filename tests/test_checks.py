@@ -9,6 +9,8 @@ checks of the built-ins (:func:`model_checks`).
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import taichi as ti
 from conftest import EXAMPLES_DIR
@@ -90,6 +92,23 @@ def test_the_checker_names_a_wrong_det(user):
     assert "det is det dx'/dx" in failed
     assert "det against the float64 reference" in failed
     assert "x' against the float64 reference" in report.passed  # the warp itself is right
+
+
+def test_the_checker_names_a_warp_terms_that_is_not_the_separate_functions(user):
+    """warp_terms (what the fused kernels call instead of warp, det and param_jac) is held to them."""
+    warp, det, param_jac = user.affine_warp, user.affine_det, user.affine_param_jac
+
+    @ti.func
+    def terms(p, dt, th, ctx):  # the det without its dt^2 a12 a21 term
+        jx, ddet, ddiv = param_jac(p, dt, th, ctx)
+        return warp(p, dt, th, ctx), det(p, dt, th, ctx) + dt * dt * th[1] * th[2], jx, ddet, ddiv
+
+    model = dataclasses.replace(user.affine_model("test_wrong_terms"), warp_terms=terms)
+    report = cm.check_model(model, precisions=("f64",))
+    failed = "\n".join(report.failures)
+    assert "warp_terms: its det is the model's" in failed
+    assert "warp_terms: its x' is the model's" in report.passed
+    assert "warp_terms: its d det/dtheta is param_jac's" in report.passed
 
 
 def test_a_twin_under_another_name_is_named_in_the_note(user):

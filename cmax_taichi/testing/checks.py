@@ -294,16 +294,18 @@ class _ModelKernel:
             ws.ctx = ti.Vector.field(5, real, shape=())
             ws.out = ti.field(real, shape=(len(kmc.VALUE_ROWS), cap))
             ws.jac = ti.field(real, shape=(4, cap, P))
+            ws.terms = ti.field(real, shape=(3, cap))
+            ws.terms_jac = ti.field(real, shape=(4, cap, P))
 
         self.ws = workspace.acquire(("model_check", backend.info().generation, cap, P), build)
         self.kernel = cached_kernel(
             ("model_check", model.name, id(model)),
             lambda: kmc.make_model_kernel(
-                model.warp, model.det_fn, model.div_fn, model.flow, model.param_jac, P
+                model.warp, model.det_fn, model.div_fn, model.flow, model.param_jac, P, model.warp_terms
             ),
         )
 
-    def __call__(self, points: np.ndarray, thetas: np.ndarray, ctx) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, points: np.ndarray, thetas: np.ndarray, ctx) -> tuple[np.ndarray, np.ndarray | None]:
         from cmax_taichi.core import backend
 
         ws, n = self.ws, points.shape[0]
@@ -313,10 +315,16 @@ class _ModelKernel:
             padded[:n] = values
             f.from_numpy(padded)
         ws.ctx[None] = list(ctx)
-        self.kernel(n, ws.points, ws.th, ws.ctx, ws.out, ws.jac)
+        self.kernel(n, ws.points, ws.th, ws.ctx, ws.out, ws.jac, ws.terms, ws.terms_jac)
         out = ws.out.to_numpy()[:, :n].astype(np.float64)
         jac = ws.jac.to_numpy()[:, :n].astype(np.float64) if self.model.param_jac is not None else None
         return out, jac
+
+    def terms(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """What ``warp_terms`` returned at the points of the last call: ``x', y', det`` and the
+        derivatives (as ``jac``)."""
+        terms = self.ws.terms.to_numpy()[:, :n].astype(np.float64)
+        return terms, self.ws.terms_jac.to_numpy()[:, :n].astype(np.float64)
 
 
 def _check_closed_forms(report, model, raw, thetas, precision, twin) -> None:
@@ -356,6 +364,18 @@ def _check_closed_forms(report, model, raw, thetas, precision, twin) -> None:
         if jac is not None:
             closed = jac.reshape(4, -1, n, P)[:, 0]
             _check_param_jac(report, model, closed, by_theta, h_theta, scales, tol["diff"], at)
+        if model.warp_terms is not None:  # the fused kernels' joint function is the separate ones
+            terms, terms_jac = kernel.terms(points.shape[0])
+            terms, terms_jac = terms[:, :n], terms_jac.reshape(4, -1, n, P)[:, 0]
+            for r, name in enumerate(("x'", "y'", "det")):
+                report._compare(
+                    f"warp_terms: its {name} is the model's", at, terms[r], base[r], tol["ref"], floor=1.0
+                )
+            rows = ("dx'/dtheta (row x')", "dx'/dtheta (row y')", "d det/dtheta", "d div/dtheta")
+            for r, name in enumerate(rows):  # per px of displacement, as the param_jac checks
+                got, want = terms_jac[r] / scales, closed[r] / scales
+                label = f"warp_terms: its {name} is param_jac's"
+                report._compare(label, at, got, want, tol["ref"], floor=1.0)
         for kind in model.constant_quantities:  # declared constants
             values = base[3] if kind == "div" else np.abs(base[2])
             report._compare(
