@@ -12,11 +12,12 @@ What is checked:
 * a warp model, per event (``kernels/model_checks.py``): ``warp`` at ``dt = 0`` is the identity; the
   flow is ``-dW/d(dt)`` at ``dt = 0``; the closed ``det`` is ``det dx'/dx`` and ``div`` the trace of
   ``dv/dx`` (central differences in x and y); every column of ``param_jac`` (``dx'/dtheta``,
-  ``d det/dtheta``, ``d div/dtheta``) against central differences in that parameter;
-  ``constant_quantities`` are constant over the events; ``positive_det`` holds; position, det, div and
-  flow against the model's NumPy twin (:mod:`cmax_taichi.testing.reference_warps`) when one is
-  registered. Then a problem (variance with both regularizers): J against the reference and dJ/dtheta
-  against central differences (of the reference where there is a twin, else of J itself).
+  ``d det/dtheta``, ``d div/dtheta``) against central differences in that parameter; a ``warp_terms``
+  returns what ``warp``, ``det`` and ``param_jac`` do; ``constant_quantities`` are constant over the
+  events; ``positive_det`` holds; position, det, div and flow against the model's NumPy twin
+  (:mod:`cmax_taichi.testing.reference_warps`) when one is registered. Then a problem (variance with
+  both regularizers): J against the reference and dJ/dtheta against central differences (of the
+  reference where there is a twin, else of J itself).
 * an objective: J (with both built-in regularizers) against a NumPy formula of the objective (the
   reference's for the built-ins, or ``reference=``) and dJ/dtheta against central differences, on two
   warps; with a fused declaration on both paths (the declared ``adjoint`` on the fused one, Taichi's
