@@ -25,19 +25,9 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import clusters as kcl
-from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel, get_warp
-from cmax_taichi.pipeline.setup import (
-    ProblemSetup,
-    allocate_images,
-    check_limits,
-    image_kernels,
-    run_chain,
-    run_chain_backward,
-    upload,
-)
-from cmax_taichi.pipeline.setup import cached_kernel as _cached
+from cmax_taichi.pipeline import setup as psetup
 
 __all__ = ["MultiClusterCMax"]
 
@@ -56,7 +46,7 @@ def _resolve_warps(warp, n_clusters: int) -> list[WarpModel]:
     return [get_warp(w) for w in warps]
 
 
-class MultiClusterCMax:
+class MultiClusterCMax(psetup.SetupView):
     """K clusters' augmented CMax objective on one window, for fixed memberships.
 
     Parameters
@@ -114,26 +104,13 @@ class MultiClusterCMax:
             raise ValueError(f"n_clusters must be at least 1, got {K}")
         self.n_clusters = K
         self.models = _resolve_warps(warp, K)
-        setup = ProblemSetup.build(
+        setup = psetup.ProblemSetup.build(
             events, self.models, objective, regularizers, camera, t_ref, blur_sigma, normalize
         )
         if setup.n_events < K:
             raise ValueError(f"n_clusters = {K} is more than the {setup.n_events} events of the window")
-        check_limits(setup, f"this {K}-cluster problem", n_clusters=K)
-        self.setup = setup
-        self.objective: Objective = setup.objective
-        self.camera = camera
-        self.regularizer_weights = setup.regularizer_weights
-        self.blur_sigma = setup.blur_sigma
-        self.normalize = setup.normalize
-        self.kept = setup.kept
-        self.events = events = setup.events
-        self.duration = setup.duration
-        self.t_ref = setup.t_ref
-        self.orientation = setup.orientation
-        self.width, self.height = setup.width, setup.height
-        self.center = setup.center
-        self.n_events = len(events)
+        psetup.check_limits(setup, f"this {K}-cluster problem", n_clusters=K)
+        self.setup = setup  # events, camera, objective, t_ref, ... (SetupView)
         self.capacity = workspace.capacity_for(max(self.n_events, int(capacity)))
         self.n_params = tuple(m.n_params for m in self.models)
         self.offsets = tuple(int(v) for v in np.concatenate([[0], np.cumsum(self.n_params)[:-1]]))
@@ -231,7 +208,7 @@ class MultiClusterCMax:
         ws.pw = ti.field(real, shape=(cap, K))
         ws.th = ti.Vector.field(self.n_total, real, shape=(), needs_grad=True)
         ws.ctx = ti.Vector.field(5, real, shape=())
-        allocate_images(ws, self.setup, K)
+        psetup.allocate_images(ws, self.setup, K)
         # memberships are >= 0, so the map count C_j = sum |P_ij| beta is the unblurred vote image itself
         ws.count = ws.vote
         if n_r:
@@ -254,7 +231,7 @@ class MultiClusterCMax:
         ws = self._ws
         if ws.owned_by(self):
             return
-        upload(ws, self.setup, self._per_event)
+        psetup.upload(ws, self.setup, self._per_event)
         ws.take(self)
         if self._memberships is not None:
             self._upload_memberships()
@@ -275,31 +252,31 @@ class MultiClusterCMax:
         penalties = tuple(r.penalty for r in regs)
         reg_key = tuple((r.name, id(r)) for r in regs)
         model_key = tuple((m.name, id(m)) for m in models)
-        self._k_splat = _cached(
+        self._k_splat = psetup.cached_kernel(
             ("cl_splat", model_key, reg_key, W, H),
             lambda: kcl.make_cluster_splat_kernel(
                 warp_fns, quantities, self.offsets, self.n_params, width=W, height=H
             ),
         )
-        self._k_lookup = _cached(
+        self._k_lookup = psetup.cached_kernel(
             ("cl_lookup", model_key, W, H),
             lambda: kcl.make_cluster_lookup_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
         )
-        self._k_blur_x, self._k_blur_y, self._k_reduce = image_kernels(self.setup, K)
+        self._k_blur_x, self._k_blur_y, self._k_reduce = psetup.image_kernels(self.setup, K)
         obj = self.objective
         if regs:
-            self._k_maps = _cached(
+            self._k_maps = psetup.cached_kernel(
                 ("cl_maps", reg_key, K, W, H), lambda: kcl.make_cluster_maps_reduce(penalties, K, W, H)
             )
         ws = self._ws
         sizes = (ws.acc.n, ws.macc.n)
         blur = self.blur_sigma > 0
-        self._k_zero = _cached(
+        self._k_zero = psetup.cached_kernel(
             ("cl_zero", K, len(regs), blur, W, H, sizes),
             lambda: kcl.make_cluster_zero_kernel(K, len(regs), blur, W, H, sizes),
         )
         one_sided = self.setup.one_sided()
-        self._k_loss = _cached(
+        self._k_loss = psetup.cached_kernel(
             ("cl_loss", obj.name, id(obj), K, W * H, one_sided),
             lambda: kcl.make_cluster_loss_kernel(obj.finalize, K, W * H, one_sided),
         )
@@ -401,7 +378,7 @@ class MultiClusterCMax:
         chain = self._kernel_chain()
         if images_only:  # the splat and the blur: the cluster images, no objective
             chain = chain[: 3 if self.blur_sigma > 0 else 1]
-        run_chain(chain)
+        psetup.run_chain(chain)
         return float("nan") if images_only else float(self._ws.loss[None])
 
     def _backward(self) -> np.ndarray:
@@ -410,7 +387,7 @@ class MultiClusterCMax:
         ws.th.grad.fill(0)
         ws.loss.grad[None] = 1.0
         blurs = (self._k_blur_x, self._k_blur_y) if self.blur_sigma > 0 else ()
-        run_chain_backward(self._kernel_chain(), blurs)
+        psetup.run_chain_backward(self._kernel_chain(), blurs)
         return ws.th.grad.to_numpy().astype(np.float64).reshape(-1)
 
     def _diag_vector(self) -> np.ndarray:
