@@ -11,6 +11,7 @@ figures/window_NNNN.png (IWE without and with the flow, the flow in colour).
 
 examples:
   cmax-taichi flow --example planes               # simulated depth scene, printed against its truth
+  cmax-taichi flow --example boxroom              # a smooth depth-varying flow (box room)
   cmax-taichi flow ../shared/data/mvsec_indoor_flying1 --out out_flow
   cmax-taichi flow recording_data.hdf5 --window 30000 --dt 0.0625 --flow-format npz --out out_mvsec
   cmax-taichi flow events.h5 --duration 0.1 --grid 32 24 --levels 4 --reg deformation=2 --out out_dsec
