@@ -23,7 +23,7 @@ import sys
 import warnings
 
 #: explicit list of sub-command modules (cmax_taichi.cli.<name>)
-COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce", "bench")
+COMMAND_MODULES = ("info", "estimate", "flow", "evaluate", "segment", "reproduce", "bench")
 
 
 class CliError(Exception):

@@ -191,18 +191,20 @@ def init_backend(arch: str | None, precision: str | None):
     return backend.init_if_needed(arch, precision)
 
 
-def parse_regularizers(items: list[str]) -> dict[str, float]:
-    """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names)."""
+def parse_regularizers(items: list[str], extra: tuple[str, ...] | list[str] = ()) -> dict[str, float]:
+    """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names); ``extra``:
+    more valid names (the dense flow's smoothness terms)."""
     from cmax_taichi.cli import CliError
 
+    valid = regularizer_names() + list(extra)
     out: dict[str, float] = {}
     for item in items:
         name, sep, weight = item.partition("=")
         name = name.strip()
         if not sep or not name:
             raise CliError(f"--reg expects NAME=WEIGHT (e.g. divergence=1), got {item!r}")
-        if name not in regularizer_names():
-            raise CliError(f"--reg: unknown regularizer {name!r}; valid: {', '.join(regularizer_names())}")
+        if name not in valid:
+            raise CliError(f"--reg: unknown regularizer {name!r}; valid: {', '.join(valid)}")
         try:
             value = float(weight)
         except ValueError:
