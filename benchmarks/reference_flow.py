@@ -136,6 +136,8 @@ def run_reference(
 def run_ours(spec: str, events, camera) -> tuple[np.ndarray, dict]:
     """Our dense solver, ``MODULE:FUNCTION(events, camera) -> (2, H, W) px/s``."""
     module, _, name = spec.partition(":")
+    if str(ROOT) not in sys.path:  # MODULE may be one of the repository's own (benchmarks.dense_flow)
+        sys.path.insert(0, str(ROOT))
     func = getattr(importlib.import_module(module), name)
     cpu0, wall0 = _cpu_seconds(), time.perf_counter()
     flow = np.asarray(func(events, camera), dtype=np.float64)

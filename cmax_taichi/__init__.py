@@ -18,6 +18,7 @@ from cmax_taichi.models.objectives import (
     Objective,
     objective_names,
     register_objective,
+    unregister_objective,
 )
 from cmax_taichi.models.regularizers import (
     RECOMMENDED_LAMBDA,
@@ -54,6 +55,10 @@ _LAZY = {
     "batch_run": ("cmax_taichi.solve.batch", "run"),
     "SegmentationResult": ("cmax_taichi.solve.segment", "SegmentationResult"),
     "segment": ("cmax_taichi.solve.segment", "segment"),
+    "CheckReport": ("cmax_taichi.testing.checks", "CheckReport"),
+    "check_model": ("cmax_taichi.testing.checks", "check_model"),
+    "check_objective": ("cmax_taichi.testing.checks", "check_objective"),
+    "check_regularizer": ("cmax_taichi.testing.checks", "check_regularizer"),
 }
 
 
@@ -74,6 +79,7 @@ __all__ = [
     "BackendInfo",
     "Camera",
     "ChainPathWarning",
+    "CheckReport",
     "ContrastMaximization",
     "Evaluation",
     "Events",
@@ -95,6 +101,9 @@ __all__ = [
     "WarpModel",
     "backend_info",
     "batch_run",
+    "check_model",
+    "check_objective",
+    "check_regularizer",
     "dense_flow",
     "event_jacobians",
     "get_limits",
@@ -110,6 +119,7 @@ __all__ = [
     "segment",
     "set_limits",
     "simulate_preset",
+    "unregister_objective",
     "unregister_regularizer",
     "unregister_warp",
     "warp_names",

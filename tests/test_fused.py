@@ -1,6 +1,7 @@
-"""The fused pipeline (kernels/fused.py) against the generic autodiff kernel chain it replaces, the
-atomic (GPU-style) splat against the per-thread slices, and the closed-form parameter Jacobians
-against Taichi autodiff; finite differences of the reference are in test_pipeline_gradients.py."""
+"""The fused pipeline (kernels/fused.py) against the generic autodiff kernel chain it replaces, and the
+atomic (GPU-style) splat against the per-thread slices; finite differences of the reference are in
+test_pipeline_gradients.py, the closed-form parameter Jacobians of every model column by column in
+test_checks.py (``cm.check_model``)."""
 
 import dataclasses
 import warnings
@@ -8,7 +9,6 @@ import warnings
 import numpy as np
 import pytest
 import taichi as ti
-from cmax_taichi.kernels import jacobian_ad as kad
 from conftest import CAMERA, SENSOR, THETAS, edge_events
 
 import cmax_taichi as cm
@@ -82,90 +82,6 @@ def test_atomic_splat_equals_thread_slices(warp):
         v2, g2 = other.value_and_grad(theta)
         assert v1 == pytest.approx(v2, rel=1e-11)
         np.testing.assert_allclose(g1, g2, rtol=1e-8, atol=1e-10 * np.max(np.abs(g2)))
-
-
-def _closed_jacobian_kernel(pj_fn, n_params):
-    @ti.kernel
-    def closed(
-        n: ti.i32,
-        px: ti.template(),
-        py: ti.template(),
-        pdt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        jx: ti.template(),
-        jd: ti.template(),
-        jv: ti.template(),
-    ):
-        for i in range(n):
-            a, b, c = pj_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
-            for j in ti.static(range(n_params)):
-                jx[i, 0, j] = a[0, j]
-                jx[i, 1, j] = a[1, j]
-                jd[i, j] = b[j]
-                jv[i, j] = c[j]
-
-    return closed
-
-
-def _summed_autodiff_rows(model, events, th, ctx) -> list[np.ndarray]:
-    """d/d theta of the sums over events of x', y', det and div, each by one reverse pass of the
-    per-event kernels of ``kernels/jacobian_ad.py`` (with ``th`` as the field that needs a gradient)."""
-    n = events[0].shape[0]
-    out_x, out_y, out_q = (ti.field(ti.f64, shape=n, needs_grad=True) for _ in range(3))
-    warp_kernel, _ = kad.make_position_kernels(model.warp, model.flow)
-    passes = (
-        (warp_kernel, (out_x, out_y), (1.0, 0.0)),
-        (warp_kernel, (out_x, out_y), (0.0, 1.0)),
-        (kad.make_quantity_kernel(model.det), (out_q,), (1.0,)),
-        (kad.make_quantity_kernel(model.quantity("div")), (out_q,), (1.0,)),
-    )
-    rows = []
-    for kernel, outputs, seeds in passes:
-        args = (n, *events, th, ctx, *outputs)
-        kernel(*args)
-        for output, seed in zip(outputs, seeds, strict=True):
-            output.grad.fill(seed)
-        th.grad[None] = [0.0] * model.n_params
-        kernel.grad(*args)
-        rows.append(th.grad.to_numpy().reshape(-1))
-    return rows
-
-
-@pytest.mark.parametrize("warp", list(THETAS))
-def test_param_jacobians_equal_autodiff(warp):
-    """Each closed-form column against reverse-mode autodiff of warp, det and div (one event at a time
-    is not needed: the sum over events of a selected output has the summed Jacobian as gradient)."""
-    model = cm.get_warp(warp)
-    pj = model.param_jac
-    P = model.n_params
-    x, y, t, _ = edge_events(n=50, seed=4)
-    n = len(x)
-    f = {k: ti.field(ti.f64, shape=n) for k in ("x", "y", "dt")}
-    f["x"].from_numpy(x)
-    f["y"].from_numpy(y)
-    f["dt"].from_numpy(t - 0.02)  # negative and positive offsets
-    th = ti.Vector.field(P, ti.f64, shape=(), needs_grad=True)
-    ctx = ti.Vector.field(5, ti.f64, shape=())
-    ctx[None] = [CAMERA.cx, CAMERA.cy, CAMERA.fx, CAMERA.fy, 0.05]
-    jx = ti.field(ti.f64, shape=(n, 2, P))
-    jd = ti.field(ti.f64, shape=(n, P))
-    jv = ti.field(ti.f64, shape=(n, P))
-    closed = _closed_jacobian_kernel(pj, P)
-    rng = np.random.default_rng(1)
-    for scale in (1e-6, 1.0, 3.0):
-        theta = np.asarray(THETAS[warp]) * scale * rng.uniform(0.5, 1.5, P)
-        th[None] = theta.tolist()
-        closed(n, f["x"], f["y"], f["dt"], th, ctx, jx, jd, jv)
-        sums = [
-            jx.to_numpy()[:, 0].sum(0),
-            jx.to_numpy()[:, 1].sum(0),
-            jd.to_numpy().sum(0),
-            jv.to_numpy().sum(0),
-        ]
-        autodiff = _summed_autodiff_rows(model, (f["x"], f["y"], f["dt"]), th, ctx)
-        for closed_sum, ad in zip(sums, autodiff, strict=True):
-            np.testing.assert_allclose(closed_sum, ad, rtol=1e-9, atol=1e-9 * max(1.0, np.max(np.abs(ad))))
 
 
 def test_no_allocation_per_call_and_fields_reused(monkeypatch):

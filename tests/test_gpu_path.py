@@ -129,6 +129,14 @@ def test_value_and_gradient_against_f64_reference(path, warp, objective, regs):
         assert misaligned_fields(prob._fused.fields) == []
 
 
+@pytest.mark.parametrize("warp", list(THETAS))
+def test_every_registered_warp_passes_the_checker_on_the_gpu(warp):
+    """The closed forms of every registered model, compiled for the GPU, in f32 (cm.check_model)."""
+    report = cm.check_model(warp, problem=False)
+    assert cm.backend_info().arch != "cpu" and cm.backend_info().precision == "f32"
+    report.raise_if_failed()
+
+
 @pytest.mark.parametrize("path", ["fused", "chain"])
 def test_crowded_window_against_f64_reference(path):
     """20,000 events on 64 x 48 pixels: many atomic adds into every pixel, in float32."""

@@ -10,27 +10,20 @@ import math
 import numpy as np
 import pytest
 
-from cmax_taichi.testing import reference, reference_warps
+import cmax_taichi as cm
+from cmax_taichi.testing import reference, reference_warps, samples
 
 W, H = 64, 48
 CENTER = (30.3, 24.6)  # deliberately not the image centre
 FOCAL = (60.0, 55.0)
 T = 0.05  # s
 
-# moderate parameter scales (physical units): |dt theta| stays well inside the valid range
-SCALES = {
-    "zoom1": [4.0],
-    "translation2": [150.0, 150.0],
-    "rotation3": [2.0, 2.0, 3.0],
-    "se2": [150.0, 150.0, 4.0],
-    "sim2": [150.0, 150.0, 4.0, 3.0],
-    "mitrokhin4": [150.0, 150.0, 3.0, 4.0],
-}
-
 
 def random_theta(rng, warp):
-    scale = np.asarray(SCALES[warp])
-    return scale * rng.uniform(-1.0, 1.0, size=scale.size)
+    """Up to 5 px of displacement over T per parameter, from the model's declared parameter kinds:
+    |dt theta| stays well inside the valid range of every model."""
+    camera = cm.Camera(fx=FOCAL[0], fy=FOCAL[1], cx=CENTER[0], cy=CENTER[1])
+    return samples.random_theta(warp, rng, displacement=5.0, duration=T, sensor=(W, H), camera=camera)
 
 
 def random_events(rng, n=300, t_ref="first"):

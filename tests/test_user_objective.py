@@ -120,16 +120,9 @@ def _reference_j(raw, warp, theta, objective_fn) -> float:
 
 
 def _reference_grad(raw, warp, theta, objective_fn, rel_step=1e-6) -> np.ndarray:
-    grad = np.empty_like(theta)
-    for i in range(theta.size):
-        h = rel_step * max(1.0, abs(theta[i]))
-        up, dn = theta.copy(), theta.copy()
-        up[i] += h
-        dn[i] -= h
-        grad[i] = (_reference_j(raw, warp, up, objective_fn) - _reference_j(raw, warp, dn, objective_fn)) / (
-            2 * h
-        )
-    return grad
+    return reference.central_differences(
+        lambda th: _reference_j(raw, warp, th, objective_fn), theta, rel_step=rel_step
+    )
 
 
 def _check_against_reference(prob, raw, warp, objective_fn):
@@ -171,7 +164,13 @@ def test_fused_declaration_must_use_the_objectives_finalize():
     variance = cm.OBJECTIVES.get("variance")
     with pytest.raises(ValueError, match="finalize"):
         dataclasses.replace(variance, name="test_bad", finalize=_second_moment_plus_mean_finalize)
-    with pytest.raises(ValueError, match="make_reduce or a fused declaration"):
+    with pytest.raises(ValueError, match="needs a pixel term"):
         cm.Objective("test_bad", 2, None, _second_moment_plus_mean_finalize)
+    with pytest.raises(ValueError, match="needs finalize"):
+        cm.Objective("test_bad", 2, pixel=blocks.variance_pixel)
+    with pytest.raises(ValueError, match="pixel is not the fused declaration's"):
+        cm.Objective(
+            "test_bad", 2, pixel=blocks.mean_square_pixel, finalize=variance.finalize, fused=variance.fused
+        )
     with pytest.raises(TypeError, match="FusedObjective"):
         cm.Objective("test_bad", 2, variance.make_reduce, variance.finalize, fused="variance")

@@ -1,20 +1,11 @@
-"""A new warp model defined entirely in this file through the public API (docs/RECIPE_WARP.md).
+"""A new warp model registered at run time through the public API (docs/RECIPE_WARP.md): the 6-DOF
+affine flow of ``examples/user_extensions.py`` (a user plugin file: its Taichi functions, its
+:class:`cmax_taichi.WarpModel` with capabilities, its registration and its float64 NumPy twin).
 
-The model is the 6-DOF affine flow ``v(x) = A q + b`` (``q = x - c``, ``A`` in 1/s, ``b`` in px/s)
-with the first-order warp ``x' = x - dt (A q + b)`` (not the exact exponential ``e^{-dt A}``: the
-first-order form keeps every closed form a polynomial, and it is the same model the first-order
-``zoom1`` and ``translation2`` follow). Closed forms:
-
-* ``det dx'/dx = det(I - dt A) = (1 - dt a11)(1 - dt a22) - dt^2 a12 a21`` (negative where ``dt A`` is
-  large: the model declares ``positive_det=False``);
-* ``div v = a11 + a22``, the same for every event: ``constant_quantities=("div",)``;
-* ``d x'/d theta``, ``d det/d theta``, ``d div/d theta`` below (``param_jac``).
-
-Its Taichi functions, its :class:`cmax_taichi.WarpModel` with capabilities, its registration and its
-float64 NumPy twin in the reference all live here. The checks are those of the built-ins
-(test_pipeline_gradients.py): value against the reference, gradient against central differences of the
-reference, with and without both regularizers and for both objectives; plus the fast path, the chain
-path of the same model without ``param_jac``, and the closed forms against autodiff.
+The checks are those of the built-ins (test_pipeline_gradients.py): value against the reference,
+gradient against central differences of the reference, with and without both regularizers and for both
+objectives; plus the fast path, the chain path of the same model without ``param_jac``, and a
+determinant that changes sign. Its closed forms are held by the checker (tests/test_checks.py).
 """
 
 from __future__ import annotations
@@ -23,110 +14,31 @@ import warnings
 
 import numpy as np
 import pytest
-import taichi as ti
-from conftest import CAMERA, SENSOR, edge_events, use_precision
+from conftest import CAMERA, EXAMPLES_DIR, SENSOR, edge_events, use_precision
 from test_pipeline_gradients import OBJECTIVES, REGS, check_against_reference
 
 import cmax_taichi as cm
+from cmax_taichi.core.registry import load_plugin
 from cmax_taichi.pipeline import problem as problem_module
 from cmax_taichi.testing import reference
 
-NAME = "test_affine6"
+NAME = "user_affine6"  # examples/user_extensions.py's WARP
 NAME_NO_JAC = "test_affine6_nojac"
-PARAMS = ("a11", "a12", "a21", "a22", "b_x", "b_y")
-UNITS = ("1/s", "1/s", "1/s", "1/s", "px/s", "px/s")
 THETA = np.array([4.0, -2.5, 3.0, -3.5, 30.0, -20.0])  # a few px over the 50 ms windows of conftest
 
 
-# --- the Taichi functions (signatures of kernels/warps/__init__.py) ---------------------------------
-@ti.func
-def affine_warp(p, dt, th, ctx):
-    qx = p[0] - ctx[0]
-    qy = p[1] - ctx[1]
-    return ti.Vector(
-        [p[0] - dt * (th[0] * qx + th[1] * qy + th[4]), p[1] - dt * (th[2] * qx + th[3] * qy + th[5])]
-    )
-
-
-@ti.func
-def affine_det(p, dt, th, ctx):
-    return (1.0 - dt * th[0]) * (1.0 - dt * th[3]) - dt * dt * th[1] * th[2]
-
-
-@ti.func
-def affine_div(p, th, ctx):
-    return th[0] + th[3]
-
-
-@ti.func
-def affine_flow(p, th, ctx):
-    qx = p[0] - ctx[0]
-    qy = p[1] - ctx[1]
-    return ti.Vector([th[0] * qx + th[1] * qy + th[4], th[2] * qx + th[3] * qy + th[5]])
-
-
-@ti.func
-def affine_param_jac(p, dt, th, ctx):
-    qx = p[0] - ctx[0]
-    qy = p[1] - ctx[1]
-    zero = 0.0 * dt
-    jx = ti.Matrix(
-        [
-            [-dt * qx, -dt * qy, zero, zero, -dt, zero],
-            [zero, zero, -dt * qx, -dt * qy, zero, -dt],
-        ]
-    )
-    ddet = ti.Vector(
-        [-dt * (1.0 - dt * th[3]), -dt * dt * th[2], -dt * dt * th[1], -dt * (1.0 - dt * th[0]), zero, zero]
-    )
-    ddiv = ti.Vector([1.0 + zero, zero, zero, 1.0 + zero, zero, zero])
-    return jx, ddet, ddiv
-
-
-def affine_model(name: str, with_param_jac: bool) -> cm.WarpModel:
-    return cm.WarpModel(
-        name,
-        PARAMS,
-        UNITS,
-        affine_warp,
-        affine_flow,
-        det=affine_det,
-        div=affine_div,
-        param_jac=affine_param_jac if with_param_jac else None,
-        constant_quantities=("div",),
-        positive_det=False,
-        collapse_enabled=True,
-        description="6-DOF affine flow, first-order warp (test model)",
-    )
-
-
-# --- the float64 NumPy twin, written from the formulas of the module docstring ------------------------
-def affine_reference_warp(theta, x, y, dt, *, center, focal, duration):
-    a11, a12, a21, a22, bx, by = theta
-    qx, qy = x - center[0], y - center[1]
-    xw = x - dt * (a11 * qx + a12 * qy + bx)
-    yw = y - dt * (a21 * qx + a22 * qy + by)
-    jac = np.stack([[1.0 - dt * a11, -dt * a12], [-dt * a21, 1.0 - dt * a22]])  # (2, 2, N)
-    det = jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]
-    return xw, yw, det, np.full_like(x, a11 + a22)
-
-
-def affine_reference_flow(theta, xt, yt, *, focal, duration):
-    a11, a12, a21, a22, bx, by = theta
-    return a11 * xt + a12 * yt + bx, a21 * xt + a22 * yt + by
-
-
 @pytest.fixture(scope="module", autouse=True)
-def registered():
-    """Register both variants of the model and their NumPy twins; remove them afterwards."""
-    for name, with_jac in ((NAME, True), (NAME_NO_JAC, False)):
-        cm.register_warp(affine_model(name, with_jac))
-        twin = reference.ReferenceWarp(name, len(PARAMS), affine_reference_warp, affine_reference_flow)
-        reference.register_reference_warp(twin)
-    yield
-    for name in (NAME, NAME_NO_JAC):
-        cm.unregister_warp(name)
-        reference.unregister_reference_warp(name)
+def user():
+    """The plugin's entries, and the same model without param_jac with its twin; removed afterwards."""
+    module = load_plugin(str(EXAMPLES_DIR / "user_extensions.py"))
+    module.register()
+    assert module.WARP == NAME
+    cm.register_warp(module.affine_model(NAME_NO_JAC, param_jac=None))
+    reference.register_reference_warp(module.affine_twin(NAME_NO_JAC))
+    yield module
+    module.unregister()
+    cm.unregister_warp(NAME_NO_JAC)
+    reference.unregister_reference_warp(NAME_NO_JAC)
 
 
 def _problem(name, **options):
@@ -134,16 +46,17 @@ def _problem(name, **options):
     return cm.ContrastMaximization(cm.Events(x, y, t, p, SENSOR), warp=name, camera=CAMERA, **options)
 
 
-def test_registration_and_declarations():
+def test_registration_and_declarations(user):
     model = cm.get_warp(NAME)
     assert NAME in cm.warp_names() and NAME in reference.REFERENCE_WARPS
     assert model.parameter_kinds == ("rate",) * 4 + ("velocity",) * 2  # from the units
     with pytest.raises(ValueError, match="already registered"):
-        cm.register_warp(affine_model(NAME, True))
+        cm.register_warp(user.affine_model(NAME))
+    args = ("bad", user.PARAMS, user.UNITS, user.affine_warp, user.affine_flow)
     with pytest.raises(ValueError, match="constant_quantities"):
-        cm.WarpModel("bad", PARAMS, UNITS, affine_warp, affine_flow, constant_quantities=("det",))
+        cm.WarpModel(*args, constant_quantities=("det",))
     with pytest.raises(ValueError, match="param_jac"):
-        cm.WarpModel("bad", PARAMS, UNITS, affine_warp, affine_flow, param_jac=affine_param_jac)
+        cm.WarpModel(*args, param_jac=user.affine_param_jac)
 
 
 def test_takes_the_fused_path_without_warning():
@@ -164,16 +77,6 @@ def test_value_and_gradient_against_reference_f64(objective, regs):
         "f64",
         dict(warp=NAME, objective=objective, regularizers=REGS[regs], camera=CAMERA, theta=THETA),
     )
-
-
-def test_closed_forms_against_autodiff():
-    use_precision("f64")
-    prob = _problem(NAME)
-    for scale in (0.0, 1.0, 3.0):
-        closed = cm.event_jacobians(prob, THETA * scale, method="closed")
-        auto = cm.event_jacobians(prob, THETA * scale, method="autodiff")
-        np.testing.assert_allclose(closed["det"], auto["det"], rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(closed["div"], auto["div"], rtol=1e-12, atol=1e-12)
 
 
 def test_without_param_jac_runs_on_the_chain_with_the_same_values(monkeypatch):

@@ -226,3 +226,13 @@ def test_segmentation_viewer_renders_and_separates_the_objects(tmp_path, capsys)
     _assert_not_blank(out)
     found = re.search(r"agreement with the true labels: (\S+)%", capsys.readouterr().out)
     assert found and float(found.group(1)) > 85.0
+
+
+def test_dense_flow_collapse_demo_renders(tmp_path, capsys):
+    """demos/dense_flow_collapse.py on its synthetic box room, a coarse grid: every variant's FWL is printed
+    and the picture is drawn."""
+    out = tmp_path / "dense.png"
+    argv = ["--save", str(out), "--synthetic", "--max-events", "3000", "--grid", "4", "4", "--levels", "2"]
+    assert _demo("dense_flow_collapse").main(argv) == 0
+    assert capsys.readouterr().out.count(" FWL ") == 4
+    _assert_not_blank(out)

@@ -9,7 +9,8 @@ paths, unknown formats, bad values) are raised as :class:`CliError` or ValueErro
 and printed as one line with exit code 2, never a traceback. Warnings (events not estimated, ...) are
 printed as one line each, ``cmax-taichi COMMAND: warning: ...``. Ctrl-C ends a command with exit code
 130 and SIGTERM with 143, both the same way (the outputs are left as they were: see
-:mod:`cmax_taichi.io.outputs`).
+:mod:`cmax_taichi.io.outputs`). ``--plugin FILE.py`` anywhere on the line is imported first (the user's
+warps, objectives and regularizers then appear in every help and choice).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import sys
 import warnings
 
 #: explicit list of sub-command modules (cmax_taichi.cli.<name>)
-COMMAND_MODULES = ("info", "estimate", "evaluate", "segment", "reproduce", "bench")
+COMMAND_MODULES = ("info", "estimate", "flow", "evaluate", "segment", "reproduce", "bench")
 
 
 class CliError(Exception):
@@ -77,8 +78,34 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _plugins_after_the_command(args_list: list[str]) -> list[str]:
+    """``cmax-taichi --plugin F.py estimate ...`` as ``cmax-taichi estimate --plugin F.py ...``: the
+    option belongs to the sub-commands (already imported by :func:`load_plugins`)."""
+    command = next((i for i, a in enumerate(args_list) if a in COMMAND_MODULES), None)
+    if command is None:
+        return args_list
+    before, moved, i = [], [], 0
+    while i < command:
+        if args_list[i] == "--plugin" and i + 1 < command:
+            moved += args_list[i : i + 2]
+            i += 2
+            continue
+        (moved if args_list[i].startswith("--plugin=") else before).append(args_list[i])
+        i += 1
+    return before + [args_list[command]] + moved + args_list[command + 1 :]
+
+
 def main(argv: list[str] | None = None) -> int:
     args_list = sys.argv[1:] if argv is None else list(argv)
+    if any(a == "--plugin" or a.startswith("--plugin=") for a in args_list):
+        try:  # the user's extensions first: the parser's help lists the registries
+            from cmax_taichi.cli._common import load_plugins
+
+            load_plugins(args_list)
+        except CliError as exc:
+            print(f"cmax-taichi: error: {exc}", file=sys.stderr)
+            return 2
+        args_list = _plugins_after_the_command(args_list)
     named = args_list[0] if args_list and args_list[0] in COMMAND_MODULES else None
     parser = build_parser(named)
     args = parser.parse_args(args_list)

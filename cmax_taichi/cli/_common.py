@@ -4,7 +4,9 @@ Every list of names in a help text comes from where the names are defined: the w
 regularizer registries (``cm.warp_names()``, ``cm.objective_names()``, ``cm.regularizer_names()``, with
 each warp's parameters and units), the readers (``cmax_taichi.io.FORMATS``), the backends
 (``cmax_taichi.core.backend.ARCHS``) and the optimizer (``METHODS``, ``INITS``). A model registered at
-run time shows up in the help without a change here.
+run time shows up in the help without a change here: ``--plugin FILE.py`` (or a module name), on every
+sub-command that reads the registries, is imported by :func:`load_plugins` before the parser (and its
+help) is built.
 """
 
 from __future__ import annotations
@@ -19,7 +21,11 @@ from cmax_taichi.models.regularizers import regularizer_names
 from cmax_taichi.models.warps import get_warp, warp_names
 
 __all__ = [
+    "PLUGIN_HELP",
     "T_REF_NAMES",
+    "add_plugin_argument",
+    "add_sensor_size_argument",
+    "load_plugins",
     "names",
     "warp_listing",
     "add_recording_arguments",
@@ -32,6 +38,45 @@ __all__ = [
 
 #: the named reference times of a window (a number of seconds is accepted too)
 T_REF_NAMES = ("first", "middle", "last")
+
+PLUGIN_HELP = (
+    "a Python file (or module) that registers warps, objectives or regularizers, imported before anything "
+    "else (repeatable; e.g. --plugin examples/user_extensions.py; docs/RECIPE_WARP.md)"
+)
+
+
+def add_plugin_argument(parser) -> None:
+    """``--plugin FILE.py|MODULE`` (repeatable), on a parser or an argument group. :func:`load_plugins`
+    imports them before the parser is built; this declaration documents them and accepts them."""
+    parser.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE", help=PLUGIN_HELP)
+
+
+SENSOR_SIZE_HELP = (
+    "sensor size in px, for text files without one (default: the format's or the reader's guess)"
+)
+
+
+def add_sensor_size_argument(parser, help: str = SENSOR_SIZE_HELP) -> None:
+    """``--sensor-size W H`` (px, integers; default None: the format's)."""
+    parser.add_argument("--sensor-size", type=int, nargs=2, default=None, metavar=("W", "H"), help=help)
+
+
+def load_plugins(argv: list[str]) -> list[str]:
+    """Import every ``--plugin`` of the command line ``argv`` (wherever it stands), before the parser
+    whose help lists the registries is built; returns them. CliError naming the plugin when one cannot
+    be imported."""
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.core.registry import PluginError, load_plugin
+
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre.add_argument("--plugin", action="append", default=[])
+    known, _ = pre.parse_known_args(argv)
+    for plugin in known.plugin:
+        try:
+            load_plugin(plugin)
+        except PluginError as exc:
+            raise CliError(f"--plugin: {exc}") from None
+    return known.plugin
 
 
 def names(values) -> str:
@@ -63,7 +108,8 @@ def add_recording_arguments(
     examples: dict | None = None,
 ) -> None:
     """The recording and model arguments of ``estimate`` and ``segment``: ``PATH``, ``--format``
-    (``--sensor-size``), ``--warp``, ``--objective`` and the repeatable ``--reg NAME=WEIGHT``.
+    (``--sensor-size``), ``--warp``, ``--objective``, the repeatable ``--reg NAME=WEIGHT`` and
+    ``--plugin``.
 
     Parameters
     ----------
@@ -101,15 +147,7 @@ def add_recording_arguments(
         )
     parser.add_argument("--format", default=None, help=f"{names(FORMATS)} (default: detected)")
     if sensor_size:
-        parser.add_argument(
-            "--sensor-size",
-            type=int,
-            nargs=2,
-            default=None,
-            metavar=("W", "H"),
-            help="sensor size in px, for text files without one "
-            "(default: the format's or the reader's guess)",
-        )
+        add_sensor_size_argument(parser)
     example_note = ", or the example's model" if examples is not None else ""
     parser.add_argument(
         "--warp",
@@ -127,6 +165,7 @@ def add_recording_arguments(
         metavar="NAME=WEIGHT",
         help=f"{reg_help} (repeatable; NAME: {names(regularizer_names())})",
     )
+    add_plugin_argument(parser)
 
 
 def add_t_ref_argument(parser) -> None:
@@ -152,18 +191,20 @@ def init_backend(arch: str | None, precision: str | None):
     return backend.init_if_needed(arch, precision)
 
 
-def parse_regularizers(items: list[str]) -> dict[str, float]:
-    """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names)."""
+def parse_regularizers(items: list[str], extra: tuple[str, ...] | list[str] = ()) -> dict[str, float]:
+    """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names); ``extra``:
+    more valid names (the dense flow's smoothness terms)."""
     from cmax_taichi.cli import CliError
 
+    valid = regularizer_names() + list(extra)
     out: dict[str, float] = {}
     for item in items:
         name, sep, weight = item.partition("=")
         name = name.strip()
         if not sep or not name:
             raise CliError(f"--reg expects NAME=WEIGHT (e.g. divergence=1), got {item!r}")
-        if name not in regularizer_names():
-            raise CliError(f"--reg: unknown regularizer {name!r}; valid: {', '.join(regularizer_names())}")
+        if name not in valid:
+            raise CliError(f"--reg: unknown regularizer {name!r}; valid: {', '.join(valid)}")
         try:
             value = float(weight)
         except ValueError:

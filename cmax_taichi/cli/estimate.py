@@ -446,6 +446,7 @@ def run_batch(args: argparse.Namespace) -> int:
         precision=args.precision,
         progress=not args.quiet,
         hooks=BatchFigures(max(0, args.figures)),
+        plugins=args.plugin,
         **process_options(args, regs),
     )
     done = len(result.recordings) - len(result.failed)
@@ -497,6 +498,10 @@ def run(args: argparse.Namespace) -> int:
     if len(args.path) > 1 or args.workers is not None or args.engine is not None or args.address is not None:
         return run_batch(args)
     check_choices(args)
+    if args.example is not None:  # the example's truth against the model, before anything is simulated
+        from cmax_taichi.sim.examples import check_example
+
+        check_example(args.example, args.warp)
     inputs = [] if args.example is not None else [Path(args.path[0])]
     if inputs and not inputs[0].exists():
         raise CliError(f"{inputs[0]}: no such file or folder")
@@ -563,6 +568,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
         from cmax_taichi.sim.examples import make_example
 
         example = make_example(args.example)
+        truth = example.truth_in(args.warp)
         path = Path(f"example:{args.example}")
         source = contextlib.nullcontext(example.events)
         camera = example.camera
@@ -582,7 +588,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
 
         def on_window(row, prob, res):
             if example is not None:
-                area_scales.append((area_scale(prob, res.theta), area_scale(prob, example.truth)))
+                area_scales.append((area_scale(prob, res.theta), area_scale(prob, truth)))
             if figures_left[0] > 0:
                 data = _window_figure_data(row, prob, res)
                 figures.draw("window", folder.path(f"figures/window_{row.index:04d}.png"), data)
@@ -659,7 +665,7 @@ def _report_example(example, result, area_scales: list[tuple[float, float]], reg
 
     from cmax_taichi.metrics import COLLAPSE_AREA_SCALE
 
-    truth = example.truth
+    truth = example.truth_in(result.warp)
     theta = result.theta
     print(f"example {example.example.name!r}: {example.example.description}")
     print(f"  simulated: {len(example.events)} events, {example.events.duration * 1e3:.1f} ms (seed 0)")

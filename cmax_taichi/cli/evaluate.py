@@ -35,7 +35,13 @@ import math
 import warnings
 from pathlib import Path
 
-from cmax_taichi.cli._common import add_backend_arguments, init_backend, names
+from cmax_taichi.cli._common import (
+    add_backend_arguments,
+    add_plugin_argument,
+    add_sensor_size_argument,
+    init_backend,
+    names,
+)
 from cmax_taichi.io import FORMATS
 
 NAME = "evaluate"
@@ -59,13 +65,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="intervals of .flo / .png files: 't_start t_end' (s) per line, or DSEC's from_us, to_us[, idx]",
     )
     parser.add_argument("--format", default=None, help=f"{names(FORMATS)} (default: detected)")
-    parser.add_argument(
-        "--sensor-size",
-        type=int,
-        nargs=2,
-        default=None,
-        metavar=("W", "H"),
-        help="the recording's sensor size in px when it is not the format's (e.g. a scaled simulation)",
+    add_sensor_size_argument(
+        parser, "the recording's sensor size in px when it is not the format's (e.g. a scaled simulation)"
     )
     parser.add_argument(
         "--npe", default="3,10,20", metavar="N,N,...", help="NPE thresholds in px (default 3,10,20)"
@@ -74,6 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", default=None, metavar="DIR", help="output folder (default: the results folder)"
     )
     add_backend_arguments(parser, precision=False)
+    add_plugin_argument(parser)  # results of a user's model: its plugin names its flow
 
 
 def _thresholds(text: str) -> tuple[float, ...]:

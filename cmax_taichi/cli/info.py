@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from cmax_taichi.cli._common import add_backend_arguments
+from cmax_taichi.cli._common import add_backend_arguments, add_plugin_argument
 
 NAME = "info"
 HELP = "show the backend (arch, precision) and the registered models"
@@ -12,6 +12,7 @@ HELP = "show the backend (arch, precision) and the registered models"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_backend_arguments(parser)
+    add_plugin_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -221,6 +221,10 @@ def run(args: argparse.Namespace) -> int:
         cm.get_warp(w)  # ValueError listing the valid names
     cm.OBJECTIVES.get(args.objective)
     t_ref = common.parse_t_ref(args.t_ref)
+    if args.example is not None:  # the example's truths against the models, before anything is simulated
+        from cmax_taichi.sim.examples import check_example
+
+        check_example(args.example, warps)
     from cmax_taichi import io
     from cmax_taichi.io.outputs import OutputFolder, check_inputs
 
@@ -345,6 +349,14 @@ def _write_outputs(folder, args, path, events, res, regs, t_ref, warps, example)
         _report_example(example, res, folder.path("truth.json"))
 
 
+def _layer_truth(example, layer: int, warp: str) -> list[float]:
+    """The true parameters of ``layer`` in the model of its cluster, else in the layer's own model."""
+    try:
+        return [float(v) for v in example.truth_in(warp, layer)]
+    except ValueError:
+        return [float(v) for v in example.recording.theta_at(0.0, layer=layer)]
+
+
 def _report_example(example, res, path: Path) -> Path:
     """Print a segmented example against its true labels and motions; write them to ``path`` (JSON)."""
     from cmax_taichi.lab.segment_eval import label_accuracy, match_clusters
@@ -352,13 +364,12 @@ def _report_example(example, res, path: Path) -> Path:
     truth = example.labels
     mapping = match_clusters(res.labels, truth, res.n_clusters)
     accuracy = label_accuracy(res.labels, truth, res.n_clusters)
-    rec = example.recording
     print(f"example {example.example.name!r}: {example.example.description}")
     print(f"  simulated: {len(example.events)} events, {example.events.duration * 1e3:.1f} ms (seed 0)")
     objects = []
     for layer in sorted(mapping):
         cluster = mapping[layer]
-        true_theta = [float(v) for v in rec.theta_at(0.0, layer=layer)]
+        true_theta = _layer_truth(example, layer, res.warps[cluster])
         estimate = [float(v) for v in res.thetas[cluster]]
         name = "background" if layer == 0 else f"object {layer}"
         print(

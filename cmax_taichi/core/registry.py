@@ -2,12 +2,20 @@
 
 One :class:`Registry` each for warp models (``warps.py``), objectives (``objectives.py``) and
 regularizers (``regularizers.py``). Each of those modules registers its built-in entries by one explicit
-call at its bottom; users add their own with :func:`register_warp` and friends.
+call at its bottom; users add their own with :func:`register_warp` and friends, in their own code or in
+a plugin: a module or a Python file that registers entries when it is imported (:func:`load_plugin`,
+``cmax-taichi ... --plugin FILE.py``).
 """
 
 from __future__ import annotations
 
+import hashlib
+import importlib
+import importlib.util
+import sys
 from collections.abc import Iterator
+from pathlib import Path
+from types import ModuleType
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -63,3 +71,59 @@ class Registry(Generic[T]):
 
     def __len__(self) -> int:
         return len(self._entries)
+
+
+class PluginError(ImportError):
+    """A plugin could not be imported (the message names it and the reason)."""
+
+
+#: plugins imported in this process, by module name or resolved path (each is imported once)
+_PLUGINS: dict[str, ModuleType] = {}
+
+
+def load_plugin(spec: str) -> ModuleType:
+    """Import a plugin: a Python file (``path/to/file.py``) or an importable module (``package.module``)
+    that registers warps, objectives or regularizers when it is imported. Each plugin is imported once
+    per process; loading it again returns the module.
+
+    Raises
+    ------
+    PluginError
+        (an ImportError) naming the plugin: no such file or module, or the exception its code raised.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise PluginError(f"a plugin is a module name or a .py file, got {spec!r}")
+    spec = spec.strip()
+    path = Path(spec).expanduser()
+    is_file = spec.endswith(".py") or path.is_file()
+    key = str(path.resolve()) if is_file else spec
+    if key in _PLUGINS:
+        return _PLUGINS[key]
+    try:
+        if is_file:
+            if not path.is_file():
+                raise PluginError(f"plugin {spec}: no such file")
+            digest = hashlib.sha1(key.encode()).hexdigest()[:8]
+            name = f"cmax_taichi_plugin_{path.stem}_{digest}"
+            module_spec = importlib.util.spec_from_file_location(name, path)
+            if module_spec is None or module_spec.loader is None:
+                raise PluginError(f"plugin {spec}: not a Python file")
+            module = importlib.util.module_from_spec(module_spec)
+            sys.modules[name] = module
+            try:
+                module_spec.loader.exec_module(module)
+            except BaseException:
+                sys.modules.pop(name, None)
+                raise
+        else:
+            module = importlib.import_module(spec)
+    except PluginError:
+        raise
+    except ModuleNotFoundError as exc:
+        if not is_file and exc.name is not None and spec.startswith(exc.name):
+            raise PluginError(f"plugin {spec}: no such module (nor a file of that name)") from None
+        raise PluginError(f"plugin {spec}: {type(exc).__name__}: {exc}") from exc
+    except Exception as exc:
+        raise PluginError(f"plugin {spec}: {type(exc).__name__}: {exc}") from exc
+    _PLUGINS[key] = module
+    return module

@@ -240,6 +240,9 @@ def _ours(folder: Path, relative: str, manifest: dict[str, dict]) -> bool:
 class OutputFolder:
     """The output folder of one run (see the module docstring); use it as a context manager.
 
+    Write every file under :meth:`path` (the staging folder); :meth:`commit` moves them into ``OUT``.
+    Leaving the block without :meth:`commit` (an error, Ctrl-C) removes the staging folder.
+
     Parameters
     ----------
     path : path
@@ -254,9 +257,6 @@ class OutputFolder:
         Named in the lock (for the message a second run gets) and the manifest.
     option : str
         How the user named ``OUT`` (``"--out"``), for messages.
-
-    Write every file under :meth:`path` (the staging folder); :meth:`commit` moves them into ``OUT``.
-    Leaving the block without :meth:`commit` (an error, Ctrl-C) removes the staging folder.
     """
 
     def __init__(

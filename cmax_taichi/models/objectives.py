@@ -1,8 +1,9 @@
 """Objectives (focus measures, maximised) and their registry.
 
-An :class:`Objective` is a per-pixel reduce kernel and a finalize function; the built-ins are written
-with the blocks of ``kernels/blocks.py`` and declare what the fused pipeline needs to compute them
-itself (:class:`FusedObjective`). Built-ins are registered explicitly by
+An :class:`Objective` is a per-pixel term (or its own reduce kernel) and a finalize function; the
+built-ins are written with the blocks of ``kernels/blocks.py`` and declare what the fused pipeline
+needs to compute them itself (:class:`FusedObjective`). A pixel term and a finalize are enough: the
+generic chain's reduce kernel is derived from the pixel term. Built-ins are registered explicitly by
 :func:`register_builtin_objectives`. Adding one: docs/RECIPE_OBJECTIVE.md.
 """
 
@@ -16,7 +17,14 @@ from cmax_taichi.core.registry import Registry
 from cmax_taichi.kernels import blocks as kb
 from cmax_taichi.kernels import objectives as ko
 
-__all__ = ["FusedObjective", "Objective", "OBJECTIVES", "register_objective", "objective_names"]
+__all__ = [
+    "FusedObjective",
+    "Objective",
+    "OBJECTIVES",
+    "register_objective",
+    "unregister_objective",
+    "objective_names",
+]
 
 
 @dataclass(frozen=True)
@@ -57,25 +65,40 @@ class Objective:
         Accumulator slots each IWE channel uses.
     make_reduce : callable or None
         ``make_reduce(width, height, n_channels) -> kernel(img, acc)`` adding per-pixel terms into the
-        0-D accumulator vector (channel c at ``acc[slots_per_channel * c + s]``). None: built from
-        ``fused.pixel`` (``kernels/objectives.make_pixel_reduce``).
+        0-D accumulator vector (channel c at ``acc[slots_per_channel * c + s]``). None (the usual case):
+        built from ``pixel`` (``kernels/objectives.make_pixel_reduce``).
     finalize : ti.func
         ``finalize(acc_vector, channel, n_pixels) -> G_channel``.
     description : str
         One line for listings.
     fused : FusedObjective, optional
         The declaration that lets the fused pipeline compute this objective; without it every problem
-        with this objective takes the generic kernel chain.
+        with this objective takes the generic kernel chain (Taichi's autodiff of ``pixel`` and
+        ``finalize``; docs/RECIPE_OBJECTIVE.md, "The fused path of an objective").
+    pixel : ti.func, optional
+        ``pixel(v, gx, gy) -> ti.Vector`` of the ``slots_per_channel`` terms one pixel adds (``v`` the
+        blurred IWE there, ``gx, gy`` its unnormalised Sobel responses when ``sobel``, else 0). Default:
+        the fused declaration's. With ``finalize`` it is all an objective needs.
+    sobel : bool
+        ``pixel`` reads the Sobel responses. Default: the fused declaration's, else False.
     """
 
     name: str
     slots_per_channel: int
-    make_reduce: Callable | None
-    finalize: Callable
+    make_reduce: Callable | None = None
+    finalize: Callable | None = None
     description: str = ""
     fused: FusedObjective | None = None
+    pixel: Callable | None = None
+    sobel: bool | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.slots_per_channel, bool) or not isinstance(self.slots_per_channel, int):
+            raise TypeError(f"objective {self.name!r}: slots_per_channel must be an int")
+        if self.slots_per_channel < 1:
+            raise ValueError(f"objective {self.name!r}: slots_per_channel must be at least 1")
+        if self.finalize is None:
+            raise ValueError(f"objective {self.name!r} needs finalize(acc, c, n_pixels)")
         if self.fused is not None:
             if not isinstance(self.fused, FusedObjective):
                 raise TypeError(f"fused must be a FusedObjective, got {type(self.fused).__name__}")
@@ -84,12 +107,20 @@ class Objective:
                     f"objective {self.name!r}: the fused declaration's finalize is not the objective's "
                     "finalize (declare fused=None to use the generic chain, or declare it with this finalize)"
                 )
+            if self.pixel is not None and self.pixel is not self.fused.pixel:
+                raise ValueError(f"objective {self.name!r}: pixel is not the fused declaration's pixel")
+            if self.sobel is not None and bool(self.sobel) != bool(self.fused.sobel):
+                raise ValueError(f"objective {self.name!r}: sobel is not the fused declaration's sobel")
+            object.__setattr__(self, "pixel", self.fused.pixel)
+            object.__setattr__(self, "sobel", bool(self.fused.sobel))
+        object.__setattr__(self, "sobel", bool(self.sobel))
         if self.make_reduce is None:
-            if self.fused is None:
-                raise ValueError(f"objective {self.name!r} needs make_reduce or a fused declaration")
-            reduce = functools.partial(
-                ko.make_pixel_reduce, self.fused.pixel, self.slots_per_channel, self.fused.sobel
-            )
+            if self.pixel is None:
+                raise ValueError(
+                    f"objective {self.name!r} needs a pixel term (pixel=...), a fused declaration or "
+                    "make_reduce"
+                )
+            reduce = functools.partial(ko.make_pixel_reduce, self.pixel, self.slots_per_channel, self.sobel)
             object.__setattr__(self, "make_reduce", reduce)
 
 
@@ -101,6 +132,11 @@ def register_objective(objective: Objective, *, replace: bool = False) -> Object
     if not isinstance(objective, Objective):
         raise TypeError(f"expected an Objective, got {type(objective).__name__}")
     return OBJECTIVES.register(objective.name, objective, replace=replace)
+
+
+def unregister_objective(name: str) -> Objective:
+    """Remove the objective called ``name`` and return it (KeyError if absent)."""
+    return OBJECTIVES.unregister(name)
 
 
 def objective_names() -> list[str]:

@@ -1,22 +1,24 @@
 """Warp models: metadata and capabilities around the Taichi functions of ``kernels/warps/``, and their
 registry.
 
-Each built-in model is one module of ``kernels/warps/`` (its ``warp``, ``det``, ``div``, ``flow`` and
-``param_jac``) and one registration below, with its metadata beside it. Users add models with
-:func:`register_warp` (recipe: docs/RECIPE_WARP.md).
+Each built-in model is one module of ``kernels/warps/``: its ``warp``, ``det``, ``div``, ``flow`` and
+``param_jac``, and its declarations ``MODEL`` (name, parameters, units, capabilities); the modules named
+in ``kernels/warps.BUILTIN_MODELS`` are registered by :func:`register_builtin_warps`, each with exactly
+what it declares. Users add models with :func:`register_warp` (recipe: docs/RECIPE_WARP.md); a built-in
+and a user model are the same :class:`WarpModel`.
 """
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from types import ModuleType
 
 import taichi as ti
 
 from cmax_taichi.core.registry import Registry
 from cmax_taichi.kernels import warps as kw
-from cmax_taichi.kernels.warps import mitrokhin4, rotation3, se2, sim2, translation2, zoom1
 
 __all__ = [
     "QUANTITY_KINDS",
@@ -38,6 +40,10 @@ QUANTITY_KINDS = ("div", "absdet")
 #: "focal" T f px (rad/s about an axis in the image plane; f = focal length)
 SCALE_KINDS = ("velocity", "rate", "focal")
 _KIND_OF_UNIT = {"px/s": "velocity", "1/s": "rate", "rad/s": "rate"}
+
+
+#: the optional Taichi functions of a model module (besides warp and flow) that from_module reads
+_MODULE_FUNCTIONS = ("det", "div", "param_jac", "warp_terms")
 
 
 @dataclass(frozen=True)
@@ -130,16 +136,30 @@ class WarpModel:
                 raise ValueError(f"warp {self.name!r}: scale_kinds needs one of {SCALE_KINDS} per parameter")
 
     @classmethod
-    def from_module(
-        cls, name: str, module: ModuleType, params: tuple[str, ...], units: tuple[str, ...], **metadata
-    ) -> WarpModel:
-        """The model whose Taichi functions are the module's ``warp``, ``flow``, ``det``, ``div`` and
-        ``param_jac`` (those present) and whose ``constant_quantities`` is its ``CONSTANT_QUANTITIES``.
-        ``metadata`` sets the other fields."""
-        fns = {k: getattr(module, k) for k in ("det", "div", "param_jac", "warp_terms") if hasattr(module, k)}
-        if hasattr(module, "CONSTANT_QUANTITIES"):
-            fns["constant_quantities"] = module.CONSTANT_QUANTITIES
-        return cls(name, tuple(params), tuple(units), module.warp, module.flow, **fns, **metadata)
+    def from_module(cls, module: ModuleType, **overrides) -> WarpModel:
+        """The model of a module of Taichi functions: its ``warp``, ``flow`` and (those present) ``det``,
+        ``div``, ``param_jac``, ``warp_terms``, with the fields its dict ``MODEL`` declares (``name``,
+        ``params``, ``units`` and any other field of this class); ``overrides`` replace declared fields."""
+        declared = getattr(module, "MODEL", None)
+        if not isinstance(declared, dict):
+            raise TypeError(f"module {module.__name__} declares no MODEL dict (kernels/warps/__init__.py)")
+        allowed = {f.name for f in fields(cls) if f.init and not f.name.startswith("_")}
+        allowed -= {"warp", "flow", *_MODULE_FUNCTIONS}
+        metadata = {**declared, **overrides}
+        unknown = sorted(set(metadata) - allowed)
+        if unknown:
+            raise TypeError(
+                f"module {module.__name__}: MODEL declares {unknown}, which WarpModel does not have "
+                f"(valid: {', '.join(sorted(allowed))})"
+            )
+        missing = [k for k in ("warp", "flow") if not hasattr(module, k)]
+        if missing:
+            raise TypeError(f"module {module.__name__} has no {' or '.join(missing)} function")
+        fns = {k: getattr(module, k) for k in _MODULE_FUNCTIONS if hasattr(module, k)}
+        for key in ("params", "units", "constant_quantities", "scale_kinds"):
+            if metadata.get(key) is not None:
+                metadata[key] = tuple(metadata[key])
+        return cls(warp=module.warp, flow=module.flow, **fns, **metadata)
 
     @property
     def n_params(self) -> int:
@@ -223,68 +243,11 @@ def warp_names() -> list[str]:
 
 
 def register_builtin_warps(registry: Registry[WarpModel]) -> None:
-    """Register the six models of docs/FORMULAS.md: one module of ``kernels/warps/`` each."""
-    # one row per model: (name, module, parameters, units, further metadata)
-    builtins = (
-        (
-            "zoom1",
-            zoom1,
-            ("h_z",),
-            ("1/s",),
-            {
-                "collapse_enabled": True,
-                "description": "1-DOF zoom in/out about the centre (forward/backward camera motion)",
-            },
-        ),
-        (
-            "translation2",
-            translation2,
-            ("v_x", "v_y"),
-            ("px/s", "px/s"),
-            {"description": "2-DOF constant feature flow"},
-        ),
-        (
-            "rotation3",
-            rotation3,
-            ("w_x", "w_y", "w_z"),
-            ("rad/s", "rad/s", "rad/s"),
-            {
-                "scale_kinds": ("focal", "focal", "rate"),  # w_x, w_y tilt the rays: f px per rad
-                "needs_camera": True,
-                "description": "3-DOF camera rotation (SO(3), needs intrinsics)",
-            },
-        ),
-        (
-            "se2",
-            se2,
-            ("v_x", "v_y", "w"),
-            ("px/s", "px/s", "rad/s"),
-            {"description": "3-DOF planar Euclidean motion (SE(2) exponential)"},
-        ),
-        (
-            "sim2",
-            sim2,
-            ("v_x", "v_y", "w", "s"),
-            ("px/s", "px/s", "rad/s", "1/s"),
-            {"collapse_enabled": True, "description": "4-DOF similarity (Sim(2) exponential)"},
-        ),
-        (
-            "mitrokhin4",
-            mitrokhin4,
-            ("h_x", "h_y", "h_z", "theta"),
-            ("px/s", "px/s", "1/s", "rad/s"),
-            {
-                "collapse_enabled": True,
-                "description": "4-DOF in-plane camera motion of Mitrokhin et al. (IROS 2018)",
-            },
-        ),
-    )
-    # Every built-in determinant is > 0 where an event is warped (squares, exponentials, and 1/z^3 with
-    # z clamped to MIN_RAY_Z > 0): positive_det=True.
-    for name, module, params, units, metadata in builtins:
-        registry.register(
-            name, WarpModel.from_module(name, module, params, units, positive_det=True, **metadata)
-        )
+    """Register the built-in models: the modules of ``kernels/warps/`` named in
+    ``kernels/warps.BUILTIN_MODELS``, each with exactly what its ``MODEL`` declares."""
+    for module_name in kw.BUILTIN_MODELS:
+        model = WarpModel.from_module(importlib.import_module(f"{kw.__name__}.{module_name}"))
+        registry.register(model.name, model)
 
 
 register_builtin_warps(WARPS)

@@ -25,23 +25,9 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import clusters as kcl
-from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel, get_warp
-from cmax_taichi.pipeline.setup import (
-    RX,
-    RXY,
-    ProblemSetup,
-    allocate_images,
-    check_limits,
-    image_kernels,
-    images_key,
-    make_clear,
-    run_chain,
-    run_chain_backward,
-    upload,
-)
-from cmax_taichi.pipeline.setup import cached_kernel as _cached
+from cmax_taichi.pipeline import setup as psetup
 
 __all__ = ["MultiClusterCMax"]
 
@@ -60,7 +46,7 @@ def _resolve_warps(warp, n_clusters: int) -> list[WarpModel]:
     return [get_warp(w) for w in warps]
 
 
-class MultiClusterCMax:
+class MultiClusterCMax(psetup.SetupView):
     """K clusters' augmented CMax objective on one window, for fixed memberships.
 
     Parameters
@@ -118,26 +104,13 @@ class MultiClusterCMax:
             raise ValueError(f"n_clusters must be at least 1, got {K}")
         self.n_clusters = K
         self.models = _resolve_warps(warp, K)
-        setup = ProblemSetup.build(
+        setup = psetup.ProblemSetup.build(
             events, self.models, objective, regularizers, camera, t_ref, blur_sigma, normalize
         )
         if setup.n_events < K:
             raise ValueError(f"n_clusters = {K} is more than the {setup.n_events} events of the window")
-        check_limits(setup, f"this {K}-cluster problem", n_clusters=K)
-        self.setup = setup
-        self.objective: Objective = setup.objective
-        self.camera = camera
-        self.regularizer_weights = setup.regularizer_weights
-        self.blur_sigma = setup.blur_sigma
-        self.normalize = setup.normalize
-        self.kept = setup.kept
-        self.events = events = setup.events
-        self.duration = setup.duration
-        self.t_ref = setup.t_ref
-        self.orientation = setup.orientation
-        self.width, self.height = setup.width, setup.height
-        self.center = setup.center
-        self.n_events = len(events)
+        psetup.check_limits(setup, f"this {K}-cluster problem", n_clusters=K)
+        self.setup = setup  # events, camera, objective, t_ref, ... (SetupView)
         self.capacity = workspace.capacity_for(max(self.n_events, int(capacity)))
         self.n_params = tuple(m.n_params for m in self.models)
         self.offsets = tuple(int(v) for v in np.concatenate([[0], np.cumsum(self.n_params)[:-1]]))
@@ -212,7 +185,7 @@ class MultiClusterCMax:
             len(self._reg_names),
             self.setup.radius,
             self.objective.slots_per_channel,
-            images_key(self.setup, K),
+            psetup.images_key(self.setup, K),
         )
         self._ws = workspace.acquire(key, self._build_fields, f"a {K}-cluster problem on a {W}x{H} sensor")
         ev = self.events
@@ -236,7 +209,7 @@ class MultiClusterCMax:
         ws.pw = ti.field(real, shape=(cap, K))
         ws.th = ti.Vector.field(self.n_total, real, shape=(), needs_grad=True)
         ws.ctx = ti.Vector.field(5, real, shape=())
-        allocate_images(ws, self.setup, K)
+        psetup.allocate_images(ws, self.setup, K)
         # memberships are >= 0, so the map count C_j = sum |P_ij| beta is the unblurred vote image itself
         ws.count = ws.vote
         if n_r:
@@ -265,7 +238,7 @@ class MultiClusterCMax:
             images += [ws.numer, ws.numer.grad]
         rows = ((ws.mpart, 0), (ws.mpart.grad, 0)) if n_r else ()
         scalars = (ws.acc, ws.macc, ws.loss, ws.acc.grad, ws.macc.grad, ws.loss.grad, ws.th.grad)
-        ws.clear = make_clear(ws, tuple(images), rows, scalars)
+        ws.clear = psetup.make_clear(ws, tuple(images), rows, scalars)
 
     def _load(self) -> None:
         """Upload this problem's events, constants and memberships into the shared workspace if
@@ -273,7 +246,7 @@ class MultiClusterCMax:
         ws = self._ws
         if ws.owned_by(self):
             return
-        upload(ws, self.setup, self._per_event)
+        psetup.upload(ws, self.setup, self._per_event)
         ws.take(self)
         if self._memberships is not None:
             self._upload_memberships()
@@ -294,21 +267,21 @@ class MultiClusterCMax:
         penalties = tuple(r.penalty for r in regs)
         reg_key = tuple((r.name, id(r)) for r in regs)
         model_key = tuple((m.name, id(m)) for m in models)
-        self._k_splat = _cached(
+        self._k_splat = psetup.cached_kernel(
             ("cl_splat", model_key, reg_key, W, H),
             lambda: kcl.make_cluster_splat_kernel(
                 warp_fns, quantities, self.offsets, self.n_params, width=W, height=H
             ),
         )
-        self._k_mark = _cached(
+        self._k_mark = psetup.cached_kernel(
             ("cl_mark", model_key, W, H),
             lambda: kcl.make_cluster_mark_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
         )
-        self._k_lookup = _cached(
+        self._k_lookup = psetup.cached_kernel(
             ("cl_lookup", model_key, W, H),
             lambda: kcl.make_cluster_lookup_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
         )
-        self._kimg = image_kernels(self.setup, K, self._ws)
+        self._kimg = psetup.image_kernels(self.setup, K, self._ws)
         self._k_blur_x, self._k_blur_y, self._k_reduce = (
             self._kimg.blur_x,
             self._kimg.blur_y,
@@ -316,11 +289,11 @@ class MultiClusterCMax:
         )
         obj = self.objective
         if regs:
-            self._k_maps = _cached(
+            self._k_maps = psetup.cached_kernel(
                 ("cl_maps", reg_key, K, W, H), lambda: kcl.make_cluster_maps_reduce(penalties, K, W, H)
             )
         one_sided = self.setup.one_sided()
-        self._k_loss = _cached(
+        self._k_loss = psetup.cached_kernel(
             ("cl_loss", obj.name, id(obj), K, W * H, one_sided),
             lambda: kcl.make_cluster_loss_kernel(obj.finalize, K, W * H, one_sided),
         )
@@ -403,8 +376,8 @@ class MultiClusterCMax:
             (self._kimg.compact, (ws.tiles,)),
         ]
         if self.blur_sigma > 0:
-            chain.append((self._k_blur_x, (ws.vote, ws.tmp, ws.taps, ws.tiles, RX)))
-            chain.append((self._k_blur_y, (ws.tmp, ws.img, ws.taps, ws.tiles, RXY)))
+            chain.append((self._k_blur_x, (ws.vote, ws.tmp, ws.taps, ws.tiles, psetup.RX)))
+            chain.append((self._k_blur_y, (ws.tmp, ws.img, ws.taps, ws.tiles, psetup.RXY)))
         chain.append((self._k_reduce, self._kimg.reduce_args(ws, ws.img, ws.acc)))
         if self._reg_names:
             chain.append((self._k_maps, (ws.count, ws.numer, ws.macc, ws.tiles, ws.mpart)))
@@ -418,7 +391,7 @@ class MultiClusterCMax:
         chain = self._kernel_chain()
         if images_only:  # the splat and the blur: the cluster images, no objective
             chain = chain[: 5 if self.blur_sigma > 0 else 3]
-        run_chain(chain)
+        psetup.run_chain(chain)
         return float("nan") if images_only else float(self._ws.loss[None])
 
     def _backward(self) -> np.ndarray:
@@ -428,7 +401,7 @@ class MultiClusterCMax:
         if not self._kimg.tiled:
             ws.img.grad.fill(0)
         ws.loss.grad[None] = 1.0
-        run_chain_backward(
+        psetup.run_chain_backward(
             self._kernel_chain(), self._kimg.blur_adjoints(), (self._k_mark, self._kimg.compact)
         )
         return ws.th.grad.to_numpy().astype(np.float64).reshape(-1)

@@ -66,12 +66,16 @@ class PathChoice:
     undeclared: bool = False
 
 
+_REGULARIZER_RECIPE = "docs/RECIPE_OBJECTIVE.md, section 'The fused path of a regularizer'"
+
+
 def model_gap(model: WarpModel) -> str:
     """Why ``model`` cannot take the fused pipeline ("" when it can)."""
     if model.param_jac is None:
         return (
             f"warp {model.name!r} declares no param_jac (closed-form d x'/d theta, d det/d theta, "
-            "d div/d theta): value and gradient run on the generic autodiff chain (docs/RECIPE_WARP.md)"
+            "d div/d theta): value and gradient run on the generic autodiff chain (declare it: "
+            "docs/RECIPE_WARP.md, section 'The fused path: param_jac')"
         )
     return ""
 
@@ -81,12 +85,13 @@ def regularizer_gap(reg: Regularizer) -> str:
     if reg.kind is None:
         return (
             f"regularizer {reg.name!r} declares no quantity kind (quantity='div' or 'absdet'): the fused "
-            "backward differentiates those two only; value and gradient run on the generic autodiff chain"
+            "backward differentiates those two only; value and gradient run on the generic autodiff chain "
+            f"({_REGULARIZER_RECIPE})"
         )
     if reg.penalty_grad is None:
         return (
             f"regularizer {reg.name!r} declares no penalty_grad (d penalty / d map value): value and "
-            "gradient run on the generic autodiff chain"
+            f"gradient run on the generic autodiff chain (declare it: {_REGULARIZER_RECIPE})"
         )
     return ""
 
@@ -198,7 +203,11 @@ class FusedPipeline:
                 return PathChoice(None, gap, undeclared=True)
         objective = problem.objective.fused  # the objective's declaration (models/objectives.py)
         if objective is None:
-            reason = f"objective {problem.objective.name!r} has no fused implementation"
+            reason = (
+                f"objective {problem.objective.name!r} declares no fused path (fused=cm.FusedObjective): "
+                "value and gradient run on the generic autodiff chain (declare it: docs/RECIPE_OBJECTIVE.md, "
+                "section 'The fused path of an objective')"
+            )
             return PathChoice(None, reason, undeclared=True)
         return PathChoice(cls(problem, objective, regs, vote_w))
 

@@ -27,7 +27,6 @@ from cmax_taichi.kernels import loss as kloss
 from cmax_taichi.kernels import maps as kmaps
 from cmax_taichi.kernels import tiles as ktiles
 from cmax_taichi.kernels import whitening as kwhite
-from cmax_taichi.models.objectives import Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
 from cmax_taichi.models.warps import WarpModel, get_warp
 from cmax_taichi.pipeline.flow_field import dense_flow
@@ -41,6 +40,7 @@ from cmax_taichi.pipeline.setup import (
     RX,
     RXY,
     ProblemSetup,
+    SetupView,
     allocate_images,
     check_limits,
     image_kernels,
@@ -89,7 +89,7 @@ class Evaluation:
     R: dict
 
 
-class ContrastMaximization:
+class ContrastMaximization(SetupView):
     """A CMax problem on one window of events.
 
     Parameters
@@ -220,21 +220,7 @@ class ContrastMaximization:
 
     def _take_window(self, setup: ProblemSetup) -> None:
         """Adopt a checked window: its derived values, the pipeline that serves it, its ``G0``."""
-        self.setup = setup
-        self.objective: Objective = setup.objective
-        self.camera = setup.camera
-        self.regularizer_weights = setup.regularizer_weights
-        self.polarity = setup.polarity
-        self.blur_sigma = setup.blur_sigma
-        self.normalize = setup.normalize
-        self.events = setup.events
-        self.duration = setup.duration
-        self.t_ref = setup.t_ref
-        self.orientation = setup.orientation
-        self.width, self.height = setup.width, setup.height
-        self.center = setup.center
-        self.n_events = setup.n_events
-        self.n_channels = setup.n_channels
+        self.setup = setup  # events, camera, objective, t_ref, ... (SetupView)
         self._weighted = setup.vote_weights is not None
         # The fused kernels (cmax_taichi/fused.py) serve value and gradient where they apply; the
         # generic chain's fields are then allocated only if maps(), evaluate() or jacobians need them.

@@ -32,6 +32,7 @@ __all__ = [
     "POLARITY_MODES",
     "ImageKernels",
     "ProblemSetup",
+    "SetupView",
     "cached_kernel",
     "check_limits",
     "run_chain",
@@ -53,6 +54,17 @@ def cached_kernel(key, factory):
     return kernel
 
 
+def _as_float(value, what: str) -> float:
+    """``float(value)``, ``inf`` for an int beyond float64 (such as 10**400); TypeError ``what, got ...``
+    for anything that is not a number."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
+    except (TypeError, ValueError):
+        raise TypeError(f"{what}, got {value!r}") from None
+
+
 def check_regularizers(regularizers) -> dict[str, float]:
     """The regularizer weights as ``{name: lambda}`` (registered names, finite weights >= 0)."""
     if regularizers is None:
@@ -64,12 +76,7 @@ def check_regularizers(regularizers) -> dict[str, float]:
         REGULARIZERS.get(name)
         if not isinstance(weight, numbers.Real) or isinstance(weight, (bool, np.bool_)):
             raise TypeError(f"weight of regularizer {name!r} must be a number, got {weight!r}")
-        try:
-            w = float(weight)
-        except OverflowError:  # an int such as 10**400
-            w = math.inf
-        except (TypeError, ValueError):
-            raise TypeError(f"weight of regularizer {name!r} must be a number, got {weight!r}") from None
+        w = _as_float(weight, f"weight of regularizer {name!r} must be a number")
         if not (math.isfinite(w) and w >= 0):
             raise ValueError(f"weight of regularizer {name!r} must be finite and >= 0, got {w}")
         out[name] = w
@@ -88,12 +95,7 @@ def resolve_t_ref(t_ref, events: Events) -> float:
         if t_ref not in choices:
             raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
         return float(choices[t_ref])
-    try:
-        value = float(t_ref)
-    except OverflowError:  # an int such as 10**400
-        value = math.inf
-    except (TypeError, ValueError):
-        raise TypeError(f"t_ref must be a string or a number, got {t_ref!r}") from None
+    value = _as_float(t_ref, "t_ref must be a string or a number")
     if not math.isfinite(value):
         raise ValueError(f"t_ref must be finite, got {value}")
     return value
@@ -196,10 +198,7 @@ class ProblemSetup:
             raise TypeError(
                 f"blur_sigma must be a number of px >= 0, got {blur_sigma!r} ({type(blur_sigma).__name__})"
             )
-        try:
-            blur_sigma = float(blur_sigma)
-        except OverflowError:  # an int such as 10**400
-            blur_sigma = math.inf
+        blur_sigma = _as_float(blur_sigma, "blur_sigma must be a number of px >= 0")
         if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
             raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
 
@@ -273,6 +272,35 @@ class ProblemSetup:
 
     def one_sided(self) -> tuple[bool, ...]:
         return tuple(bool(r.one_sided) for r in self.regularizers)
+
+
+def _from_setup(name: str, doc: str) -> property:
+    return property(lambda self: getattr(self.setup, name), doc=doc)
+
+
+class SetupView:
+    """The checked values of a problem's window as its read-only attributes: one list for
+    :class:`~cmax_taichi.ContrastMaximization` and :class:`~cmax_taichi.pipeline.clusters.MultiClusterCMax`,
+    read from the :class:`ProblemSetup` they hold in ``self.setup`` (a new window is a new setup)."""
+
+    setup: ProblemSetup
+
+    events = _from_setup("events", "The window's events (undistorted where the camera has distortion).")
+    kept = _from_setup("kept", "Which input events are in ``events`` (bool array).")
+    n_events = _from_setup("n_events", "Number of events of the window.")
+    camera = _from_setup("camera", "The camera (intrinsics), or None.")
+    objective = _from_setup("objective", "The :class:`~cmax_taichi.Objective` entry.")
+    regularizer_weights = _from_setup("regularizer_weights", "``{name: lambda}`` in the user's order.")
+    t_ref = _from_setup("t_ref", "Reference time, s (on the events' clock).")
+    duration = _from_setup("duration", "Window duration, s.")
+    orientation = _from_setup("orientation", "+1 when t_ref is before the mean event time, else -1.")
+    width = _from_setup("width", "Sensor width, px.")
+    height = _from_setup("height", "Sensor height, px.")
+    center = _from_setup("center", "Centre of the warps, px.")
+    blur_sigma = _from_setup("blur_sigma", "Gaussian blur of the IWE, px.")
+    normalize = _from_setup("normalize", "J uses G / G0.")
+    polarity = _from_setup("polarity", "How polarity enters the IWE.")
+    n_channels = _from_setup("n_channels", "IWE channels (2 for split polarity).")
 
 
 def check_limits(setup: ProblemSetup, what: str, *, n_clusters: int = 0, n_slices: int = 1) -> None:

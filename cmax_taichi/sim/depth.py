@@ -18,7 +18,6 @@ of the surface seen there. Presets (:data:`DEPTH_PRESETS`, seeded, 346x260 like 
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -333,18 +332,10 @@ def simulate_depth(
         With the exact dense ground truth: ``flow(t_a, t_b)`` (px), ``velocity(t)`` (px/s),
         ``depth(t)`` (m), ``label_map(t)``, ``warp_events(t_ref)``.
     """
-    from cmax_taichi.sim.simulator import Simulator, SimulatorConfig
+    from cmax_taichi.sim.simulator import run_preset
 
     scene = depth_scene(name, sensor_size, scale)
-    p = DEPTH_PRESETS[name]
-    settings = {**p.config, **overrides, "seed": seed}
-    unknown = set(settings) - set(SimulatorConfig.__dataclass_fields__)
-    if unknown:
-        raise TypeError(f"unknown simulator settings: {', '.join(sorted(unknown))}")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        sim = Simulator(scene, SimulatorConfig(**settings), progress=progress)
-    return sim.run(p.duration if duration is None else duration)
+    return run_preset(scene, DEPTH_PRESETS[name], seed, duration, progress, overrides)
 
 
 @dataclass

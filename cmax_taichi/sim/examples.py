@@ -27,8 +27,18 @@ from cmax_taichi.sim import (
     simulate,
     warp_scene,
 )
+from cmax_taichi.sim.motions import NotExpressedError
 
-__all__ = ["Example", "ExampleRecording", "EXAMPLES", "SEGMENT_EXAMPLES", "example_names", "make_example"]
+__all__ = [
+    "Example",
+    "ExampleRecording",
+    "EXAMPLES",
+    "SEGMENT_EXAMPLES",
+    "check_example",
+    "example_names",
+    "get_example",
+    "make_example",
+]
 
 
 @dataclass(frozen=True)
@@ -76,6 +86,27 @@ class Example:
     object_motions: tuple = ()
     layout_seed: int = 0
 
+    def motions(self) -> list[Motion]:
+        """The true motion of every layer: the background, then the objects."""
+        return [Motion(self.warp, self.theta)] + [Motion(w, th) for w, th in self.object_motions]
+
+    def truth_in(self, warp: str, layer: int = 0) -> np.ndarray:
+        """True parameters of ``layer`` at time 0 in the model ``warp`` (physical units): the example's own
+        where ``warp`` is its model, else the parameters of ``warp`` that express the same motion over a
+        window (ValueError where ``warp`` cannot, naming both models)."""
+        motion = self.motions()[layer]
+        if warp == motion.warp:
+            return np.asarray(motion.theta_at(0.0), dtype=np.float64)
+        try:
+            theta = motion.theta_at(0.0, warp, duration=self.window, camera=default_camera(self.sensor_size))
+            return np.where(np.abs(theta) < 1e-9, 0.0, theta)  # rounding of the solve: exactly 0
+        except NotExpressedError as exc:
+            raise ValueError(
+                f"example {self.name!r}: its truth is a {motion.warp} motion (theta = {list(motion.theta)}), "
+                f"which warp {warp!r} cannot express (its best parameters leave {exc.residual_px:.3g} px "
+                f"over {exc.span_s * 1e3:g} ms); estimate it with warp {motion.warp!r}"
+            ) from None
+
 
 @dataclass
 class ExampleRecording:
@@ -103,6 +134,10 @@ class ExampleRecording:
     def truth(self) -> np.ndarray:
         """True parameters of the background at time 0, physical units."""
         return np.asarray(self.recording.theta_at(0.0), dtype=np.float64)
+
+    def truth_in(self, warp: str, layer: int = 0) -> np.ndarray:
+        """True parameters of ``layer`` at time 0 in the model ``warp`` (:meth:`Example.truth_in`)."""
+        return self.example.truth_in(warp, layer)
 
     @property
     def labels(self) -> np.ndarray:
@@ -176,6 +211,38 @@ def example_names(kind: str = "estimate") -> list[str]:
     return list(EXAMPLES if kind == "estimate" else SEGMENT_EXAMPLES)
 
 
+def get_example(name: str) -> Example:
+    """The example called ``name`` (of :data:`EXAMPLES` or :data:`SEGMENT_EXAMPLES`; ValueError listing
+    the valid names otherwise)."""
+    example = EXAMPLES.get(name) or SEGMENT_EXAMPLES.get(name)
+    if example is None:
+        valid = ", ".join(list(EXAMPLES) + list(SEGMENT_EXAMPLES))
+        raise ValueError(f"unknown example {name!r}; valid examples: {valid}")
+    return example
+
+
+def check_example(name: str, warps: str | list[str] | None = None) -> Example:
+    """The example called ``name``, checked against the models that will estimate it, before anything is
+    simulated (milliseconds): every layer's true motion must be expressed by one of ``warps`` (its own
+    model, or another that expresses the same motion exactly: the translation of ``collapse`` in an
+    affine model); ValueError otherwise, naming the example, its model and the warp."""
+    example = get_example(name)
+    if warps is None:
+        return example
+    warps = [warps] if isinstance(warps, str) else list(warps)
+    for layer in range(len(example.motions())):
+        errors = []
+        for warp in warps:
+            try:
+                example.truth_in(warp, layer)
+                break
+            except ValueError as exc:
+                errors.append(str(exc))
+        else:
+            raise ValueError(errors[0] if len(errors) == 1 else "; ".join(errors))
+    return example
+
+
 def make_example(name: str, seed: int = 0) -> ExampleRecording:
     """Simulate the example called ``name`` (see :data:`EXAMPLES` and :data:`SEGMENT_EXAMPLES`).
 
@@ -187,10 +254,7 @@ def make_example(name: str, seed: int = 0) -> ExampleRecording:
         Seed of the simulator's random draws (threshold mismatch, noise); the default reproduces the
         documented outputs.
     """
-    example = EXAMPLES.get(name) or SEGMENT_EXAMPLES.get(name)
-    if example is None:
-        valid = ", ".join(list(EXAMPLES) + list(SEGMENT_EXAMPLES))
-        raise ValueError(f"unknown example {name!r}; valid examples: {valid}")
+    example = get_example(name)
     camera = default_camera(example.sensor_size)
     if example.n_objects:
         scene = multi_object_scene(

@@ -11,7 +11,7 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera
 from cmax_taichi.models.warps import get_warp
-from cmax_taichi.sim.motions import DEFAULT_THETAS, Motion
+from cmax_taichi.sim.motions import Motion, default_theta
 from cmax_taichi.sim.rigid import PlaneMotion
 from cmax_taichi.sim.textures import default_camera, fit_texture, load_texture, resize_image
 
@@ -166,7 +166,7 @@ def warp_scene(
     warp : str
         Warp model name.
     theta : sequence of float, optional
-        Its parameters at time 0 (default :data:`DEFAULT_THETAS`).
+        Its parameters at time 0 (default :func:`~cmax_taichi.sim.motions.default_theta`).
     sensor_size : (int, int)
         ``(W, H)``, px.
     texture : str
@@ -176,9 +176,7 @@ def warp_scene(
     camera : Camera, optional
         Default :func:`default_camera`.
     """
-    theta = DEFAULT_THETAS.get(warp) if theta is None else theta
-    if theta is None:
-        raise ValueError(f"unknown warp {warp!r}; valid: {', '.join(DEFAULT_THETAS)}")
+    theta = default_theta(warp) if theta is None else theta
     W, H = (int(v) for v in sensor_size)
     tex = fit_texture(load_texture(texture), W, H)
     motion = Motion(warp, tuple(theta), segment=segment)

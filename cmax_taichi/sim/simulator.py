@@ -525,13 +525,19 @@ def simulate_preset(
     """Simulate preset ``name`` (:data:`PRESETS`) for ``duration`` s (default the preset's); see
     :func:`preset_scene` for ``sensor_size`` and ``scale``; keyword arguments override the preset's
     :class:`SimulatorConfig` fields."""
-    scene = preset_scene(name, sensor_size, scale)
     p = PRESETS[name]
-    settings = {**p.config, **overrides, "seed": seed}
+    return run_preset(preset_scene(name, sensor_size, scale), p, seed, duration, progress, overrides)
+
+
+def run_preset(scene, preset, seed: int, duration: float | None, progress: bool, overrides: dict):
+    """Simulate ``scene`` with a preset's settings (``preset.config``, ``preset.duration``), the
+    ``overrides`` of :class:`SimulatorConfig` fields (TypeError naming an unknown one) and ``seed``;
+    ``duration`` None: the preset's."""
+    settings = {**preset.config, **overrides, "seed": seed}
     unknown = set(settings) - set(SimulatorConfig.__dataclass_fields__)
     if unknown:
         raise TypeError(f"unknown simulator settings: {', '.join(sorted(unknown))}")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         sim = Simulator(scene, SimulatorConfig(**settings), progress=progress)
-    return sim.run(p.duration if duration is None else duration)
+    return sim.run(preset.duration if duration is None else duration)

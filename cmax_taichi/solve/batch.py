@@ -439,10 +439,15 @@ class RecordingWorker:
     """One long-lived worker: Taichi initialised once, recordings estimated one after the other (the
     Ray engine wraps it as an actor; the local engine keeps one per pool process)."""
 
-    def __init__(self, arch: str | None = None, precision: str | None = None) -> None:
+    def __init__(
+        self, arch: str | None = None, precision: str | None = None, plugins: Sequence[str] = ()
+    ) -> None:
         from cmax_taichi.core import backend
+        from cmax_taichi.core.registry import load_plugin
 
         self.arch, self.precision = arch, precision
+        for plugin in plugins:  # the user's warps, objectives, regularizers, in this fresh interpreter
+            load_plugin(plugin)
         backend.init_if_needed(arch, precision)
         # the counts of the events not estimated are in each recording's results and in the summary;
         # the driver warns once with the totals
@@ -455,8 +460,8 @@ class RecordingWorker:
         return os.getpid()
 
 
-def _worker_state(arch: str | None, precision: str | None) -> RecordingWorker:
-    return RecordingWorker(arch, precision)
+def _worker_state(arch: str | None, precision: str | None, plugins: Sequence[str] = ()) -> RecordingWorker:
+    return RecordingWorker(arch, precision, plugins)
 
 
 def _estimate_task(worker: RecordingWorker, path: str, folder: str, options: Mapping[str, Any], kwargs: dict):
@@ -506,7 +511,7 @@ def _failed(task: tuple, error: str) -> RecordingSummary:
 
 
 def _run_local(
-    tasks, workers, arch, precision, kwargs, max_restarts, progress
+    tasks, workers, arch, precision, kwargs, max_restarts, progress, plugins=()
 ) -> dict[int, RecordingSummary]:
     """The local engine: :func:`cmax_taichi.solve.workers.run_tasks` (a dead worker charges only the
     recording it held; workers die with the driver)."""
@@ -517,7 +522,7 @@ def _run_local(
     return run_tasks(
         [(_estimate_task, tuple(task), {"kwargs": kwargs}) for task in tasks],
         workers,
-        functools.partial(_worker_state, arch, precision),
+        functools.partial(_worker_state, arch, precision, plugins),
         max_restarts,
         on_poll=progress.poll,
         failed=lambda i, error: _failed(tasks[i], error),
@@ -525,7 +530,7 @@ def _run_local(
 
 
 def _run_ray(
-    tasks, workers, arch, precision, kwargs, max_restarts, progress, address
+    tasks, workers, arch, precision, kwargs, max_restarts, progress, address, plugins=()
 ) -> dict[int, RecordingSummary]:
     """The Ray engine: :func:`cmax_taichi.solve.workers.run_ray` with :class:`RecordingWorker` actors."""
     from cmax_taichi.solve.workers import run_ray
@@ -534,12 +539,26 @@ def _run_ray(
         [(tuple(task), kwargs) for task in tasks],
         workers,
         RecordingWorker,
-        (arch, precision),
+        (arch, precision, plugins),
         max_restarts,
         address,
         on_poll=progress.poll,
         failed=lambda i, error: _failed(tasks[i], error),
     )
+
+
+def _loaded_plugins(plugins: Sequence[str]) -> tuple[str, ...]:
+    """The plugins, loaded here too (the options name their entries), files as absolute paths."""
+    from cmax_taichi.core.registry import load_plugin
+
+    if isinstance(plugins, str):
+        plugins = [plugins]
+    out = []
+    for plugin in plugins:
+        load_plugin(plugin)
+        is_file = plugin.endswith(".py") or Path(plugin).is_file()
+        out.append(str(Path(plugin).expanduser().resolve()) if is_file else plugin)
+    return tuple(out)
 
 
 def run(
@@ -555,6 +574,7 @@ def run(
     max_restarts: int = 3,
     progress: bool | TextIO = True,
     hooks: RecordingHooks | None = None,
+    plugins: Sequence[str] = (),
     **options: Any,
 ) -> BatchResult:
     """Estimate the motion of every window of several recordings, in parallel and resumable.
@@ -582,6 +602,10 @@ def run(
         Progress over all recordings on stderr (or on the given stream).
     hooks : RecordingHooks, optional
         Extra per-recording outputs made inside the workers (must pickle).
+    plugins : sequence of str
+        Plugins (Python files or modules that register warps, objectives, regularizers:
+        :func:`cmax_taichi.core.registry.load_plugin`) that every worker imports first; a file must be
+        at a path every worker sees.
     **options
         Keyword arguments of :func:`~cmax_taichi.solve.sequence.process`: ``warp``, ``objective``,
         ``regularizers``, ``n_events``, ``duration``, ``stride``, ``method``, ``warm_start``,
@@ -617,6 +641,7 @@ def run(
         paths = [paths]
     if not paths:
         raise ValueError("no recording given")
+    plugins = _loaded_plugins(plugins)
     unknown = set(options) - set(PROCESS_OPTIONS)
     if unknown:
         raise TypeError(f"unknown option(s) {sorted(unknown)}; valid: {', '.join(PROCESS_OPTIONS)}")
@@ -638,9 +663,11 @@ def run(
         t0 = time.perf_counter()
         try:
             if engine == "local":
-                results = _run_local(tasks, workers, arch, precision, kwargs, max_restarts, bar)
+                results = _run_local(tasks, workers, arch, precision, kwargs, max_restarts, bar, plugins)
             else:
-                results = _run_ray(tasks, workers, arch, precision, kwargs, max_restarts, bar, address)
+                results = _run_ray(
+                    tasks, workers, arch, precision, kwargs, max_restarts, bar, address, plugins
+                )
             bar.poll(sum(r.status == "done" for r in results.values()))
         finally:
             bar.close()

@@ -8,8 +8,8 @@ the Taichi kernels and is used by the tests (as the oracle the kernels are held 
 benchmark. It favours readability over speed and depends on NumPy only.
 
 The warps form a small registry of their own (:class:`ReferenceWarp`, :func:`register_reference_warp`):
-the six built-ins register below, and a test registers the NumPy twin of a new model there (see
-``tests/test_user_warp.py``) without editing this module.
+the built-ins register in ``reference_warps.py`` (a new built-in adds its twin there), and a user model
+registers its own (see ``examples/user_extensions.py``) without editing this package.
 
 Units: positions in pixels (px), times in seconds (s), parameters in physical units (px/s, 1/s,
 rad/s), flows in px/s, divergences in 1/s.
@@ -591,14 +591,9 @@ def evaluate(
     }
 
 
-def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> np.ndarray:
-    """dJ/dtheta by central differences of :func:`evaluate` (2P evaluations), with the step
-    ``rel_step * max(1, |theta_i|)`` per parameter; ``kwargs`` go to :func:`evaluate`.
-
-    J is piecewise smooth (bilinear votes have kinks where a warped event crosses a pixel boundary), so
-    the step must be small enough not to cross many kinks: see
-    ``cmax_taichi.lab.bench_impls.reference_fd_grad``.
-    """
+def central_differences(fn, theta, *, rel_step: float) -> np.ndarray:
+    """The gradient of the scalar function ``fn(theta)`` by central differences (2P evaluations), with
+    the step ``rel_step * max(1, |theta_i|)`` per parameter."""
     theta = np.asarray(theta, dtype=np.float64)
     grad = np.empty_like(theta)
     for i in range(theta.size):
@@ -606,7 +601,16 @@ def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> 
         tp, tm = theta.copy(), theta.copy()
         tp[i] += h
         tm[i] -= h
-        jp = evaluate(x, y, t, p, tp, **kwargs)["J"]
-        jm = evaluate(x, y, t, p, tm, **kwargs)["J"]
-        grad[i] = (jp - jm) / (2 * h)
+        grad[i] = (fn(tp) - fn(tm)) / (2 * h)
     return grad
+
+
+def central_difference_grad(x, y, t, p, theta, *, rel_step: float, **kwargs) -> np.ndarray:
+    """dJ/dtheta by central differences of :func:`evaluate` (:func:`central_differences`); ``kwargs`` go
+    to :func:`evaluate`.
+
+    J is piecewise smooth (bilinear votes have kinks where a warped event crosses a pixel boundary), so
+    the step must be small enough not to cross many kinks: see
+    ``cmax_taichi.lab.bench_impls.reference_fd_grad``.
+    """
+    return central_differences(lambda th: evaluate(x, y, t, p, th, **kwargs)["J"], theta, rel_step=rel_step)

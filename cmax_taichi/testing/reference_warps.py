@@ -1,8 +1,9 @@
 """The float64 NumPy warp models of the oracle (:mod:`cmax_taichi.testing.reference`) and their registry.
 
-Written from ``docs/FORMULAS.md`` ("Warp models"), independently of the Taichi kernels. The six
-built-ins register at the bottom; a test registers the NumPy twin of a new model with
-:func:`register_reference_warp` (see ``tests/test_user_warp.py``) without editing this package.
+Written from ``docs/FORMULAS.md`` ("Warp models"), independently of the Taichi kernels. The built-ins
+register at the bottom (a new built-in adds its twin there: the tests, the checker and the simulator
+read this registry); a user model registers its NumPy twin with :func:`register_reference_warp` (see
+``examples/user_extensions.py``) without editing this package.
 
 Units: positions in pixels (px), times in seconds (s), parameters in physical units (px/s, 1/s,
 rad/s), flows in px/s, divergences in 1/s.
@@ -109,7 +110,7 @@ def _exp_series(z: np.ndarray) -> np.ndarray:
     return np.where(small, series, exact)
 
 
-# --- the six built-ins (docs/FORMULAS.md, "Warp models") -----------------------------------------
+# --- the built-ins (docs/FORMULAS.md, "Warp models") -----------------------------------------
 def _zoom1_warp(theta, x, y, dt, *, center, focal, duration):
     (hz,) = theta
     cx, cy = center

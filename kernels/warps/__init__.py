@@ -16,9 +16,13 @@ Every model module provides the same ``@ti.func`` set, so that kernels are gener
   event from one evaluation, for a model whose functions share costly intermediate values (``rotation3``
   rotates the ray once); the fused kernels call it in place of ``warp``, ``det`` and ``param_jac``;
 
-and the constant ``CONSTANT_QUANTITIES``: which of the per-event quantities ``"div"`` (``div v``) and
-``"absdet"`` (``|det dx'/dx|``) do not depend on the event (their regularizer map is that one value on
-every pixel with votes, so the fused pipeline does not vote them).
+and the declarations ``MODEL``, a dict of plain values (kernels import nothing from ``cmax_taichi``):
+``name``, ``params`` and ``units`` (one per parameter: px/s, 1/s, rad/s, ...), and any of
+``constant_quantities`` (which of the per-event quantities ``"div"`` (``div v``) and ``"absdet"``
+(``|det dx'/dx|``) do not depend on the event: their regularizer map is that one value on every pixel
+with votes, so the fused pipeline does not vote them), ``positive_det`` (``det > 0`` wherever an event
+is warped, for every theta), ``scale_kinds``, ``needs_camera``, ``collapse_enabled``, ``description``:
+the fields of :class:`cmax_taichi.WarpModel`, which ``WarpModel.from_module`` builds from the module.
 
 ``th`` is the parameter vector (physical units). ``ctx`` is the 5-vector ``(cx, cy, fx, fy, T)``: the
 centre of the coordinates (principal point or image centre, px), the focal lengths (px, used by
@@ -31,10 +35,13 @@ vectorizing the gradient gather; ``common.taylor_terms`` and ``common.polynomial
 series exact to the precision in use (``rotation3`` is the example).
 
 Shared helpers (complex arithmetic, constants, finite-difference stand-ins, the dense-flow kernel) are
-in ``common.py``. The metadata of each model (names, units, capabilities) is registered in
-``cmax_taichi/models/warps.py``; docs/RECIPE_WARP.md says how to add a model.
+in ``common.py``. The built-in models are the modules named in :data:`BUILTIN_MODELS`, registered in
+that order by ``cmax_taichi/models/warps.py``; docs/RECIPE_WARP.md says how to add a model.
 """
 
 from .common import make_dense_flow_kernel, make_fd_det, make_fd_div
 
-__all__ = ["make_dense_flow_kernel", "make_fd_det", "make_fd_div"]
+#: the built-in warp models: one module of this package each, registered in this order
+BUILTIN_MODELS = ("zoom1", "translation2", "rotation3", "se2", "sim2", "mitrokhin4")
+
+__all__ = ["BUILTIN_MODELS", "make_dense_flow_kernel", "make_fd_det", "make_fd_div"]

@@ -8,8 +8,16 @@ import taichi as ti
 
 from .common import _rel
 
-#: per-event quantities that do not depend on the event (see ``__init__.py``)
-CONSTANT_QUANTITIES = ("div",)
+#: the model's declarations, read by ``cmax_taichi/models/warps.py`` (``WarpModel.from_module``)
+MODEL = {
+    "name": "mitrokhin4",
+    "params": ("h_x", "h_y", "h_z", "theta"),
+    "units": ("px/s", "px/s", "1/s", "rad/s"),
+    "constant_quantities": ("div",),  # div v = 2 (a11 - 1) / T for every event
+    "positive_det": True,  # det = a^2 + b^2
+    "collapse_enabled": True,
+    "description": "4-DOF in-plane camera motion of Mitrokhin et al. (IROS 2018)",
+}
 
 
 @ti.func

@@ -23,8 +23,17 @@ import taichi as ti
 
 from .common import MIN_RAY_Z, OUTSIDE, rodrigues
 
-#: per-event quantities that do not depend on the event (see ``__init__.py``)
-CONSTANT_QUANTITIES = ()
+#: the model's declarations, read by ``cmax_taichi/models/warps.py`` (``WarpModel.from_module``)
+MODEL = {
+    "name": "rotation3",
+    "params": ("w_x", "w_y", "w_z"),
+    "units": ("rad/s", "rad/s", "rad/s"),
+    "scale_kinds": ("focal", "focal", "rate"),  # w_x, w_y tilt the rays: f px per rad
+    "constant_quantities": (),
+    "positive_det": True,  # det = 1 / z^3 with z clamped to MIN_RAY_Z > 0
+    "needs_camera": True,
+    "description": "3-DOF camera rotation (SO(3), needs intrinsics)",
+}
 
 @ti.func
 def _reciprocal(f):

@@ -15,8 +15,15 @@ import taichi as ti
 
 from .common import HALF_ANGLE_MAX, _cmul, _rel, _unit_det, _zero_div, _zero_vec, rodrigues
 
-#: per-event quantities that do not depend on the event (see ``__init__.py``)
-CONSTANT_QUANTITIES = ("div", "absdet")
+#: the model's declarations, read by ``cmax_taichi/models/warps.py`` (``WarpModel.from_module``)
+MODEL = {
+    "name": "se2",
+    "params": ("v_x", "v_y", "w"),
+    "units": ("px/s", "px/s", "rad/s"),
+    "constant_quantities": ("div", "absdet"),  # div v = 0, det = 1 for every event
+    "positive_det": True,
+    "description": "3-DOF planar Euclidean motion (SE(2) exponential)",
+}
 
 
 @ti.func

@@ -5,8 +5,16 @@ import taichi as ti
 
 from .common import _rel, _sim2_apply, _sim2_param_jac
 
-#: per-event quantities that do not depend on the event (see ``__init__.py``)
-CONSTANT_QUANTITIES = ("div",)
+#: the model's declarations, read by ``cmax_taichi/models/warps.py`` (``WarpModel.from_module``)
+MODEL = {
+    "name": "sim2",
+    "params": ("v_x", "v_y", "w", "s"),
+    "units": ("px/s", "px/s", "rad/s", "1/s"),
+    "constant_quantities": ("div",),  # div v = 2 s for every event
+    "positive_det": True,  # det = exp(-2 dt s)
+    "collapse_enabled": True,
+    "description": "4-DOF similarity (Sim(2) exponential)",
+}
 
 
 @ti.func

@@ -4,8 +4,15 @@ import taichi as ti
 
 from .common import _unit_det, _zero_div, _zero_vec
 
-#: per-event quantities that do not depend on the event (see ``__init__.py``)
-CONSTANT_QUANTITIES = ("div", "absdet")
+#: the model's declarations, read by ``cmax_taichi/models/warps.py`` (``WarpModel.from_module``)
+MODEL = {
+    "name": "translation2",
+    "params": ("v_x", "v_y"),
+    "units": ("px/s", "px/s"),
+    "constant_quantities": ("div", "absdet"),  # div v = 0, det = 1 for every event
+    "positive_det": True,
+    "description": "2-DOF constant feature flow",
+}
 
 
 @ti.func

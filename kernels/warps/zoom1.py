@@ -4,8 +4,16 @@ import taichi as ti
 
 from .common import _rel
 
-#: per-event quantities that do not depend on the event (see ``__init__.py``)
-CONSTANT_QUANTITIES = ("div",)
+#: the model's declarations, read by ``cmax_taichi/models/warps.py`` (``WarpModel.from_module``)
+MODEL = {
+    "name": "zoom1",
+    "params": ("h_z",),
+    "units": ("1/s",),
+    "constant_quantities": ("div",),  # div v = 2 h_z for every event
+    "positive_det": True,  # det = (1 - dt h_z)^2
+    "collapse_enabled": True,
+    "description": "1-DOF zoom in/out about the centre (forward/backward camera motion)",
+}
 
 
 @ti.func

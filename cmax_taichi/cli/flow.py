@@ -1,0 +1,487 @@
+"""Estimate the dense optical flow of every window of an event recording.
+
+The flow lives on a grid of nodes over the sensor (bilinear between nodes), estimated coarse to fine by
+L-BFGS-B on the exact gradient of the contrast objective, with the event-collapse regularizers
+(divergence, deformation) and a smoothness term; each window is warm-started from the previous one.
+Results go to OUT: flow/flow_NNNN.<format> (the displacement over --dt, px: .npz with its interval,
+Middlebury .flo, or DSEC's 16-bit submission PNG), flow_timestamps.txt (t_start t_end
+of each file, for 'cmax-taichi evaluate'), results.csv and summary.json (per window: time span, events,
+J and its terms, evaluations, seconds, and AEE / NPE / %Out where the recording has flow ground truth),
+figures/window_NNNN.png (IWE without and with the flow, the flow in colour).
+
+examples:
+  cmax-taichi flow --example planes               # simulated depth scene, printed against its truth
+  cmax-taichi flow --example boxroom              # a smooth depth-varying flow (box room)
+  cmax-taichi flow ../shared/data/mvsec_indoor_flying1 --out out_flow
+  cmax-taichi flow recording_data.hdf5 --window 30000 --dt 0.0625 --flow-format npz --out out_mvsec
+  cmax-taichi flow events.h5 --duration 0.1 --grid 32 24 --levels 4 --reg deformation=2 --out out_dsec
+  cmax-taichi evaluate out_mvsec/flow --data recording_data.hdf5   # score the files afterwards
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+from cmax_taichi.cli import _common as common
+
+NAME = "flow"
+HELP = "dense optical flow of every window of a recording (flow files, figures, metrics against truth)"
+
+
+def _defaults():
+    from cmax_taichi.flow.solver import DEFAULT_REGULARIZERS
+
+    return DEFAULT_REGULARIZERS
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    from cmax_taichi.flow.smoothness import smoothness_names
+    from cmax_taichi.io.writers import FLOW_FORMATS
+    from cmax_taichi.models.objectives import objective_names
+    from cmax_taichi.models.regularizers import regularizer_names
+
+    parser.add_argument(
+        "path", metavar="PATH", nargs="?", default=None, help="recording (any reader's format)"
+    )
+    parser.add_argument(
+        "--example",
+        default=None,
+        metavar="NAME",
+        help="instead of PATH, a simulated depth scene with exact dense ground truth: "
+        + ", ".join(_example_names()),
+    )
+    parser.add_argument("--format", default=None, help="reader format (default: detected)")
+    parser.add_argument(
+        "--sensor-size",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="the recording's sensor size in px when it is not the format's (e.g. a scaled simulation)",
+    )
+    model = parser.add_argument_group("flow model")
+    model.add_argument(
+        "--grid",
+        type=int,
+        nargs=2,
+        default=[16, 16],
+        metavar=("NX", "NY"),
+        help="cells of the finest grid along x and y (default 16 16: nodes every (W-1)/16 px)",
+    )
+    model.add_argument("--levels", type=int, default=4, help="coarse-to-fine levels (default 4)")
+    model.add_argument(
+        "--objective",
+        default="gradient_magnitude",
+        help=f"{common.names(objective_names())} (default gradient_magnitude)",
+    )
+    model.add_argument(
+        "--references",
+        default="middle",
+        help="reference time(s) of the IWE: first | middle | last | multi (the reference's multi-focal "
+        "first + middle x2 + last) (default middle)",
+    )
+    defaults = ", ".join(f"{k}={v:g}" for k, v in _defaults().items())
+    model.add_argument(
+        "--reg",
+        action="append",
+        default=None,
+        metavar="NAME=WEIGHT",
+        help=f"a regularizer with its weight (repeatable; NAME: "
+        f"{common.names(regularizer_names() + smoothness_names())}); default {defaults}",
+    )
+    model.add_argument("--no-reg", action="store_true", help="no regularizer at all (shows the collapse)")
+    model.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the IWE, px (default 1)")
+    model.add_argument(
+        "--padding",
+        type=int,
+        default=None,
+        metavar="PX",
+        help="margin of the IWE around the sensor, px (default 5%% of the larger sensor side)",
+    )
+    win = parser.add_argument_group("windows")
+    win.add_argument(
+        "--window", type=int, default=30000, metavar="N", help="events per window (default 30000)"
+    )
+    win.add_argument("--duration", type=float, default=None, metavar="S", help="window length in s instead")
+    win.add_argument(
+        "--stride", type=float, default=None, help="start-to-start step (events, or s with --duration)"
+    )
+    win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
+    win.add_argument(
+        "--dt",
+        type=float,
+        default=None,
+        metavar="S",
+        help="interval of each flow file and of the metrics, s from the window's first event (MVSEC dt = 1 "
+        "or 4 frames, DSEC 0.1 s); default the window's duration",
+    )
+    win.add_argument("--no-warm-start", action="store_true", help="the global search in every window")
+    run = parser.add_argument_group("run")
+    common.add_backend_arguments(run)
+    run.add_argument("--out", default="flow_out", metavar="DIR", help="output folder (default ./flow_out)")
+    run.add_argument(
+        "--flow-format",
+        default="npz",
+        choices=list(FLOW_FORMATS),
+        help="npz: 'flow' (2, H, W) px with t_start, t_end; flo: Middlebury; png: DSEC 16-bit (default npz)",
+    )
+    run.add_argument(
+        "--figures", type=int, default=1, metavar="K", help="figures of the first K windows (default 1)"
+    )
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+#: the example that is not a simulator preset: the box room of cmax_taichi.testing.flow_scenes
+BOXROOM = "boxroom"
+
+
+def _example_names() -> list[str]:
+    try:
+        from cmax_taichi.sim import DEPTH_PRESETS
+    except ImportError:  # a build without the depth scenes
+        return [BOXROOM]
+    return list(DEPTH_PRESETS) + [BOXROOM]
+
+
+def parse_regularizers(items: list[str] | None, none: bool) -> dict[str, float]:
+    """``--reg`` items (event-collapse regularizers and smoothness terms) or the defaults."""
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.flow.smoothness import SMOOTHNESS
+
+    if none:
+        if items:
+            raise CliError("--no-reg and --reg exclude each other")
+        return {}
+    if items is None:
+        return dict(_defaults())
+    return common.parse_regularizers(items, extra=SMOOTHNESS.names())
+
+
+def _check(args: argparse.Namespace) -> None:
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.flow.problem import resolve_references
+    from cmax_taichi.models.objectives import OBJECTIVES
+
+    OBJECTIVES.get(args.objective)
+    try:
+        resolve_references(args.references)
+    except (TypeError, ValueError) as exc:
+        raise CliError(f"--references: {exc}") from None
+    if args.window < 2:
+        raise CliError(f"--window must be at least 2 events, got {args.window}")
+    for name in ("duration", "dt"):
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise CliError(f"--{name} must be a positive number of seconds, got {value}")
+    if args.stride is not None and not (math.isfinite(args.stride) and args.stride > 0):
+        raise CliError(f"--stride must be positive, got {args.stride}")
+    if args.max_windows is not None and args.max_windows < 1:
+        raise CliError(f"--max-windows must be at least 1, got {args.max_windows}")
+    if args.levels < 1:
+        raise CliError(f"--levels must be at least 1, got {args.levels}")
+    if args.padding is not None and args.padding < 0:
+        raise CliError(f"--padding must be a whole number of px >= 0, got {args.padding}")
+    if not (math.isfinite(args.blur) and args.blur >= 0):
+        raise CliError(f"--blur must be a finite number of px >= 0, got {args.blur}")
+
+
+def _window_figure(path: Path, window, estimator) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from cmax_taichi import viz
+
+    res = window.result
+    prob = estimator.problem(window.events, 1)
+    prob.set_grid(res.grid)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), constrained_layout=True)
+    viz.show_iwe(axes[0], prob.iwe(np.zeros(res.grid.shape)), title="IWE, no motion")
+    viz.show_iwe(axes[1], prob.iwe(res.nodes), title=f"IWE, dense flow (J = {res.value:.3f})")
+    viz.show_flow(
+        axes[2], res.flow(window.dt), unit="px", title=f"displacement over {window.dt * 1e3:.1f} ms"
+    )
+    note = ""
+    if window.metrics is not None:
+        note = f"; AEE {window.metrics['AEE']:.3f} px, 3PE {window.metrics['3PE']:.1f}%"
+    fig.suptitle(
+        f"window {window.index}: t = {res.t_start:.4f} .. {res.t_end:.4f} s, {res.n_events} events, grid "
+        f"{res.grid.nx}x{res.grid.ny} cells{note}",
+        fontsize=10,
+    )
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+_COLUMNS = [
+    "window",
+    "t_start",
+    "t_end",
+    "n_events",
+    "dt",
+    "J",
+    "data",
+    "penalties",
+    "smoothness",
+    "evaluations",
+    "seconds",
+    "AEE",
+    "3PE",
+    "outlier",
+]
+
+
+def _row(window) -> dict:
+    res, m = window.result, window.metrics or {}
+    ev = res.evaluation
+    return {
+        "window": window.index,
+        "t_start": f"{res.t_start:.6f}",
+        "t_end": f"{res.t_end:.6f}",
+        "n_events": res.n_events,
+        "dt": f"{window.dt:.6f}",
+        "J": f"{res.value:.6f}",
+        "data": f"{ev.data:.6f}",
+        "penalties": ";".join(f"{k}={v:.5g}" for k, v in ev.penalties.items()),
+        "smoothness": ";".join(f"{k}={v:.5g}" for k, v in ev.smoothness.items()),
+        "evaluations": res.n_evaluations,
+        "seconds": f"{res.seconds:.3f}",
+        "AEE": "" if "AEE" not in m else f"{m['AEE']:.4f}",
+        "3PE": "" if "3PE" not in m else f"{m['3PE']:.3f}",
+        "outlier": "" if "outlier" not in m else f"{m['outlier']:.3f}",
+    }
+
+
+def _open_example(name: str):
+    """``(events, ground truth source, description)`` of a simulated depth preset."""
+    from cmax_taichi import sim
+    from cmax_taichi.cli import CliError
+
+    if name == BOXROOM:
+        return _open_boxroom()
+    presets = getattr(sim, "DEPTH_PRESETS", {})
+    if name not in presets:
+        raise CliError(f"--example: unknown example {name!r}; valid: {', '.join(_example_names())}")
+    preset = presets[name]
+    t0 = 0.02  # after the simulator's first renders
+    rec = sim.simulate_depth(name, duration=t0 + preset.window + 1e-3, seed=0)
+    events = rec.events(t0, t0 + preset.window)
+    return events, _ExampleTruth(rec), preset
+
+
+class _BoxRoom:
+    """The box room of :func:`cmax_taichi.testing.flow_scenes.depth_scene` as an example: its
+    description, window (s) and ground truth (a steady velocity field: flow = velocity x interval)."""
+
+    description = (
+        "a camera moving sideways in a textured box room, 346x260: flow proportional to the inverse "
+        "depth, 5.4-11.6 px over the 50 ms window, a factor 2.15 across the image, no discontinuity"
+    )
+
+    def __init__(self) -> None:
+        from cmax_taichi.testing.flow_scenes import depth_scene
+
+        self.scene = depth_scene((346, 260), duration=0.05, displacement=(5.0, 2.0), n_events=60000, seed=0)
+        self.window = self.scene.duration
+
+    def flow(self, t0: float, t1: float):
+        return self.scene.velocity * (t1 - t0)
+
+    def read_time(self, t0: float, t1: float):
+        t = self.scene.events.t
+        return self.scene.events[(t >= t0) & (t <= t1)]
+
+
+def _open_boxroom():
+    room = _BoxRoom()
+    return room.scene.events, room, room
+
+
+class _ExampleTruth:
+    """The ground-truth interface of a recording (``flow``, ``read_time``) over a simulated one."""
+
+    def __init__(self, rec) -> None:
+        self._rec = rec
+
+    def flow(self, t0: float, t1: float):
+        return self._rec.flow(t0, t1)
+
+    def read_time(self, t0: float, t1: float):
+        return self._rec.events(t0, t1)
+
+
+def run(args: argparse.Namespace) -> int:
+    from cmax_taichi import io
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.flow.solver import DenseFlowEstimator
+    from cmax_taichi.io.outputs import OutputFolder
+
+    regs = parse_regularizers(args.reg, args.no_reg)
+    _check(args)
+    if (args.path is None) == (args.example is None):
+        raise CliError("give a recording PATH or --example NAME (one of them)")
+    inputs = [] if args.path is None else [Path(args.path)]
+    if args.path is not None and not inputs[0].exists():
+        raise CliError(f"{inputs[0]}: no such file or folder")
+    patterns = [f"flow/flow_*.{args.flow_format}", "flow_timestamps.txt", "results.csv", "summary.json"]
+    patterns.append("figures/window_*.png")
+    folder = OutputFolder(args.out, inputs=inputs, patterns=patterns, command="flow")
+    common.init_backend(args.arch, args.precision)
+    estimator = DenseFlowEstimator(
+        tuple(args.grid),
+        levels=args.levels,
+        objective=args.objective,
+        references=args.references,
+        regularizers=regs,
+        blur_sigma=args.blur,
+        padding=args.padding,
+    )
+    with folder:
+        windows, info, truth = _estimate_into(args, estimator, folder, regs, io, CliError)
+        written = folder.commit()  # every file moved into place whole, now that the run is complete
+    out = Path(args.out)
+    label = f"example {args.example}" if args.example is not None else str(args.path)
+    print(
+        f"{len(windows)} window(s) of {label}: grid {args.grid[0]}x{args.grid[1]} cells, {args.levels} levels"
+    )
+    print(
+        f"  time: {info['seconds']:.2f} s in all, {info['mean_seconds_after_first']:.3f} s per window after "
+        "the first (which compiles the kernels)"
+    )
+    if "metrics" in info:
+        m = info["metrics"]
+        print(
+            f"  against the ground truth ({info['scored_windows']} window(s)): AEE {m['AEE']:.3f} px, "
+            f"3PE {m['3PE']:.2f}%, %Out {m.get('outlier', float('nan')):.2f}%"
+        )
+        if args.example is not None:
+            zero = _zero_flow_error(truth, windows[0])
+            print(f"  (zero flow: AEE {zero:.3f} px)")
+    elif args.example is None:
+        print("  no flow ground truth in this recording: no metrics")
+    flows = [p for p in written if p.parent == out / "flow"]
+    others = [p for p in written if p.parent != out / "flow"]
+    shown = [str(out / "flow" / f"flow_*.{args.flow_format}") + f" ({len(flows)} files)"] + [
+        str(p) for p in others
+    ]
+    print("wrote: " + ", ".join(shown))
+    sys.stdout.flush()
+    return 0
+
+
+def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: N803
+    """Estimate every window into the staging folder of ``folder``; ``(windows, summary, truth)``."""
+    from cmax_taichi.flow.sequence import iter_flow, summary
+    from cmax_taichi.io.writers import write_flow
+    from cmax_taichi.solve.sequence import ProgressBar
+
+    truth = None
+    source = None
+    if args.example is not None:
+        events, truth, preset = _open_example(args.example)
+        print(f"example {args.example!r}: {preset.description}")
+        print(f"  simulated: {len(events)} events over {preset.window * 1e3:.0f} ms (seed 0), one window")
+        total = 1
+        window_iter = iter_flow(
+            _OneWindow(events, truth), estimator, n_events=len(events), max_windows=1, dt=args.dt
+        )
+    else:
+        options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
+        source = io.open_recording(Path(args.path), format=args.format, **options)
+        estimator.camera = source.camera
+        total = None
+        if args.duration is None:
+            total = max(0, (source.n_events - args.window) // int(args.stride or args.window) + 1)
+        stride = None if args.stride is None else (args.stride if args.duration else int(args.stride))
+        window_iter = iter_flow(
+            source,
+            estimator,
+            n_events=args.window,
+            duration=args.duration,
+            stride=stride,
+            dt=args.dt,
+            max_windows=args.max_windows,
+            warm_start=not args.no_warm_start,
+        )
+    if args.max_windows is not None:
+        total = args.max_windows if total is None else min(total, args.max_windows)
+    bar = None if args.quiet else ProgressBar(total)
+    windows, stamps = [], []
+    try:
+        with folder.path("results.csv").open("w", newline="") as fcsv:
+            writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
+            writer.writeheader()
+            for window in window_iter:
+                res = window.result
+                meta = {
+                    "t_start": res.t_start,
+                    "t_end": res.t_start + window.dt,
+                    "unit": "px",
+                    "window": window.index,
+                }
+                write_flow(
+                    folder.path(f"flow/flow_{window.index:04d}.{args.flow_format}"),
+                    window.displacement,
+                    **meta,
+                )
+                stamps.append((res.t_start, res.t_start + window.dt))
+                if window.index < args.figures:
+                    _window_figure(folder.path(f"figures/window_{window.index:04d}.png"), window, estimator)
+                writer.writerow(_row(window))
+                window.events = None  # nothing of a window is kept but its summary
+                windows.append(window)
+                if bar is not None:
+                    note = f"J={res.value:.3f}"
+                    if window.metrics is not None:
+                        note += f" AEE={window.metrics['AEE']:.3f}px"
+                    bar.update(note)
+    finally:
+        if bar is not None:
+            bar.close()
+        if source is not None:
+            source.close()
+    if not windows:
+        raise CliError("no window to estimate (fewer events than --window?)")
+    folder.path("flow_timestamps.txt").write_text("".join(f"{a:.9f} {b:.9f}\n" for a, b in stamps))
+    info = summary(windows)
+    info["options"] = {
+        "grid": list(args.grid),
+        "levels": args.levels,
+        "objective": args.objective,
+        "references": args.references,
+        "regularizers": regs,
+        "blur": args.blur,
+        "padding": args.padding,
+    }
+    folder.path("summary.json").write_text(json.dumps(info, indent=2) + "\n")
+    return windows, info, truth
+
+
+class _OneWindow:
+    """A single window as a source for :func:`iter_flow`, with the example's ground truth."""
+
+    def __init__(self, events, truth) -> None:
+        self._events = events
+        self.flow = truth.flow
+        self.read_time = truth.read_time
+
+    def windows(self, n_events=None, duration=None, stride=None):
+        yield self._events
+
+
+def _zero_flow_error(truth, window) -> float:
+    import numpy as np
+
+    from cmax_taichi.metrics import event_mask, flow_error
+
+    t0, t1 = window.result.t_start, window.result.t_start + window.dt
+    gt = truth.flow(t0, t1)
+    return flow_error(np.zeros_like(gt), gt, event_mask(truth.read_time(t0, t1)))["AEE"]

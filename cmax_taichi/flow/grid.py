@@ -1,0 +1,205 @@
+"""The grid of a dense flow: nodes over the sensor, bilinear interpolation, coarse-to-fine refinement.
+
+A :class:`FlowGrid` of ``nx x ny`` cells spans the sensor: node ``(i, j)`` sits at
+``(i sx, j sy)`` px with ``sx = (W - 1) / nx``, ``sy = (H - 1) / ny``, so the corner nodes are the corner
+pixel centres. The flow between nodes is the bilinear interpolant of the four nodes of a cell
+(docs/FORMULAS.md, "Dense flow model"). Node values are arrays of shape ``(ny + 1, nx + 1, 2)`` (row
+``j``, column ``i``, x then y component), in px/s.
+
+Refining a grid halves its cells (``2 nx x 2 ny``); the refined grid holds the same interpolant
+exactly (:meth:`FlowGrid.prolong`), so a coarse-to-fine run starts each level where the last ended.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["FlowGrid", "grid_for_cell_size"]
+
+
+@dataclass(frozen=True)
+class FlowGrid:
+    """Nodes of a dense flow over a ``width x height`` sensor.
+
+    Parameters
+    ----------
+    width, height : int
+        Sensor size, px (at least 2 each).
+    nx, ny : int
+        Cells along x and y (at least 1 each); the grid has ``(nx + 1) (ny + 1)`` nodes.
+    """
+
+    width: int
+    height: int
+    nx: int
+    ny: int
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height", "nx", "ny"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise TypeError(f"FlowGrid {name} must be an integer, got {value!r}")
+            object.__setattr__(self, name, int(value))
+        if self.width < 2 or self.height < 2:
+            raise ValueError(f"a flow grid needs a sensor of at least 2x2 px, got {self.width}x{self.height}")
+        if self.nx < 1 or self.ny < 1:
+            raise ValueError(f"a flow grid needs at least 1x1 cells, got {self.nx}x{self.ny}")
+        if self.nx > self.width - 1 or self.ny > self.height - 1:
+            raise ValueError(
+                f"{self.nx}x{self.ny} cells are finer than the pixels of a {self.width}x{self.height} "
+                f"sensor (at most {self.width - 1}x{self.height - 1})"
+            )
+
+    # --- shape ---------------------------------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Shape of a node array: ``(ny + 1, nx + 1, 2)``."""
+        return (self.ny + 1, self.nx + 1, 2)
+
+    @property
+    def n_nodes(self) -> int:
+        return (self.nx + 1) * (self.ny + 1)
+
+    @property
+    def n_params(self) -> int:
+        """Parameters of a flow on this grid (two per node)."""
+        return 2 * self.n_nodes
+
+    @property
+    def spacing(self) -> tuple[float, float]:
+        """``(sx, sy)``: node spacing, px."""
+        return ((self.width - 1) / self.nx, (self.height - 1) / self.ny)
+
+    def node_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(X, Y)``, each ``(ny + 1, nx + 1)``: node positions, px."""
+        sx, sy = self.spacing
+        return np.meshgrid(np.arange(self.nx + 1) * sx, np.arange(self.ny + 1) * sy)
+
+    def check_nodes(self, nodes, name: str = "nodes") -> np.ndarray:
+        """``nodes`` as a float64 array of :attr:`shape` (a flat array of :attr:`n_params` values is
+        reshaped); ValueError naming ``name`` for another size or non-finite values."""
+        try:
+            arr = np.asarray(nodes, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(f"{name} must be an array of numbers of shape {self.shape}") from None
+        if arr.size != self.n_params:
+            raise ValueError(
+                f"{name} has {arr.size} values ({arr.shape}); a {self.nx}x{self.ny}-cell grid takes "
+                f"{self.n_params} (shape {self.shape})"
+            )
+        arr = arr.reshape(self.shape)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} has non-finite values")
+        return arr
+
+    # --- coarse to fine -------------------------------------------------------------------------------
+    def refined(self) -> FlowGrid:
+        """The grid with every cell split in four (``2 nx x 2 ny`` cells)."""
+        return FlowGrid(self.width, self.height, 2 * self.nx, 2 * self.ny)
+
+    def prolong(self, nodes) -> np.ndarray:
+        """The node values on :meth:`refined` that give exactly the same interpolant."""
+        U = self.check_nodes(nodes)
+        out = np.zeros((2 * self.ny + 1, 2 * self.nx + 1, 2))
+        out[::2, ::2] = U
+        out[::2, 1::2] = 0.5 * (U[:, :-1] + U[:, 1:])
+        out[1::2, ::2] = 0.5 * (U[:-1] + U[1:])
+        out[1::2, 1::2] = 0.25 * (U[:-1, :-1] + U[:-1, 1:] + U[1:, :-1] + U[1:, 1:])
+        return out
+
+    def pyramid(self, levels: int) -> list[FlowGrid]:
+        """The ``levels`` grids of a coarse-to-fine run ending at this one (coarsest first); ValueError
+        when the cells do not halve that often."""
+        if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
+            raise ValueError(f"levels must be an integer >= 1, got {levels!r}")
+        step = 2 ** (int(levels) - 1)
+        if self.nx % step or self.ny % step:
+            raise ValueError(
+                f"{levels} levels halve the cells {levels - 1} times: the finest grid's {self.nx}x{self.ny} "
+                f"cells must be multiples of {step} (e.g. grid=({step * max(1, self.nx // step)}, "
+                f"{step * max(1, self.ny // step)}))"
+            )
+        return [
+            FlowGrid(self.width, self.height, self.nx // 2**k, self.ny // 2**k)
+            for k in range(levels - 1, -1, -1)
+        ]
+
+    # --- interpolation --------------------------------------------------------------------------------
+    def _cells(self, x, y):
+        sx, sy = self.spacing
+        fx = np.asarray(x, dtype=np.float64) / sx
+        fy = np.asarray(y, dtype=np.float64) / sy
+        i = np.clip(np.floor(fx), 0, self.nx - 1).astype(np.int64)
+        j = np.clip(np.floor(fy), 0, self.ny - 1).astype(np.int64)
+        return i, j, fx - i, fy - j
+
+    def interpolate(self, nodes, x, y) -> np.ndarray:
+        """The flow at positions ``(x, y)`` (px), ``(2,) + x.shape``, in the units of ``nodes``."""
+        U = self.check_nodes(nodes)
+        i, j, a, b = self._cells(x, y)
+        return np.moveaxis(
+            (1 - a)[..., None] * (1 - b)[..., None] * U[j, i]
+            + a[..., None] * (1 - b)[..., None] * U[j, i + 1]
+            + (1 - a)[..., None] * b[..., None] * U[j + 1, i]
+            + a[..., None] * b[..., None] * U[j + 1, i + 1],
+            -1,
+            0,
+        )
+
+    def derivatives(self, nodes, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """``(du/dx, du/dy)`` of the interpolant at ``(x, y)``, each ``(2,) + x.shape`` (units of
+        ``nodes`` per px)."""
+        U = self.check_nodes(nodes)
+        i, j, a, b = self._cells(x, y)
+        sx, sy = self.spacing
+        a, b = a[..., None], b[..., None]
+        du_dx = ((1 - b) * (U[j, i + 1] - U[j, i]) + b * (U[j + 1, i + 1] - U[j + 1, i])) / sx
+        du_dy = ((1 - a) * (U[j + 1, i] - U[j, i]) + a * (U[j + 1, i + 1] - U[j, i + 1])) / sy
+        return np.moveaxis(du_dx, -1, 0), np.moveaxis(du_dy, -1, 0)
+
+    def dense(self, nodes) -> np.ndarray:
+        """The interpolant on every pixel centre: ``(2, H, W)``, units of ``nodes``."""
+        yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        return self.interpolate(nodes, xx, yy)
+
+    def fit(self, flow) -> np.ndarray:
+        """Node values whose interpolant is closest (least squares over the finite pixels) to a dense
+        ``(2, H, W)`` flow of this sensor: e.g. a previous window's flow on another grid."""
+        flow = np.asarray(flow, dtype=np.float64)
+        if flow.shape != (2, self.height, self.width):
+            raise ValueError(f"flow must have shape (2, {self.height}, {self.width}), got {flow.shape}")
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.linalg import lsqr
+
+        yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        ok = np.all(np.isfinite(flow), axis=0)
+        i, j, a, b = self._cells(xx[ok], yy[ok])
+        n = np.count_nonzero(ok)
+        stride = self.nx + 1
+        cols = np.concatenate(
+            [j * stride + i, j * stride + i + 1, (j + 1) * stride + i, (j + 1) * stride + i + 1]
+        )
+        vals = np.concatenate([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b])
+        rows = np.tile(np.arange(n), 4)
+        A = coo_matrix((vals, (rows, cols)), shape=(n, self.n_nodes)).tocsr()
+        out = np.zeros((self.n_nodes, 2))
+        for c in range(2):
+            if n:
+                # damp: nodes without a finite pixel nearby stay near 0 instead of being undetermined
+                out[:, c] = lsqr(A, flow[c][ok], damp=1e-6, atol=1e-12, btol=1e-12)[0]
+        return out.reshape(self.shape)
+
+
+def grid_for_cell_size(sensor_size: tuple[int, int], cell_px: float, levels: int = 1) -> FlowGrid:
+    """The grid whose cells are closest to ``cell_px`` px wide and high, with cell counts that halve
+    ``levels - 1`` times (multiples of ``2 ** (levels - 1)``)."""
+    W, H = (int(v) for v in sensor_size)
+    if not (isinstance(cell_px, (int, float)) and math.isfinite(cell_px) and cell_px > 0):
+        raise ValueError(f"cell size must be a positive number of px, got {cell_px!r}")
+    step = 2 ** (int(levels) - 1)
+    nx = max(step, step * round((W - 1) / cell_px / step))
+    ny = max(step, step * round((H - 1) / cell_px / step))
+    return FlowGrid(W, H, nx, ny)

@@ -1,0 +1,167 @@
+"""The coarse-to-fine dense flow solver (cmax_taichi/flow/solver.py), its sequences and its command:
+recovery of a spatially varying flow on a small simulated scene, determinism to the last bit, warm
+starts, the image pyramid, bad options, and ``cmax-taichi flow`` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import cmax_taichi as cm
+from cmax_taichi.flow import DenseFlowEstimator, FlowGrid, FlowResult, estimate_flow, iter_flow
+from cmax_taichi.flow.solver import auto_scales
+from cmax_taichi.metrics import event_mask, flow_error
+from cmax_taichi.testing.flow_scenes import depth_scene
+
+#: a small box-room scene: 3-7 px over the window, the flow varying by a factor 2 across the image
+SENSOR = (120, 90)
+REGS = {"deformation": 1.0, "curvature": 0.1}
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return depth_scene(SENSOR, duration=0.05, displacement=(4.0, 1.5), n_events=8000, seed=2)
+
+
+def _aee(result: FlowResult, scene) -> float:
+    return flow_error(result.displacement(), scene.displacement(), event_mask(scene.events))["AEE"]
+
+
+def test_recovers_a_varying_flow_and_beats_a_translation(f64, scene):
+    res = estimate_flow(scene.events, grid=(4, 4), levels=2, regularizers=REGS, references="middle")
+    assert res.grid == FlowGrid(*SENSOR, 4, 4)
+    assert res.nodes.shape == (5, 5, 2) and np.all(np.isfinite(res.nodes))
+    assert [lv.grid.nx for lv in res.levels] == [2, 4] and res.n_evaluations > 10
+    aee = _aee(res, scene)
+    truth = scene.displacement()
+    best_constant = np.nanmedian(truth.reshape(2, -1), axis=1)[:, None, None] * np.ones_like(truth)
+    constant = flow_error(best_constant, truth, event_mask(scene.events))["AEE"]
+    assert aee < 0.6 * constant and aee < 1.0, (aee, constant)
+    assert res.flow(layout="hwc").shape == (*SENSOR[::-1], 2)
+    np.testing.assert_allclose(res.displacement(), res.flow(res.duration))
+
+
+def test_deterministic_to_the_last_bit(f64, scene):
+    """The same window gives the same node values, bit for bit (the kernels add their per-thread partial
+    sums in a fixed order; L-BFGS-B is deterministic)."""
+    est = DenseFlowEstimator((4, 4), levels=2, regularizers=REGS)
+    a = est.estimate(scene.events)
+    b = est.estimate(scene.events)
+    c = DenseFlowEstimator((4, 4), levels=2, regularizers=REGS).estimate(scene.events)
+    assert np.array_equal(a.nodes, b.nodes) and np.array_equal(a.nodes, c.nodes)
+    assert a.value == b.value == c.value
+
+
+def test_warm_start_and_sequence(f64, scene):
+    est = DenseFlowEstimator((4, 4), levels=2, regularizers=REGS)
+    first = est.estimate(scene.events)
+    warm = est.estimate(scene.events, warm=first)
+    assert warm.init == "warm" and warm.n_evaluations < first.n_evaluations
+    assert warm.value >= first.value - 1e-3
+    windows = list(iter_flow(scene.events, est, n_events=4000, max_windows=2))
+    assert [w.index for w in windows] == [0, 1]
+    assert windows[0].result.init == "search" and windows[1].result.init == "warm"
+    assert windows[0].metrics is None  # Events carry no ground truth
+    assert windows[1].displacement.shape == (2, SENSOR[1], SENSOR[0])
+
+
+def test_levels_scales_and_options_are_checked(f64, scene):
+    assert auto_scales(4) == (4, 4, 2, 1) and auto_scales(1) == (1,)
+    with pytest.raises(ValueError, match="multiples of 4"):
+        DenseFlowEstimator((6, 6), levels=3).estimate(scene.events)
+    with pytest.raises(ValueError, match="scales must be 2"):
+        DenseFlowEstimator((4, 4), levels=2, scales=(1,))
+    with pytest.raises(ValueError, match="max_iter"):
+        DenseFlowEstimator((4, 4), levels=2, max_iter=(5, 0))
+    with pytest.raises(ValueError, match="init must be"):
+        DenseFlowEstimator((4, 4), levels=2).estimate(scene.events, init="best")
+    with pytest.raises(ValueError, match="takes 18"):
+        DenseFlowEstimator((4, 4), levels=2).estimate(scene.events, init=np.zeros(5))
+    with pytest.raises(ValueError, match="unknown reference"):
+        DenseFlowEstimator(references="start")
+
+
+def test_flow_command_end_to_end(tmp_path, f64, scene):
+    """``cmax-taichi flow`` on a recording written to disk: flow files readable back, the timestamps,
+    the table and the figure."""
+    from cmax_taichi.cli import main
+    from cmax_taichi.io.writers import read_flow_npz
+
+    ev = scene.events
+    path = tmp_path / "events.txt"
+    (tmp_path / "calib.txt").write_text(f"100 100 59.5 44.5\n{SENSOR[0]} {SENSOR[1]}\n")  # no distortion
+    with path.open("w") as f:
+        for t, x, y, p in zip(ev.t, ev.x, ev.y, ev.p, strict=True):
+            f.write(f"{t:.9f} {int(x)} {int(y)} {int(p > 0)}\n")
+    out = tmp_path / "out"
+    rc = main(
+        [
+            "flow", str(path), "--out", str(out), "--window", "4000", "--grid", "4", "4", "--levels", "2",
+            "--reg", "deformation=1", "--reg", "curvature=0.1", "--quiet", "--max-windows", "2",
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    files = sorted((out / "flow").glob("flow_*.npz"))
+    assert len(files) == 2
+    flow, meta = read_flow_npz(files[0])
+    assert flow.shape == (2, SENSOR[1], SENSOR[0]) and meta["unit"] == "px"
+    assert (out / "flow_timestamps.txt").read_text().count("\n") == 2
+    assert (out / "figures" / "window_0000.png").is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["windows"] == 2
+    assert summary["options"]["regularizers"] == {"deformation": 1.0, "curvature": 0.1}
+    assert main(["flow", str(path), "--reg", "smooth=1"]) == 2  # one clear error, no traceback
+    assert main(["flow", "--out", str(out)]) == 2
+
+
+def test_bad_windows_are_refused(f64):
+    with pytest.raises(TypeError, match="Events"):
+        DenseFlowEstimator().estimate(np.zeros(3))
+    ev = cm.Events([1.0, 2.0], [1.0, 2.0], [0.0, 0.0], [1, 1], (20, 20))
+    with pytest.raises(ValueError, match="zero time"):
+        DenseFlowEstimator((2, 2), levels=1).estimate(ev)
+
+
+def test_flow_example_prints_its_error_against_the_truth(tmp_path, f64, capsys):
+    """``cmax-taichi flow --example boxroom``: one window, scored against the exact flow and printed."""
+    from cmax_taichi.cli import main
+
+    out = tmp_path / "ex"
+    rc = main(
+        ["flow", "--example", "boxroom", "--grid", "4", "4", "--levels", "2", "--out", str(out), "--quiet"]
+    )
+    assert rc == 0
+    text = capsys.readouterr().out
+    aee = float(text.split("AEE ")[1].split(" px")[0])
+    zero = float(text.split("zero flow: AEE ")[1].split(" px")[0])
+    assert 0.0 < aee < 0.5 * zero  # a coarse grid, far better than no motion
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["metrics"]["AEE"] == pytest.approx(aee, abs=1e-3)
+    assert main(["flow", "--example", "nowhere", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_flow_files_are_scored_by_evaluate_as_by_flow(tmp_path, f64):
+    """``cmax-taichi flow`` on a simulated recording in MVSEC's files (``*_data.hdf5`` with its
+    ``*_gt_flow_dist.npz``), dt = 1 frame, then ``cmax-taichi evaluate`` on its flow files: the same AEE
+    per window as the one ``flow`` computed from the recording's ground truth."""
+    import csv
+
+    from cmax_taichi import sim as sm
+    from cmax_taichi.cli import main
+
+    rec = sm.simulate_depth("planes", duration=0.11, scale=0.25)
+    h5, _ = rec.write(tmp_path / "sim", "planes", frame_rate=40.0)
+    W, H = rec.sensor_size
+    size = ["--sensor-size", str(W), str(H)]
+    out = tmp_path / "flow"
+    args = ["flow", str(h5), *size, "--duration", "0.05", "--dt", "0.025", "--grid", "4", "4"]
+    args += ["--levels", "2", "--max-windows", "2"]
+    assert main([*args, "--out", str(out), "--quiet", "--figures", "0"]) == 0
+    with (out / "results.csv").open() as f:
+        own = [float(r["AEE"]) for r in csv.DictReader(f)]
+    assert len(own) == 2 and all(0.0 < a < 3.0 for a in own)
+    assert main(["evaluate", str(out / "flow"), "--data", str(h5), *size, "--out", str(tmp_path / "ev")]) == 0
+    rows = json.loads((tmp_path / "ev" / "metrics.json").read_text())["windows"]
+    assert [r["AEE"] for r in rows] == pytest.approx(own, abs=1e-3)
