@@ -6,7 +6,8 @@ backward) and the multi-cluster kernels (``clusters.py``).
 Blocks:
 
 * bilinear voting: :func:`in_window`, :func:`bilinear_footprint`, :func:`corner_in_image`,
-  :func:`corner_weights`;
+  :func:`corner_weights`, and the whole footprint, :func:`make_bilinear` (the autodiff chains' atomic
+  vote and the bilinear lookup);
 * Gaussian blur along one axis: :func:`make_tap_sum` (footprint unrolled with ``ti.static``);
 * support weight of the regularizer maps: :func:`support_weight`, :func:`support_weight_grad`;
 * objectives: per-pixel terms, finalize and adjoint of ``variance``, ``mean_square`` and
@@ -18,7 +19,8 @@ Literals such as ``0.0`` take Taichi's default float, which ``core/backend.py`` 
 working precision. Images are read through small ``read(src, c, y, x)`` functions of the caller, so
 one block serves the channel-first images of the chain, ``(C, H, W)``, and the channel-last ones of
 the fused kernel, ``(H, W, C)``. Blocks only read and return values: writes (atomic adds in
-differentiated kernels, plain stores in the fused kernel) stay with the caller. Formulas: docs/FORMULAS.md.
+differentiated kernels, plain stores in the fused kernel) stay with the caller, except the atomic
+vote of :func:`make_bilinear` that the autodiff chains share. Formulas: docs/FORMULAS.md.
 """
 
 import taichi as ti
@@ -60,6 +62,58 @@ def corner_weights(ax, ay, dx: ti.template(), dy: ti.template()):
     wx = ax if ti.static(dx == 1) else 1.0 - ax
     wy = ay if ti.static(dy == 1) else 1.0 - ay
     return wx, wy
+
+
+def make_bilinear(width: int, height: int):
+    """``(vote, vote_maps, sample)`` over the in-image corners of the footprint of a warped position
+    ``q`` (px); nothing happens for ``q`` outside ``(-1, W) x (-1, H)`` (or not finite).
+
+    * ``vote(img, c, q, b)``: ``img[c, y, x] += b wx wy`` (atomic adds: reverse-mode safe);
+    * ``vote_maps(count, numer, base, q, ab, vals, with_count)``: per corner ``w = ab wx wy``,
+      ``count[y, x] += w`` (``with_count``, static) and ``numer[base + r, y, x] += w vals[r]``: a
+      numerator's votes are the count's times the quantity, so a quantity of exactly 1 gives a map of
+      exactly 1 (the penalties' kinks sit there);
+    * ``sample(img, c, q)``: the bilinear interpolation of ``img[c]`` (0 outside the image).
+    """
+    W, H = width, height
+
+    @ti.func
+    def vote(img: ti.template(), c, q, b):
+        if in_window(q, W, H):
+            ix, iy, ax, ay = bilinear_footprint(q)
+            for dy in ti.static(range(2)):
+                for dx in ti.static(range(2)):
+                    if corner_in_image(ix, iy, dx, dy, W, H):
+                        wx, wy = corner_weights(ax, ay, dx, dy)
+                        img[c, iy + dy, ix + dx] += b * wx * wy
+
+    @ti.func
+    def vote_maps(count: ti.template(), numer: ti.template(), base, q, ab, vals, with_count: ti.template()):
+        if in_window(q, W, H):
+            ix, iy, ax, ay = bilinear_footprint(q)
+            for dy in ti.static(range(2)):
+                for dx in ti.static(range(2)):
+                    if corner_in_image(ix, iy, dx, dy, W, H):
+                        wx, wy = corner_weights(ax, ay, dx, dy)
+                        w = ab * wx * wy
+                        if ti.static(with_count):
+                            count[iy + dy, ix + dx] += w
+                        for r in ti.static(range(vals.n)):
+                            numer[base + r, iy + dy, ix + dx] += w * vals[r]
+
+    @ti.func
+    def sample(img: ti.template(), c, q):
+        v = 0.0
+        if in_window(q, W, H):
+            ix, iy, ax, ay = bilinear_footprint(q)
+            for dy in ti.static(range(2)):
+                for dx in ti.static(range(2)):
+                    if corner_in_image(ix, iy, dx, dy, W, H):
+                        wx, wy = corner_weights(ax, ay, dx, dy)
+                        v += wx * wy * img[c, iy + dy, ix + dx]
+        return v
+
+    return vote, vote_maps, sample
 
 
 # --- Gaussian blur ----------------------------------------------------------------------------------

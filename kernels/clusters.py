@@ -18,12 +18,14 @@ its membership weight ``P[i, j]`` at its position warped by cluster j's paramete
 The per-cluster warp functions, quantities and parameter offsets are static: one compiled kernel per
 combination of warp models (different clusters may use different models). The K clusters, the four
 bilinear taps and the blur taps are unrolled with ``ti.static``; image writes are atomic adds; no
-field is written after it is read. Formulas: docs/SEGMENTATION.md.
+field is written after it is read. A forward-only pass marks the segments any cluster's votes touch
+(``tiles.py``); the blurs and reductions run over them. Formulas: docs/SEGMENTATION.md.
 """
 
 import taichi as ti
 
 from . import blocks as _b
+from . import tiles as _t
 
 
 def make_cluster_splat_kernel(
@@ -50,11 +52,13 @@ def make_cluster_splat_kernel(
 
     Memberships are >= 0, so the maps' count image ``C_j = sum_i |P_ij| beta`` equals the unblurred
     ``vote[j]``: pass ``vote`` as ``count`` to the maps reduce. Signature:
-    ``splat(n, ex, ey, edt, pw, th, ctx, vote, numer)``.
+    ``splat(n, ex, ey, edt, pw, th, ctx, vote, numer)``; :func:`make_cluster_mark_kernel` marks the
+    segments its votes touch.
     """
     K = len(warp_fns)
     n_r = len(quantity_fns[0]) if K else 0
     W, H = width, height
+    vote_at, vote_maps, _ = _b.make_bilinear(W, H)
 
     @ti.kernel
     def splat(
@@ -79,41 +83,77 @@ def make_cluster_splat_kernel(
                 if b != 0.0:
                     theta = ti.Vector([thv[offsets[j] + a] for a in ti.static(range(n_params[j]))])
                     q = warp_fns[j](p, dt, theta, c)
-                    if _b.in_window(q, W, H):
-                        ix, iy, ax, ay = _b.bilinear_footprint(q)
-                        for dy in ti.static(range(2)):
-                            for dx in ti.static(range(2)):
-                                if _b.corner_in_image(ix, iy, dx, dy, W, H):
-                                    wx, wy = _b.corner_weights(ax, ay, dx, dy)
-                                    vote[j, iy + dy, ix + dx] += b * wx * wy
-                        for r in ti.static(range(n_r)):
-                            val = quantity_fns[j][r](p, dt, theta, c)
-                            for dy in ti.static(range(2)):
-                                for dx in ti.static(range(2)):
-                                    if _b.corner_in_image(ix, iy, dx, dy, W, H):
-                                        wx, wy = _b.corner_weights(ax, ay, dx, dy)
-                                        numer[j * n_r + r, iy + dy, ix + dx] += b * wx * wy * val
+                    vote_at(vote, j, q, b)
+                    if ti.static(n_r > 0):
+                        vals = ti.Vector([quantity_fns[j][r](p, dt, theta, c) for r in ti.static(range(n_r))])
+                        vote_maps(vote, numer, j * n_r, q, b, vals, False)
 
     return splat
 
 
+def make_cluster_mark_kernel(warp_fns: tuple, offsets: tuple, n_params: tuple, *, width: int, height: int):
+    """Forward only: mark in ``tiles`` the footprints that :func:`make_cluster_splat_kernel` votes (every
+    cluster with a non-zero membership). Signature ``mark(n, ex, ey, edt, pw, th, ctx, tiles)``."""
+    K = len(warp_fns)
+    mark = _t.make_mark_position(width, height)
+
+    @ti.kernel
+    def mark_events(
+        n: ti.i32,
+        ex: ti.template(),
+        ey: ti.template(),
+        edt: ti.template(),
+        pw: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        tiles: ti.template(),
+    ):
+        for i in range(n):
+            p = ti.Vector([ex[i], ey[i]])
+            c = ctx[None]
+            thv = th[None]
+            for j in ti.static(range(K)):
+                if pw[i, j] != 0.0:
+                    theta = ti.Vector([thv[offsets[j] + a] for a in ti.static(range(n_params[j]))])
+                    mark(tiles, warp_fns[j](p, edt[i], theta, c))
+
+    return mark_events
+
+
 def make_cluster_maps_reduce(penalty_fns: tuple, n_clusters: int, width: int, height: int):
     """Per cluster j: ``macc[j (1 + n_r)] += m``, ``macc[j (1 + n_r) + 1 + r] += m P_r(N_jr / C_j)`` with
-    the soft support ``m = C_j / (C_j + kappa)`` (``maps.py`` per cluster)."""
+    the soft support ``m = C_j / (C_j + kappa)`` (``maps.py`` per cluster), over the touched pixels (list
+    0 of ``tiles``) through the per-segment partial sums ``part[k, .]`` (zero before), added in list
+    order. Signature: ``reduce(count, numer, macc, tiles, part)``."""
     n_r = len(penalty_fns)
     K = n_clusters
     S = 1 + n_r
+    entry = _t.make_entry(width)
 
     @ti.kernel
-    def reduce(count: ti.template(), numer: ti.template(), macc: ti.template()):
-        for y, x in ti.ndrange(height, width):
-            for j in ti.static(range(K)):
-                cnt = count[j, y, x]
-                if cnt > 0.0:
-                    m = _b.support_weight(cnt)
-                    macc[None][j * S] += m
-                    for r in ti.static(range(n_r)):
-                        macc[None][j * S + 1 + r] += m * penalty_fns[r](numer[j * n_r + r, y, x] / cnt)
+    def reduce(
+        count: ti.template(),
+        numer: ti.template(),
+        macc: ti.template(),
+        tiles: ti.template(),
+        part: ti.template(),
+    ):
+        for k in range(tiles.count[0]):
+            y, x0 = entry(tiles, 0, k)
+            for p in ti.static(range(_t.SEG)):
+                x = x0 + p
+                if x < width:
+                    for j in ti.static(range(K)):
+                        cnt = count[j, y, x]
+                        if cnt > 0.0:
+                            m = _b.support_weight(cnt)
+                            part[k, j * S] += m
+                            for r in ti.static(range(n_r)):
+                                part[k, j * S + 1 + r] += m * penalty_fns[r](numer[j * n_r + r, y, x] / cnt)
+        ti.loop_config(serialize=True)  # the partial sums in list order
+        for k in range(tiles.count[0]):
+            for i in ti.static(range(K * S)):
+                macc[None][i] += part[k, i]
 
     return reduce
 
@@ -166,6 +206,7 @@ def make_cluster_lookup_kernel(warp_fns: tuple, offsets: tuple, n_params: tuple,
     """
     K = len(warp_fns)
     W, H = width, height
+    _, _, sample = _b.make_bilinear(W, H)
 
     @ti.kernel
     def lookup(
@@ -189,50 +230,6 @@ def make_cluster_lookup_kernel(warp_fns: tuple, offsets: tuple, n_params: tuple,
                 q = warp_fns[j](p, dt, theta, c)
                 pos[i, j, 0] = q[0]
                 pos[i, j, 1] = q[1]
-                v = 0.0
-                if _b.in_window(q, W, H):
-                    ix, iy, ax, ay = _b.bilinear_footprint(q)
-                    for dy in ti.static(range(2)):
-                        for dx in ti.static(range(2)):
-                            if _b.corner_in_image(ix, iy, dx, dy, W, H):
-                                wx, wy = _b.corner_weights(ax, ay, dx, dy)
-                                v += wx * wy * img[j, iy + dy, ix + dx]
-                out[i, j] = v
+                out[i, j] = sample(img, j, q)
 
     return lookup
-
-
-def make_cluster_zero_kernel(n_clusters: int, n_regs: int, blur: bool, width: int, height: int, sizes: tuple):
-    """Zero every buffer of one evaluation in one launch (instead of one ``fill`` per field).
-
-    ``zero(vote, tmp, img, numer, acc, macc, loss)``: the (K, H, W) images (``tmp`` and ``img`` only with
-    ``blur``), the (K * n_regs, H, W) numerators and the 0-D accumulators, whose lengths are ``sizes``
-    (``acc``, ``macc``). Called on the fields or on their ``.grad``.
-    """
-    K, n_r = n_clusters, n_regs
-    n_acc, n_macc = sizes
-
-    @ti.kernel
-    def zero(
-        vote: ti.template(),
-        tmp: ti.template(),
-        img: ti.template(),
-        numer: ti.template(),
-        acc: ti.template(),
-        macc: ti.template(),
-        loss: ti.template(),
-    ):
-        for s in ti.static(range(n_acc)):
-            acc[None][s] = 0.0
-        for s in ti.static(range(n_macc)):
-            macc[None][s] = 0.0
-        loss[None] = 0.0
-        for c, y, x in ti.ndrange(K, height, width):
-            vote[c, y, x] = 0.0
-            if ti.static(blur):
-                tmp[c, y, x] = 0.0
-                img[c, y, x] = 0.0
-            for r in ti.static(range(n_r)):
-                numer[c * n_r + r, y, x] = 0.0
-
-    return zero

@@ -10,29 +10,44 @@ top-level loops of a kernel one after the other, each in parallel):
 1. serial: theta and the window's constants (``params``, :func:`params_layout`) into 0-D fields,
    reductions cleared;
 2. splat: each event is warped and votes bilinearly into the IWE channels, the count ``C`` and the
-   map numerators ``N_r`` of ``acc[s, y, x, k]``. On the CPU the events are split into one chunk per
-   thread ``s``, each voting with plain loads and stores into its own slice ``s``; on a GPU one
-   slice takes atomic adds. Without weights and per-polarity channels the IWE votes equal the count
-   votes, and one channel serves both;
-3. rows: sum the slices, blur along x, reduce the maps (``sum m``, ``sum m P_r``) into 0-D scalars;
-4. rows: blur along y into ``img``, reduce the objective's per-pixel terms (in a Sobel pass for an
+   map numerators ``N_r`` of ``acc[s, y, x, k]``, and marks the segments it touches (``tiles.py``).
+   On the CPU the events are split into one chunk per thread ``s``, each voting with plain loads and
+   stores into its own slice ``s``; on a GPU one slice takes atomic adds. Without weights and
+   per-polarity channels the IWE votes equal the count votes, and one channel serves both;
+3. rows: the touched segments ``F0`` of the row and their x-dilations; at the touched pixels, sum the
+   slices and reduce the maps (``sum m``, ``sum m P_r``) into the row's partial sums;
+4. rows: the regions of the row (``F0`` dilated by each pass's footprint); clear what the previous
+   call left in ``tmp`` / ``img`` outside the new regions; blur along x into ``tmp`` over ``Rx``
+   (``F0`` and ``r`` columns);
+5. rows: blur along y into ``img`` over ``Rxy`` (``Rx`` and ``r`` rows), the objective's per-pixel
+   terms into the row's partial sums (in a Sobel pass over ``Rs``, one more pixel around ``Rxy``, for an
    objective that reads the Sobel responses);
-5. serial: J;
-6. rows (``grad``): the pixel adjoint dJ/dI (affine in the image or in its transposed Sobel, as the
-   objective declares), transposed blurs (the Gaussian is symmetric, so its
-   transpose with zero padding is the same correlation), and the map adjoints dJ/dC, dJ/dN_r, into
-   ``adj`` (same channel layout as ``acc``);
-7. events (``grad``): dJ/dtheta as a *gather*:
+6. serial: the partial sums in row order (a fixed order: the same input gives the same J to the last
+   bit), the untouched pixels' terms in closed form (``pixel(0, 0, 0)`` times their number: their
+   image and Sobel responses are 0), J;
+7. rows (``grad``): the pixel adjoint dJ/dI (affine in the image or in its transposed Sobel, as the
+   objective declares) and its transposed blurs (the Gaussian is symmetric, so its transpose with
+   zero padding is the same correlation): along y over ``Rx``, along x over ``F0``, with the map
+   adjoints dJ/dC, dJ/dN_r, into ``adj`` (same channel layout as ``acc``) at the touched pixels, the
+   only ones the gather reads (the adjoint's uniform ``offset`` term included);
+8. events (``grad``): dJ/dtheta as a *gather*:
    ``dJ/dtheta = sum_k sum_corners d/dtheta [beta_k (b_k adj_ch + |b_k| adj_C + |b_k| sum_r q_rk adj_r)]``
    with ``adj`` held fixed, using the closed-form parameter Jacobians each model declares
-   (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop);
-8. serial: ``out = (J, G_raw, dJ/dtheta, J with G0 = G_raw)`` (the last: at the identity, the
+   (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop); on the CPU
+   each slice's sum goes into its own field, added in slice order;
+9. serial: ``out = (J, G_raw, dJ/dtheta, J with G0 = G_raw)`` (the last: at the identity, the
    normalised J of every later evaluation there).
 
-Each accumulation buffer is cleared by the pass that consumes it: no call launches a fill, and
-nothing is allocated per call. Warps without closed-form parameter Jacobians (user models) take the
-generic chain of ``problem.py``: Taichi 1.7.4's compiler crashed on the reverse pass of an autodiff
-stand-in for step 7 inside this kernel layout.
+The image passes are row loops over the set bits of the row's region words: their work follows the
+pixels the events reach, not ``W x H``. ``acc`` is cleared by the passes that consume it at the touched
+pixels; ``tmp`` and ``img`` are zero outside the regions the last call wrote (stage 4 clears what the
+call before left outside the new regions), so that every read outside a region reads 0; ``sobel``,
+``ibar`` and ``adj`` are read only inside the regions written in the same call. No call launches a
+fill, and nothing is allocated per call.
+
+Warps without closed-form parameter Jacobians (user models) take the generic chain of ``problem.py``:
+Taichi 1.7.4's compiler crashed on the reverse pass of an autodiff stand-in for step 8 inside this
+kernel layout.
 
 The formulas (bilinear weights, blur taps, support weight, objectives, loss) are the blocks of
 ``blocks.py`` shared with the generic chain; nothing here branches on an objective's name.
@@ -42,6 +57,7 @@ Formulas: docs/FORMULAS.md; derivatives of the map penalties: ``maps.py``.
 import taichi as ti
 
 from . import blocks as _b
+from . import tiles as _t
 
 MAX_PARAMS = 8  # theta's slots in ``params``
 
@@ -63,6 +79,18 @@ def channel_layout(n_channels: int, n_regs: int, n_voted: int, shared_count: boo
         return -1, -1, n_channels
     i_count = 0 if shared_count else n_channels
     return i_count, i_count + 1, i_count + 1 + n_voted
+
+
+def _planes(builder, real, outer: tuple, height: int, width: int, channels: int):
+    """A ``(*outer, H, W, channels)`` field stored as row-major ``H x W`` planes, one per channel (and
+    outer index): the pixels of a segment (``tiles.SEG`` of one row) are contiguous in every channel, so
+    a segment's blur taps are vector loads."""
+    field = ti.field(real)
+    n = len(outer)
+    builder.dense(ti.axes(*range(n), n + 2), outer + (channels,)).dense(
+        ti.axes(n, n + 1), (height, width)
+    ).place(field)
+    return field
 
 
 class FusedFields:
@@ -104,12 +132,23 @@ class FusedFields:
     ) -> None:
         W, H, C = width, height, n_channels
         self.n_acc = channel_layout(C, n_regs, n_voted, shared_count)[2]
-        self.acc = ti.field(real, shape=(n_slices, H, W, self.n_acc))  # votes; zero between calls
-        self.tmp = ti.field(real, shape=(H, W, C))  # blur-x output; then the blur-y adjoint
-        self.img = ti.field(real, shape=(H, W, C))  # the blurred IWE
-        self.adj = ti.field(real, shape=(H, W, self.n_acc))  # adjoints of the acc channels
-        self.sobel = ti.field(real, shape=(H, W, 2 * C) if sobel else (1, 1, 1))
-        self.ibar = ti.field(real, shape=(H, W, C) if sobel else (1, 1, 1))
+        images = ti.FieldsBuilder()
+        self.acc = _planes(images, real, (n_slices,), H, W, self.n_acc)  # votes; zero between calls
+        self.tmp = _planes(images, real, (), H, W, C)  # blur-x output
+        self.tmp2 = _planes(images, real, (), H, W, C)  # the blur-y adjoint
+        self.img = _planes(images, real, (), H, W, C)  # the blurred IWE
+        self.adj = _planes(images, real, (), H, W, self.n_acc)  # adjoints of the acc channels
+        self.sobel = _planes(images, real, (), H, W, 2 * C) if sobel else ti.field(real, shape=(1, 1, 1))
+        self.ibar = _planes(images, real, (), H, W, C) if sobel else ti.field(real, shape=(1, 1, 1))
+        self.images_tree = images.finalize()
+        # the regions of the image passes (tiles.py): F0, Rx (blur x), Rxy (blur y), Rs (Sobel);
+        # tmp (written over Rx) and img (over Rxy) keep the previous call's regions for stage 4's clears
+        kx = _t.reach(radius)
+        regions = [(0, 0), (kx, 0), (kx, radius)] + ([(kx + 1, radius + 1)] if sobel else [])
+        self.tiles = _t.TileFields(W, H, regions, history=(1, 2))
+        # per-row partial sums (summed in row order: a fixed order whatever the threads do)
+        self.part_obj = ti.field(real, shape=(H, objective_slots * C))
+        self.part_map = ti.field(real, shape=(H, 1 + n_voted))
         self.taps = ti.field(real, shape=2 * radius + 1)
         self.ctx = ti.Vector.field(5, real, shape=())
         self.lam = ti.Vector.field(max(2 * n_regs, 1), real, shape=())  # lambda_r, then scales s_r
@@ -122,9 +161,11 @@ class FusedFields:
         # writes 4 bytes too low, over its neighbour (it zeroed lambda's s_r; taichi-dev/taichi#8803,
         # docs/GPU.md). Alone in their tree, every f64 sits at a multiple of 8.
         self.gsum = [ti.field(ti.f64) for _ in range(n_params)]
+        self.gpart = ti.field(ti.f64)  # per-slice dJ/dtheta sums of the gather (added in slice order)
         f64_tree = ti.FieldsBuilder()
         for g in self.gsum:
             f64_tree.place(g)
+        f64_tree.dense(ti.ij, (n_slices, n_params)).place(self.gpart)
         self.f64_tree = f64_tree.finalize()
         # theta as a 0-D vector: Taichi keeps its loads outside the event loop (not so for 0-D scalars,
         # whose loads it moves into the loop, where they block hoisting the trigonometry)
@@ -136,19 +177,14 @@ class FusedFields:
 
     def nbytes(self) -> int:
         """Bytes held by the image fields."""
-        total = 0
-        for f in (self.acc, self.tmp, self.img, self.adj, self.sobel, self.ibar):
+        total = self.tiles.nbytes()
+        images = (self.acc, self.tmp, self.tmp2, self.img, self.adj, self.sobel, self.ibar)
+        for f in images + (self.part_obj, self.part_map):
             size = 1
             for s in f.shape:
                 size *= s
             total += size * (4 if f.dtype == ti.f32 else 8)
         return total
-
-
-@ti.func
-def _read_slice0(src: ti.template(), c, y, x):
-    """Pixel of slice 0 of the ``(S, H, W, K)`` vote field."""
-    return src[0, y, x, c]
 
 
 @ti.func
@@ -246,15 +282,9 @@ def make_fused_kernels(
         raise ValueError("a voted 'absdet' quantity needs the model's det (det_fn)")
     if warp_terms is None:
         warp_terms = _composed_warp_terms(warp_fn, det_fn, param_jac)
-    # CPU: images of fewer than 512 rows are reduced in one band, in row order, so that J and its
-    # reductions are the same from run to run (Taichi's default CPU scheduling ran them serially too);
-    # taller images in bands of about H / (2 threads) rows, a power of two; a GPU keeps its default
-    if atomic_scatter:
-        row_block = None
-    elif height < 512:
-        row_block = 1 << (height - 1).bit_length()  # a power of two >= H: one band
-    else:
-        row_block = 1 << max(0, (height // (2 * n_slices)).bit_length() - 1)
+    # row passes: a few rows per task on the CPU (their partial sums are per row, so the threads'
+    # scheduling cannot change J); a GPU keeps its default
+    row_block = None if atomic_scatter else 4
     vpos = tuple(voted.index(r) if r in voted else -1 for r in range(R))  # regularizer -> voted slot
     RV = len(voted)
     f = fields
@@ -270,11 +300,15 @@ def make_fused_kernels(
     out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
     lay = params_layout(R)
     p_theta, p_ctx, p_g0, p_lam, n_lam = lay["theta"], lay["ctx"], lay["g0"], lay["lam"], lay["n_lam"]
-    tap_x_votes = _b.make_tap_sum(_read_slice0, r_, 1, W, H)
-    tap_x = _b.make_tap_sum(_b.read_hwc, r_, 1, W, H)
-    tap_y = _b.make_tap_sum(_b.read_hwc, r_, 0, W, H)
     sobel_fn = _b.make_sobel(_b.read_hwc, W, H)
     sobel_t = _b.make_sobel_transpose(_read_gx, _read_gy, W, H)
+    tf = f.tiles
+    tiles = _t.ops_for(tf)
+    masks = tf.masks
+    SEG, NW = _t.SEG, tf.n_words
+    in_image = tiles.in_image  # a column of a segment is in the image
+    F0, RX, RXY = 0, 1, 2
+    R_OBJ = 3 if sobel else RXY  # the region of the objective's pixel terms
 
     @ti.func
     def theta_vec():
@@ -332,6 +366,7 @@ def make_fused_kernels(
         vals = quantities(p, dt, theta, c, terms[1])
         if _b.in_window(q, W, H):
             ix, iy, ax, ay = _b.bilinear_footprint(q)
+            tiles.mark(tf, ix, iy)
             ab = ti.abs(b)
             for dy in ti.static(range(2)):
                 for dx in ti.static(range(2)):
@@ -397,36 +432,48 @@ def make_fused_kernels(
                 g[j] = ti.cast(gj, ti.f64)
         return g
 
-    @ti.func
-    def blur_x_row(src: ti.template(), votes: ti.template(), dst: ti.template(), y, c: ti.template()):
-        """dst[y, x, c] = sum_k taps_k src[(0,) y, x + k, c] (``votes``: slice 0 of the vote field),
-        zero padding; no bounds checks in the interior (unrolled taps)."""
-        for x in range(W):
-            acc = 0.0
-            if x >= r_ and x < W - r_:
-                if ti.static(votes):
-                    acc = tap_x_votes(src, f.taps, c, y, x, False)
-                else:
-                    acc = tap_x(src, f.taps, c, y, x, False)
-            else:
-                if ti.static(votes):
-                    acc = tap_x_votes(src, f.taps, c, y, x, True)
-                else:
-                    acc = tap_x(src, f.taps, c, y, x, True)
-            dst[y, x, c] = acc
+    seg = _t.SegmentPasses(W, H, r_)  # blurs, stores and clears of one segment
+    load_taps, blur_x_segment, blur_y_segment = seg.load_taps, seg.blur_x, seg.blur_y
+    store_segment, clear_segment, twice_taps = seg.store, seg.clear, seg.twice_taps
 
     @ti.func
-    def blur_y_at(src: ti.template(), c: ti.template(), y, x, interior):
-        """sum_k taps_k src[y + k, x, c], zero padding (``interior``: no bounds checks needed)."""
-        acc = 0.0
-        if ti.static(r_ > 0):
-            if interior:
-                acc = tap_y(src, f.taps, c, y, x, False)
-            else:
-                acc = tap_y(src, f.taps, c, y, x, True)
+    def twice_blur_y_segment(wide, c: ti.template(), y, x0):
+        return seg.twice_blur_y(f.tmp, wide, c, y, x0)
+
+    @ti.func
+    def keep_image(grad):
+        """Whether this call keeps the blurred IWE in ``img``: for a Sobel objective (its pass reads it)
+        or when asked (bit 2 of ``grad``, ``FusedPipeline.image``)."""
+        keep = True
+        if ti.static(not sobel):
+            keep = grad & 2 != 0
+        return keep
+
+    @ti.func
+    def map_adjoints(y, x, msum):
+        """dJ/dC and dJ/dN_r at pixel ``(y, x)`` into ``adj``; the maps' votes cleared."""
+        cnt = f.acc[0, y, x, i_cnt]
+        dc = 0.0
+        for v in ti.static(range(RV)):
+            f.adj[y, x, i_num + v] = 0.0
+        if cnt > 0.0 and msum > 0.0:
+            m = _b.support_weight(cnt)
+            dm = _b.support_weight_grad(cnt)
+            for v in ti.static(range(RV)):
+                wr = f.rw[voted[v]]
+                avg = f.acc[0, y, x, i_num + v] / cnt
+                pen = penalty_fns[voted[v]](avg)
+                dpen = penalty_grads[voted[v]](avg)
+                ratio = red[i_m + 1 + v][None] / msum
+                # d(sum m P / sum m)/dC = (dm P + m P' d(avg)/dC - ratio dm) / sum m
+                dc -= wr * (dm * pen - m * dpen * avg / cnt - ratio * dm) / msum
+                f.adj[y, x, i_num + v] = -wr * m * dpen / (cnt * msum)
+        if ti.static(shared_count):
+            f.adj[y, x, i_cnt] += dc
         else:
-            acc = src[y, x, c]
-        return acc
+            f.adj[y, x, i_cnt] = dc
+        for k in ti.static(range(i_cnt, K)):
+            f.acc[0, y, x, k] = 0.0
 
     @ti.kernel
     def run(
@@ -447,6 +494,7 @@ def make_fused_kernels(
         f.g0[None] = ti.cast(params[p_g0], real)
         for j in ti.static(range(len(red))):
             red[j][None] = 0.0
+        tf.pixels[R_OBJ] = 0
         # --- 2. splat ----------------------------------------------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):
@@ -459,78 +507,134 @@ def make_fused_kernels(
                 c = f.ctx[None]
                 for i in range(lo, hi):
                     splat_event(s, ev[i], theta, c)
-        # --- 3. rows: sum the slices, blur along x, reduce the maps -------------------------------------
-        ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
+        # --- 3. rows (each row by itself): F0 and its x-dilations; at the touched pixels the slice sums
+        #        and the map reductions; tmp: what the previous call left outside Rx cleared, blur along x
+        ti.loop_config(block_dim=row_block)
         for y in range(H):
-            if ti.static(S > 1):
-                for x in range(W):
-                    for k in ti.static(range(K)):
-                        v = f.acc[0, y, x, k]
-                        for s in ti.static(range(1, S)):
-                            v += f.acc[s, y, x, k]
-                            f.acc[s, y, x, k] = 0.0
-                        f.acc[0, y, x, k] = v
-            for c in ti.static(range(C)):
-                if ti.static(r_ > 0):
-                    blur_x_row(f.acc, True, f.tmp, y, c)
-                else:
-                    for x in range(W):
-                        f.tmp[y, x, c] = f.acc[0, y, x, c]
+            tiles.build_x(tf, y)
             msum = 0.0
             psum = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
-            for x in range(W):
-                if ti.static(R > 0):
-                    cnt = f.acc[0, y, x, i_cnt]
-                    if cnt > 0.0:
-                        m = _b.support_weight(cnt)
-                        msum += m
-                        for v in ti.static(range(RV)):
-                            psum[v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
-                    if grad == 0:  # else the backward reads the maps and clears them
-                        for k in ti.static(range(i_cnt, K)):
-                            f.acc[0, y, x, k] = 0.0
-                for c in ti.static(range(C)):
-                    if ti.static(shared_count and c == i_cnt):
-                        if grad == 0:
-                            f.acc[0, y, x, c] = 0.0
-                    else:
-                        f.acc[0, y, x, c] = 0.0
-            if ti.static(R > 0):
-                red[i_m][None] += msum
-                for v in ti.static(range(RV)):
-                    red[i_m + 1 + v][None] += psum[v]
-        # --- 4. rows: blur along y, reduce the objective --------------------------------------------------
-        ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
+            for j in range(NW):
+                w = masks[F0, y, j]
+                while w != ti.u32(0):
+                    x0 = _t.first_pixel(j, w)
+                    w = _t.drop_lowest(w)
+                    for p in ti.static(range(SEG)):
+                        x = x0 + p
+                        if in_image(x):
+                            if ti.static(S > 1):
+                                for k in ti.static(range(K)):
+                                    v = f.acc[0, y, x, k]
+                                    for s in ti.static(range(1, S)):
+                                        v += f.acc[s, y, x, k]
+                                        f.acc[s, y, x, k] = 0.0
+                                    f.acc[0, y, x, k] = v
+                            if ti.static(R > 0):
+                                cnt = f.acc[0, y, x, i_cnt]
+                                if cnt > 0.0:
+                                    m = _b.support_weight(cnt)
+                                    msum += m
+                                    for v in ti.static(range(RV)):
+                                        psum[v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
+            f.part_map[y, 0] = msum
+            for v in ti.static(range(RV)):
+                f.part_map[y, 1 + v] = psum[v]
+            tv = load_taps(f.taps)
+            for j in range(NW):
+                w = tiles.stale(tf, 0, y, j)  # tmp: in the previous call's Rx, not in this one's
+                while w != ti.u32(0):
+                    clear_segment(f.tmp, y, _t.first_pixel(j, w))
+                    w = _t.drop_lowest(w)
+                w = masks[RX, y, j]
+                while w != ti.u32(0):
+                    x0 = _t.first_pixel(j, w)
+                    w = _t.drop_lowest(w)
+                    for c in ti.static(range(C)):
+                        store_segment(f.tmp, c, y, x0, blur_x_segment(f.acc, True, c, y, x0, tv))
+        # --- 4. rows: Rxy (and Rs); blur along y over Rxy, the objective's terms; the votes cleared --------
+        ti.loop_config(block_dim=row_block)
         for y in range(H):
+            tiles.build_y(tf, y)
+            keep = keep_image(grad)
+            if keep:
+                for j in range(NW):
+                    w = tiles.stale(tf, 1, y, j)  # img: in the previous kept image's Rxy, not in this one's
+                    while w != ti.u32(0):
+                        clear_segment(f.img, y, _t.first_pixel(j, w))
+                        w = _t.drop_lowest(w)
             rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-            interior = y >= r_ and y < H - r_
-            for x in range(W):
-                for c in ti.static(range(C)):
-                    v = blur_y_at(f.tmp, c, y, x, interior)
-                    f.img[y, x, c] = v
-                    if ti.static(not sobel):
-                        terms = pixel_fn(v, 0.0, 0.0)
-                        for k in ti.static(range(SL)):
-                            rsum[SL * c + k] += terms[k]
+            tv = load_taps(f.taps)
+            for j in range(NW):
+                w = masks[RXY, y, j]
+                while w != ti.u32(0):
+                    x0 = _t.first_pixel(j, w)
+                    w = _t.drop_lowest(w)
+                    for c in ti.static(range(C)):
+                        v = blur_y_segment(f.tmp, c, y, x0, tv)
+                        if keep:
+                            store_segment(f.img, c, y, x0, v)
+                        if ti.static(not sobel):
+                            for p in ti.static(range(SEG)):
+                                if in_image(x0 + p):
+                                    terms = pixel_fn(v[p], 0.0, 0.0)
+                                    for k in ti.static(range(SL)):
+                                        rsum[SL * c + k] += terms[k]
+                # the votes, read by stage 3's blur: the IWE channels now, the maps after the backward
+                w = masks[F0, y, j]
+                while w != ti.u32(0):
+                    x0 = _t.first_pixel(j, w)
+                    w = _t.drop_lowest(w)
+                    for p in ti.static(range(SEG)):
+                        x = x0 + p
+                        if in_image(x):
+                            if ti.static(R > 0):  # noqa: SIM102 - compile-time if
+                                if grad & 1 == 0:  # else the backward reads the maps and clears them
+                                    for k in ti.static(range(i_cnt, K)):
+                                        f.acc[0, y, x, k] = 0.0
+                            for c in ti.static(range(C)):
+                                if ti.static(shared_count and c == i_cnt):
+                                    if grad & 1 == 0:
+                                        f.acc[0, y, x, c] = 0.0
+                                else:
+                                    f.acc[0, y, x, c] = 0.0
             if ti.static(not sobel):
                 for k in ti.static(range(SL * C)):
-                    red[k][None] += rsum[k]
+                    f.part_obj[y, k] = rsum[k]
         if ti.static(sobel):
-            # Sobel images (kept for the backward) and the pixel terms that read them
-            ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
+            # Sobel images (kept for the backward) and the pixel terms that read them, over Rs
+            ti.loop_config(block_dim=row_block)
             for y in range(H):
                 rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-                for x in range(W):
-                    for c in ti.static(range(C)):
-                        gx, gy = sobel_fn(f.img, c, y, x)
-                        f.sobel[y, x, 2 * c] = gx
-                        f.sobel[y, x, 2 * c + 1] = gy
-                        terms = pixel_fn(f.img[y, x, c], gx, gy)
-                        for k in ti.static(range(SL)):
-                            rsum[SL * c + k] += terms[k]
+                for j in range(NW):
+                    w = masks[R_OBJ, y, j]
+                    while w != ti.u32(0):
+                        x0 = _t.first_pixel(j, w)
+                        w = _t.drop_lowest(w)
+                        for p in ti.static(range(SEG)):
+                            x = x0 + p
+                            if in_image(x):
+                                for c in ti.static(range(C)):
+                                    gx, gy = sobel_fn(f.img, c, y, x)
+                                    f.sobel[y, x, 2 * c] = gx
+                                    f.sobel[y, x, 2 * c + 1] = gy
+                                    terms = pixel_fn(f.img[y, x, c], gx, gy)
+                                    for k in ti.static(range(SL)):
+                                        rsum[SL * c + k] += terms[k]
                 for k in ti.static(range(SL * C)):
-                    red[k][None] += rsum[k]
-        # --- 5. serial: J -------------------------------------------------------------------------------
+                    f.part_obj[y, k] = rsum[k]
+        # --- 6. serial: the row sums in row order, the untouched pixels in closed form, J -------------------
+        ti.loop_config(serialize=True)
+        for y in range(H):
+            for k in ti.static(range(SL * C)):
+                red[k][None] += f.part_obj[y, k]
+            if ti.static(R > 0):
+                for k in ti.static(range(1 + RV)):
+                    red[i_m + k][None] += f.part_map[y, k]
+            tf.pixels[R_OBJ] += tf.rowpx[R_OBJ, y]
+        untouched = n_pix - ti.cast(tf.pixels[R_OBJ], real)
+        terms0 = pixel_fn(0.0, 0.0, 0.0)  # an untouched pixel: I = 0, zero Sobel responses
+        for k in ti.static(range(SL * C)):
+            red[k][None] += untouched * terms0[k % SL]
         slots = objective_slots_vec()
         g = 0.0
         for c in ti.static(range(C)):
@@ -558,7 +662,7 @@ def make_fused_kernels(
                 f.rvals[r] = rr
                 f.rw[r] = wr
                 if ti.static(constant[r]):  # noqa: SIM102 - compile-time if
-                    if grad != 0 and msum > 0.0:
+                    if grad & 1 != 0 and msum > 0.0:
                         # R_r = s_r P_r(q_r): dJ/dtheta = -w_r P_r'(q_r) dq_r/dtheta
                         _, ddet, ddiv = param_jac(centre, 0.0, theta, c)
                         dpen = penalty_grads[r](qc)
@@ -566,80 +670,82 @@ def make_fused_kernels(
                             dq = ddiv[j] if ti.static(quantity_kinds[r] == "div") else ddet[j]
                             gsum[j][None] += ti.cast(-wr * dpen * dq, ti.f64)
         f.loss[None] = jval
-        # --- 6. rows (grad): adjoint images ------------------------------------------------------------
+        # --- 7. rows (grad): adjoint images ------------------------------------------------------------
         if ti.static(sobel):
-            # L(I): transposed Sobel of the Sobel images
-            ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
+            # L(I): transposed Sobel of the Sobel images, over Rxy (where the transposed blur reads it)
+            ti.loop_config(block_dim=row_block)
             for y in range(H):
-                if grad != 0:
-                    for x in range(W):
-                        for c in ti.static(range(C)):
-                            f.ibar[y, x, c] = sobel_t(f.sobel, c, y, x)
-        ti.loop_config(block_dim=row_block)  # a few row bands per thread (CPU)
+                if grad & 1 != 0:
+                    for j in range(NW):
+                        w = masks[RXY, y, j]
+                        while w != ti.u32(0):
+                            x0 = _t.first_pixel(j, w)
+                            w = _t.drop_lowest(w)
+                            for p in ti.static(range(SEG)):
+                                if in_image(x0 + p):
+                                    for c in ti.static(range(C)):
+                                        f.ibar[y, x0 + p, c] = sobel_t(f.sobel, c, y, x0 + p)
+        ti.loop_config(block_dim=row_block)
         for y in range(H):
-            if grad != 0:
-                # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp row y: by
-                # linearity, (scale blur(L(I)) + offset * sum of the in-image taps) / G0
-                interior = y >= r_ and y < H - r_
+            if grad & 1 != 0:
+                # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp2 over Rx: by
+                # linearity, (scale B_y^T L(I) + offset * sum of the in-image taps) / G0; without Sobel
+                # L(I) = I = B_y tmp, and B_y^T B_y is one filter of 4 r + 1 taps on tmp (its taps at the
+                # image's top and bottom rows from the zero padding of both blurs)
                 tapsum = 0.0
                 for k in ti.static(range(-r_, r_ + 1)):
                     if 0 <= y + k < H:
                         tapsum += f.taps[k + r_] if ti.static(r_ > 0) else 1.0
                 slots = objective_slots_vec()
+                c1 = ti.Vector([0.0 for _ in ti.static(range(C))])
+                c0 = ti.Vector([0.0 for _ in ti.static(range(C))])
                 for c in ti.static(range(C)):
                     scale, offset = adjoint_fn(slots, c, n_pix)
-                    c1 = scale / f.g0[None]
-                    c0 = offset / f.g0[None] * tapsum
-                    for x in range(W):
-                        acc = 0.0
-                        if ti.static(sobel):
-                            acc = blur_y_at(f.ibar, c, y, x, interior)
-                        else:
-                            acc = blur_y_at(f.img, c, y, x, interior)
-                        f.tmp[y, x, c] = c1 * acc + c0
-                # transposed blur along x into adj; map adjoints; clear the maps
-                for c in ti.static(range(C)):
-                    if ti.static(r_ > 0):
-                        blur_x_row(f.tmp, False, f.adj, y, c)
-                    else:
-                        for x in range(W):
-                            f.adj[y, x, c] = f.tmp[y, x, c]
-                if ti.static(R > 0):
-                    msum = red[i_m][None]
-                    for x in range(W):
-                        cnt = f.acc[0, y, x, i_cnt]
-                        dc = 0.0
-                        for v in ti.static(range(RV)):
-                            f.adj[y, x, i_num + v] = 0.0
-                        if cnt > 0.0 and msum > 0.0:
-                            m = _b.support_weight(cnt)
-                            dm = _b.support_weight_grad(cnt)
-                            for v in ti.static(range(RV)):
-                                wr = f.rw[voted[v]]
-                                avg = f.acc[0, y, x, i_num + v] / cnt
-                                pen = penalty_fns[voted[v]](avg)
-                                dpen = penalty_grads[voted[v]](avg)
-                                ratio = red[i_m + 1 + v][None] / msum
-                                # d(sum m P / sum m)/dC = (dm P + m P' d(avg)/dC - ratio dm) / sum m
-                                dc -= wr * (dm * pen - m * dpen * avg / cnt - ratio * dm) / msum
-                                f.adj[y, x, i_num + v] = -wr * m * dpen / (cnt * msum)
-                        if ti.static(shared_count):
-                            f.adj[y, x, i_cnt] += dc
-                        else:
-                            f.adj[y, x, i_cnt] = dc
-                        for k in ti.static(range(i_cnt, K)):
-                            f.acc[0, y, x, k] = 0.0
-        # --- 7. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
+                    c1[c] = scale / f.g0[None]
+                    c0[c] = offset / f.g0[None] * tapsum
+                tv = load_taps(f.taps)
+                wide = twice_taps(y, tv)
+                for j in range(NW):
+                    w = masks[RX, y, j]
+                    while w != ti.u32(0):
+                        x0 = _t.first_pixel(j, w)
+                        w = _t.drop_lowest(w)
+                        for c in ti.static(range(C)):
+                            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
+                            if ti.static(sobel):
+                                v = blur_y_segment(f.ibar, c, y, x0, tv)
+                            else:
+                                v = twice_blur_y_segment(wide, c, y, x0)
+                            store_segment(f.tmp2, c, y, x0, c1[c] * v + c0[c])
+        ti.loop_config(block_dim=row_block)
+        for y in range(H):
+            if grad & 1 != 0:
+                # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps
+                msum = red[i_m][None] if ti.static(R > 0) else 0.0
+                tv = load_taps(f.taps)
+                for j in range(NW):
+                    w = masks[F0, y, j]
+                    while w != ti.u32(0):
+                        x0 = _t.first_pixel(j, w)
+                        w = _t.drop_lowest(w)
+                        for c in ti.static(range(C)):
+                            store_segment(f.adj, c, y, x0, blur_x_segment(f.tmp2, False, c, y, x0, tv))
+                        if ti.static(R > 0):
+                            for p in ti.static(range(SEG)):
+                                x = x0 + p
+                                if in_image(x):
+                                    map_adjoints(y, x, msum)
+        # --- 8. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):
-                if grad != 0:
+                if grad & 1 != 0:
                     gev = event_grad(ev[i], theta_vec(), f.ctx[None])
                     for j in ti.static(range(P)):
                         gsum[j][None] += gev[j]
         else:
             ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
-                if grad != 0:
+                if grad & 1 != 0:
                     lo, hi = slice_events(s, n)
                     theta = theta_vec()
                     c = f.ctx[None]
@@ -647,14 +753,19 @@ def make_fused_kernels(
                     for i in range(lo, hi):
                         gacc += event_grad(ev[i], theta, c)
                     for j in ti.static(range(P)):
-                        gsum[j][None] += gacc[j]
-        # --- 8. serial: results -------------------------------------------------------------------------
+                        f.gpart[s, j] = gacc[j]
+        # --- 9. serial: results (the slices' sums in slice order) ------------------------------------------
         out[0] = ti.cast(f.loss[None], ti.f64)
         out[1] = ti.cast(f.graw[None], ti.f64)
         for j in ti.static(range(P)):
-            out[2 + j] = gsum[j][None]
+            gj = gsum[j][None]
+            if ti.static(not atomic_scatter):  # noqa: SIM102 - compile-time if
+                if grad & 1 != 0:
+                    for s in ti.static(range(S)):
+                        gj += f.gpart[s, j]
+            out[2 + j] = gj
         # J as if G0 were this G: at the identity, the J of every later evaluation there (the same
-        # operations as stage 5, in the same order), so that the driver need not evaluate it again
+        # operations as stage 6, in the same order), so that the driver need not evaluate it again
         jself = f.graw[None] / f.graw[None]
         if ti.static(R > 0):
             for r in ti.static(range(R)):

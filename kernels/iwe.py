@@ -2,13 +2,16 @@
 
 Kernels are built by factories closed over the warp model and the static sizes, so each footprint is
 unrolled with ``ti.static`` (a dynamic inner loop inside a parallel loop gave silently wrong gradients
-in Taichi 1.7) and every write into an image is an atomic add (reverse-mode safe).
+in Taichi 1.7) and every write into an image is an atomic add (reverse-mode safe). A forward-only pass
+marks the segments the votes touch (``tiles.py``) and the blurs run over the lists of the regions they
+need.
 Formulas: docs/FORMULAS.md, "Image of warped events".
 """
 
 import taichi as ti
 
 from . import blocks as _b
+from . import tiles as _t
 from . import whitening as _whitening
 
 
@@ -46,20 +49,12 @@ def make_splat_kernel(
     whiten : bool
         Vote the IWE at the whitened positions (moments in ``wmom``; see ``whitening.py``).
 
-    The kernel signature is ``(n, ex, ey, edt, ew, ech, th, ctx, wmom, vote, count, numer)``.
+    The kernel signature is ``(n, ex, ey, edt, ew, ech, th, ctx, wmom, vote, count, numer)``;
+    :func:`make_mark_kernel` marks the segments its votes touch.
     """
     n_q = len(quantity_fns)
     W, H = width, height
-
-    @ti.func
-    def _vote(img: ti.template(), c, q, b):
-        if _b.in_window(q, W, H):
-            ix, iy, ax, ay = _b.bilinear_footprint(q)
-            for dy in ti.static(range(2)):
-                for dx in ti.static(range(2)):
-                    if _b.corner_in_image(ix, iy, dx, dy, W, H):
-                        wx, wy = _b.corner_weights(ax, ay, dx, dy)
-                        img[c, iy + dy, ix + dx] += b * wx * wy
+    vote_at, vote_maps, _ = _b.make_bilinear(W, H)
 
     @ti.kernel
     def splat(
@@ -90,36 +85,68 @@ def make_splat_kernel(
                 ch = ti.cast(ech[i], ti.i32)
             if ti.static(do_iwe):
                 if ti.static(whiten):
-                    _vote(vote, ch, _whitening.apply(q, wmom[None], c), b)
+                    vote_at(vote, ch, _whitening.apply(q, wmom[None], c), b)
                 else:
-                    _vote(vote, ch, q, b)
+                    vote_at(vote, ch, q, b)
             if ti.static(n_q > 0):
-                ab = ti.abs(b)
-                if _b.in_window(q, W, H):
-                    ix, iy, ax, ay = _b.bilinear_footprint(q)
-                    for r in ti.static(range(n_q)):
-                        val = quantity_fns[r](p, dt, theta, c)
-                        for dy in ti.static(range(2)):
-                            for dx in ti.static(range(2)):
-                                wx, wy = _b.corner_weights(ax, ay, dx, dy)
-                                if _b.corner_in_image(ix, iy, dx, dy, W, H):
-                                    if ti.static(r == 0):
-                                        count[iy + dy, ix + dx] += ab * wx * wy
-                                    numer[r, iy + dy, ix + dx] += ab * wx * wy * val
+                vals = ti.Vector([quantity_fns[r](p, dt, theta, c) for r in ti.static(range(n_q))])
+                vote_maps(count, numer, 0, q, ti.abs(b), vals, True)
 
     _ = n_channels  # the channel count is carried by the field shapes
     return splat
 
 
-def make_blur_kernel(radius: int, axis: int, width: int, height: int, n_channels: int):
-    """Correlate each channel with a 1-D kernel of ``2 radius + 1`` taps along ``axis`` (1 = x, 0 = y),
-    zero padding, adding into ``dst``. ``g`` holds the taps; the footprint is unrolled at compile time.
-    The taps are symmetric, so ``blur(dst.grad, src.grad, g)`` is the kernel's own adjoint."""
-    tap_sum = _b.make_tap_sum(_b.read_chw, radius, axis, width, height)
+def make_mark_kernel(warp_fn, *, width: int, height: int, iwe: bool, maps: bool, whiten: bool):
+    """Forward only: mark in ``tiles`` (a ``tiles.TileFields``) the footprints that the splat kernels
+    vote: the IWE's (at the whitened positions with ``whiten``) and the maps' (at the warped ones).
+
+    A kernel of its own (one more pass over the events) because Taichi 1.7.4's reverse mode failed to
+    compile the splat with the marks inside for some options (per-polarity images without maps).
+    Signature ``(n, ex, ey, edt, th, ctx, wmom, tiles)``.
+    """
+    mark = _t.make_mark_position(width, height)
 
     @ti.kernel
-    def blur(src: ti.template(), dst: ti.template(), g: ti.template()):
-        for c, y, x in ti.ndrange(n_channels, height, width):
-            dst[c, y, x] += tap_sum(src, g, c, y, x, True)
+    def mark_events(
+        n: ti.i32,
+        ex: ti.template(),
+        ey: ti.template(),
+        edt: ti.template(),
+        th: ti.template(),
+        ctx: ti.template(),
+        wmom: ti.template(),
+        tiles: ti.template(),
+    ):
+        for i in range(n):
+            c = ctx[None]
+            q = warp_fn(ti.Vector([ex[i], ey[i]]), edt[i], th[None], c)
+            if ti.static(iwe and whiten):
+                mark(tiles, _whitening.apply(q, wmom[None], c))
+            if ti.static(maps or (iwe and not whiten)):
+                mark(tiles, q)
+
+    return mark_events
+
+
+def make_blur_kernel(radius: int, axis: int, width: int, height: int, n_channels: int):
+    """Correlate each channel with a 1-D kernel of ``2 radius + 1`` taps along ``axis`` (1 = x, 0 = y),
+    zero padding, adding into ``dst`` at the pixels of list ``region`` of ``tiles`` (a
+    ``tiles.TileFields``). ``g`` holds the taps; the footprint is unrolled at compile time. The taps
+    are symmetric, so ``blur(dst.grad, src.grad, g, tiles, r)`` is the kernel's own adjoint (into the
+    region ``r`` where the adjoint is needed)."""
+    tap_sum = _b.make_tap_sum(_b.read_chw, radius, axis, width, height)
+    entry = _t.make_entry(width)
+    SEG = _t.SEG
+
+    @ti.kernel
+    def blur(
+        src: ti.template(), dst: ti.template(), g: ti.template(), tiles: ti.template(), region: ti.template()
+    ):
+        for i in range(tiles.count[region] * SEG):
+            y, x0 = entry(tiles, region, i // SEG)
+            x = x0 + i % SEG
+            if x < width:
+                for c in ti.static(range(n_channels)):
+                    dst[c, y, x] += tap_sum(src, g, c, y, x, True)
 
     return blur

@@ -4,12 +4,15 @@ The splat kernel (``iwe.py``) votes ``C(x) = sum |w| beta`` into ``count`` and
 ``N_r(x) = sum |w| beta q_r`` into ``numer[r]``. Here, per pixel with ``C > 0``, the map value is
 ``N_r / C``, its penalty ``P_r`` is given by the regularizer's pixel function, and
 ``m = C / (C + kappa)`` (``blocks.support_weight``) weights it: ``macc[0] += m``, ``macc[1 + r] += m P_r``.
+Only touched pixels have ``C > 0``: the kernels run over the touched segments (``tiles.py``, list 0), the
+reduction through per-segment partial sums added in list order (a fixed order).
 Formulas: docs/FORMULAS.md, "Regularizer maps and penalties".
 """
 
 import taichi as ti
 
 from . import blocks as _b
+from . import tiles as _t
 
 DEF_FLOOR = 1e-3  # deformation guard: alpha stays finite at collapse (det -> 0)
 
@@ -51,38 +54,59 @@ PENALTY_GRADS = {
 
 
 def make_maps_reduce(penalty_fns: tuple, width: int, height: int):
-    """Kernel ``reduce(count, numer, macc)``: ``macc[0] += sum m``, ``macc[1 + r] += sum m P_r(N_r / C)``
-    over the pixels with ``C > 0``."""
+    """Kernel ``reduce(count, numer, macc, tiles, part)``: ``macc[0] += sum m``,
+    ``macc[1 + r] += sum m P_r(N_r / C)`` over the touched pixels (list 0 of ``tiles``) with ``C > 0``,
+    through the per-segment partial sums ``part[k, .]`` (zero before)."""
     n_r = len(penalty_fns)
+    entry = _t.make_entry(width)
 
     @ti.kernel
-    def reduce(count: ti.template(), numer: ti.template(), macc: ti.template()):
-        for y, x in ti.ndrange(height, width):
-            cnt = count[y, x]
-            if cnt > 0.0:
-                m = _b.support_weight(cnt)
-                macc[None][0] += m
-                for r in ti.static(range(n_r)):
-                    macc[None][1 + r] += m * penalty_fns[r](numer[r, y, x] / cnt)
+    def reduce(
+        count: ti.template(),
+        numer: ti.template(),
+        macc: ti.template(),
+        tiles: ti.template(),
+        part: ti.template(),
+    ):
+        for k in range(tiles.count[0]):
+            y, x0 = entry(tiles, 0, k)
+            for p in ti.static(range(_t.SEG)):
+                x = x0 + p
+                if x < width:
+                    cnt = count[y, x]
+                    if cnt > 0.0:
+                        m = _b.support_weight(cnt)
+                        part[k, 0] += m
+                        for r in ti.static(range(n_r)):
+                            part[k, 1 + r] += m * penalty_fns[r](numer[r, y, x] / cnt)
+        ti.loop_config(serialize=True)  # the partial sums in list order
+        for k in range(tiles.count[0]):
+            for j in ti.static(range(1 + n_r)):
+                macc[None][j] += part[k, j]
 
     return reduce
 
 
 def make_maps_image_kernel(penalty_fns: tuple, width: int, height: int):
-    """Forward-only: write the maps ``N_r / C`` and penalties into ``out[2 r]`` and ``out[2 r + 1]``."""
+    """Forward-only: write the maps ``N_r / C`` and penalties into ``out[2 r]`` and ``out[2 r + 1]`` at
+    the touched pixels (list 0 of ``tiles``; ``out`` is read where ``C > 0`` only)."""
     n_r = len(penalty_fns)
+    entry = _t.make_entry(width)
 
     @ti.kernel
-    def images(count: ti.template(), numer: ti.template(), out: ti.template()):
-        for y, x in ti.ndrange(height, width):
-            cnt = count[y, x]
-            for r in ti.static(range(n_r)):
-                v = 0.0
-                pen = 0.0
-                if cnt > 0.0:
-                    v = numer[r, y, x] / cnt
-                    pen = penalty_fns[r](v)
-                out[2 * r, y, x] = v
-                out[2 * r + 1, y, x] = pen
+    def images(count: ti.template(), numer: ti.template(), out: ti.template(), tiles: ti.template()):
+        for i in range(tiles.count[0] * _t.SEG):
+            y, x0 = entry(tiles, 0, i // _t.SEG)
+            x = x0 + i % _t.SEG
+            if x < width:
+                cnt = count[y, x]
+                for r in ti.static(range(n_r)):
+                    v = 0.0
+                    pen = 0.0
+                    if cnt > 0.0:
+                        v = numer[r, y, x] / cnt
+                        pen = penalty_fns[r](v)
+                    out[2 * r, y, x] = v
+                    out[2 * r + 1, y, x] = pen
 
     return images

@@ -185,6 +185,7 @@ class MultiClusterCMax(psetup.SetupView):
             len(self._reg_names),
             self.setup.radius,
             self.objective.slots_per_channel,
+            psetup.images_key(self.setup, K),
         )
         self._ws = workspace.acquire(key, self._build_fields, f"a {K}-cluster problem on a {W}x{H} sensor")
         ev = self.events
@@ -224,6 +225,20 @@ class MultiClusterCMax(psetup.SetupView):
         ws.diag = ti.Vector.field(K * (1 + n_r), real, shape=())
         ws.look = ti.field(real, shape=(cap, K))
         ws.pos = ti.field(real, shape=(cap, K, 2))
+        S = 1 + n_r
+        ws.mpart = (
+            ti.field(real, shape=(H * ws.tiles.n_segments, K * S), needs_grad=True)
+            if n_r
+            else workspace.dummy(real, (1, 1))
+        )
+        images = [ws.vote, ws.vote.grad] + (
+            [ws.tmp, ws.tmp.grad, ws.img, ws.img.grad] if self.setup.radius else []
+        )
+        if n_r:
+            images += [ws.numer, ws.numer.grad]
+        rows = ((ws.mpart, 0), (ws.mpart.grad, 0)) if n_r else ()
+        scalars = (ws.acc, ws.macc, ws.loss, ws.acc.grad, ws.macc.grad, ws.loss.grad, ws.th.grad)
+        ws.clear = psetup.make_clear(ws, tuple(images), rows, scalars)
 
     def _load(self) -> None:
         """Upload this problem's events, constants and memberships into the shared workspace if
@@ -258,23 +273,25 @@ class MultiClusterCMax(psetup.SetupView):
                 warp_fns, quantities, self.offsets, self.n_params, width=W, height=H
             ),
         )
+        self._k_mark = psetup.cached_kernel(
+            ("cl_mark", model_key, W, H),
+            lambda: kcl.make_cluster_mark_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
+        )
         self._k_lookup = psetup.cached_kernel(
             ("cl_lookup", model_key, W, H),
             lambda: kcl.make_cluster_lookup_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
         )
-        self._k_blur_x, self._k_blur_y, self._k_reduce = psetup.image_kernels(self.setup, K)
+        self._kimg = psetup.image_kernels(self.setup, K, self._ws)
+        self._k_blur_x, self._k_blur_y, self._k_reduce = (
+            self._kimg.blur_x,
+            self._kimg.blur_y,
+            self._kimg.reduce,
+        )
         obj = self.objective
         if regs:
             self._k_maps = psetup.cached_kernel(
                 ("cl_maps", reg_key, K, W, H), lambda: kcl.make_cluster_maps_reduce(penalties, K, W, H)
             )
-        ws = self._ws
-        sizes = (ws.acc.n, ws.macc.n)
-        blur = self.blur_sigma > 0
-        self._k_zero = psetup.cached_kernel(
-            ("cl_zero", K, len(regs), blur, W, H, sizes),
-            lambda: kcl.make_cluster_zero_kernel(K, len(regs), blur, W, H, sizes),
-        )
         one_sided = self.setup.one_sided()
         self._k_loss = psetup.cached_kernel(
             ("cl_loss", obj.name, id(obj), K, W * H, one_sided),
@@ -353,41 +370,40 @@ class MultiClusterCMax(psetup.SetupView):
             (
                 self._k_splat,
                 (self.n_events, ws.ex, ws.ey, ws.edt, ws.pw, ws.th, ws.ctx, ws.vote, ws.numer),
-            )
+            ),
+            # forward only: the touched segments and the regions of the passes
+            (self._k_mark, (self.n_events, ws.ex, ws.ey, ws.edt, ws.pw, ws.th, ws.ctx, ws.tiles)),
+            (self._kimg.compact, (ws.tiles,)),
         ]
         if self.blur_sigma > 0:
-            chain.append((self._k_blur_x, (ws.vote, ws.tmp, ws.taps)))
-            chain.append((self._k_blur_y, (ws.tmp, ws.img, ws.taps)))
-        chain.append((self._k_reduce, (ws.img, ws.acc)))
+            chain.append((self._k_blur_x, (ws.vote, ws.tmp, ws.taps, ws.tiles, psetup.RX)))
+            chain.append((self._k_blur_y, (ws.tmp, ws.img, ws.taps, ws.tiles, psetup.RXY)))
+        chain.append((self._k_reduce, self._kimg.reduce_args(ws, ws.img, ws.acc)))
         if self._reg_names:
-            chain.append((self._k_maps, (ws.count, ws.numer, ws.macc)))
+            chain.append((self._k_maps, (ws.count, ws.numer, ws.macc, ws.tiles, ws.mpart)))
         chain.append((self._k_loss, (ws.acc, ws.macc, ws.lam, ws.g0, ws.cw, ws.loss, ws.diag)))
         return chain
-
-    def _zero_args(self, grad: bool):
-        ws = self._ws
-        if not grad:
-            return [ws.vote, ws.tmp, ws.img, ws.numer, ws.acc, ws.macc, ws.loss]
-        numer = ws.numer.grad if self._reg_names else ws.numer  # the dummy has no gradient
-        return [ws.vote.grad, ws.tmp.grad, ws.img.grad, numer, ws.acc.grad, ws.macc.grad, ws.loss.grad]
 
     def _forward(self, flat: np.ndarray, images_only: bool = False) -> float:
         self._load()
         self._ws.th[None] = flat.tolist()
-        self._k_zero(*self._zero_args(False))
+        self._ws.clear()  # what the last evaluation wrote (images, gradients, sums), over its regions
         chain = self._kernel_chain()
         if images_only:  # the splat and the blur: the cluster images, no objective
-            chain = chain[: 3 if self.blur_sigma > 0 else 1]
+            chain = chain[: 5 if self.blur_sigma > 0 else 3]
         psetup.run_chain(chain)
         return float("nan") if images_only else float(self._ws.loss[None])
 
     def _backward(self) -> np.ndarray:
         ws = self._ws
-        self._k_zero(*self._zero_args(True))
-        ws.th.grad.fill(0)
+        # the gradients were cleared with the forward pass's fields; an objective's own reduce kernel
+        # (no declared pixel terms) writes its image gradient everywhere
+        if not self._kimg.tiled:
+            ws.img.grad.fill(0)
         ws.loss.grad[None] = 1.0
-        blurs = (self._k_blur_x, self._k_blur_y) if self.blur_sigma > 0 else ()
-        psetup.run_chain_backward(self._kernel_chain(), blurs)
+        psetup.run_chain_backward(
+            self._kernel_chain(), self._kimg.blur_adjoints(), (self._k_mark, self._kimg.compact)
+        )
         return ws.th.grad.to_numpy().astype(np.float64).reshape(-1)
 
     def _diag_vector(self) -> np.ndarray:

@@ -451,7 +451,9 @@ class FusedPipeline:
         return self._packed[: self.n_events]
 
     def image(self) -> np.ndarray:
-        """The blurred IWE of the last evaluation, (C, H, W) float64."""
+        """The blurred IWE of the last evaluation, (C, H, W) float64 (one more launch at its theta, which
+        keeps the image: the evaluations do not store it unless the objective reads it)."""
+        self._run(self._params.array[: self.n_params].copy(), 2)  # theta: the last call's
         return np.moveaxis(self.fields.img.to_numpy().astype(np.float64), -1, 0)
 
     def nbytes(self) -> int:

@@ -25,6 +25,7 @@ from cmax_taichi.kernels import blocks as kblocks
 from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.kernels import loss as kloss
 from cmax_taichi.kernels import maps as kmaps
+from cmax_taichi.kernels import tiles as ktiles
 from cmax_taichi.kernels import whitening as kwhite
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
 from cmax_taichi.models.warps import WarpModel, get_warp
@@ -36,11 +37,15 @@ from cmax_taichi.pipeline.parameters import float_limit as _float_limit
 from cmax_taichi.pipeline.parameters import require_finite as _require_finite
 from cmax_taichi.pipeline.setup import (
     POLARITY_MODES,
+    RX,
+    RXY,
     ProblemSetup,
     SetupView,
     allocate_images,
     check_limits,
     image_kernels,
+    images_key,
+    make_clear,
     run_chain,
     run_chain_backward,
     upload,
@@ -277,6 +282,7 @@ class ContrastMaximization(SetupView):
             self._weighted,
             self.polarity == "split",
             self.whitening,
+            images_key(setup, self.n_channels),
         )
         self._ws = workspace.acquire(key, self._build_fields, f"a {self.width}x{self.height} problem")
         ev = self.events
@@ -313,6 +319,9 @@ class ContrastMaximization(SetupView):
             "loss",
             "diag",
             "wmom",
+            "tiles",
+            "part",
+            "mpart",
         ):
             setattr(self, "_" + name, getattr(self._ws, name))
         self._load()
@@ -320,6 +329,7 @@ class ContrastMaximization(SetupView):
     def _build_fields(self, ws) -> None:
         """Allocate the fields of a workspace (called once per problem shape)."""
         real = backend.real()
+        setup = self.setup
         cap = workspace.capacity_for(self.n_events)
         C, W, H, n_r = self.n_channels, self.width, self.height, len(self.regularizer_weights)
         ws.ex = ti.field(real, shape=cap)
@@ -343,7 +353,30 @@ class ContrastMaximization(SetupView):
         ws.diag = ti.Vector.field(1 + max(n_r, 1), real, shape=())
         n_w = kwhite.N_SLOTS if self.whitening else 1
         ws.wmom = ti.Vector.field(n_w, real, shape=(), needs_grad=True)
+        n_entries = H * ws.tiles.n_segments
+        ws.mpart = (
+            ti.field(real, shape=(n_entries, 1 + n_r), needs_grad=True)
+            if n_r
+            else workspace.dummy(real, (1, 1))
+        )
         ws.maps = {}
+        images = [ws.vote, ws.vote.grad] + (
+            [ws.tmp, ws.tmp.grad, ws.img, ws.img.grad] if setup.radius else []
+        )
+        if n_r:
+            images += [ws.count, ws.count.grad, ws.numer, ws.numer.grad]
+        rows = ((ws.mpart, 0), (ws.mpart.grad, 0)) if n_r else ()
+        scalars = (
+            ws.acc,
+            ws.macc,
+            ws.loss,
+            ws.acc.grad,
+            ws.macc.grad,
+            ws.loss.grad,
+            ws.th.grad,
+            ws.wmom.grad,
+        )
+        ws.clear = make_clear(ws, tuple(images), rows, scalars)
 
     def _load(self) -> None:
         """Upload this problem's events and constants into the shared workspace if needed."""
@@ -381,7 +414,13 @@ class ContrastMaximization(SetupView):
         if self.whitening:
             self._k_wsplat = self._splat_kernel([], do_iwe=True, whiten=True)
             self._k_moments = _cached(("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp))
-        self._k_blur_x, self._k_blur_y, self._k_reduce = image_kernels(self.setup, C)
+        self._k_mark = self._mark_kernel(iwe=True, maps=bool(regs))
+        self._kimg = image_kernels(self.setup, C, self._ws)
+        self._k_blur_x, self._k_blur_y, self._k_reduce = (
+            self._kimg.blur_x,
+            self._kimg.blur_y,
+            self._kimg.reduce,
+        )
         obj = self.objective
         if regs:
             self._k_maps = _cached(("maps", reg_key, W, H), lambda: kmaps.make_maps_reduce(penalties, W, H))
@@ -415,6 +454,18 @@ class ContrastMaximization(SetupView):
             self._numer if numer is None else numer,
         )
 
+    def _mark_kernel(self, *, iwe: bool, maps: bool):
+        """The (cached) forward-only kernel marking the segments the splats vote (``kernels/tiles.py``)."""
+        m, W, H = self.model, self.width, self.height
+        flags = dict(width=W, height=H, iwe=iwe, maps=maps, whiten=self.whitening)
+        return _cached(
+            ("mark", m.name, id(m), tuple(sorted(flags.items()))),
+            lambda: kiwe.make_mark_kernel(m.warp, **flags),
+        )
+
+    def _args_mark(self, tiles):
+        return (self.n_events, self._ex, self._ey, self._edt, self._th, self._ctx, self._wmom, tiles)
+
     def _kernel_chain(self):
         """The forward kernels with their arguments, in order."""
         chain = []
@@ -427,12 +478,15 @@ class ContrastMaximization(SetupView):
             )
             chain.append((self._k_wsplat, self._args_splat()))
         chain.append((self._k_splat, self._args_splat()))
+        # forward only: the touched segments and the regions of the passes
+        chain.append((self._k_mark, self._args_mark(self._tiles)))
+        chain.append((self._kimg.compact, (self._tiles,)))
         if self.blur_sigma > 0:
-            chain.append((self._k_blur_x, (self._vote, self._tmp, self._taps)))
-            chain.append((self._k_blur_y, (self._tmp, self._img, self._taps)))
-        chain.append((self._k_reduce, (self._img, self._acc)))
+            chain.append((self._k_blur_x, (self._vote, self._tmp, self._taps, self._tiles, RX)))
+            chain.append((self._k_blur_y, (self._tmp, self._img, self._taps, self._tiles, RXY)))
+        chain.append((self._k_reduce, self._kimg.reduce_args(self._ws, self._img, self._acc)))
         if self._reg_names:
-            chain.append((self._k_maps, (self._count, self._numer, self._macc)))
+            chain.append((self._k_maps, (self._count, self._numer, self._macc, self._tiles, self._mpart)))
         chain.append(
             (
                 self._k_loss,
@@ -441,33 +495,27 @@ class ContrastMaximization(SetupView):
         )
         return chain
 
-    def _buffers(self):
-        bufs = [self._vote, self._acc, self._macc, self._loss]
-        if self.blur_sigma > 0:
-            bufs += [self._tmp, self._img]
-        if self._reg_names:
-            bufs += [self._count, self._numer]
-        return bufs
-
     def _forward(self, theta: np.ndarray) -> tuple[float, float]:
         """``(J, G_raw)`` at ``theta``."""
         if self._fused is not None:
             return self._fused.evaluate(theta)
         self._load()
         self._th[None] = theta.tolist()
-        for buf in self._buffers():
-            buf.fill(0)
+        self._ws.clear()  # what the last evaluation wrote (images, gradients, sums), over its regions
         if self.whitening:
             self._wmom[None] = [0.0] * 5 + self._wconst
         run_chain(self._kernel_chain())
         return float(self._loss[None]), float(self._diag[None][0])
 
     def _backward(self) -> np.ndarray:
-        for buf in self._buffers() + [self._th, self._wmom]:
-            buf.grad.fill(0)
+        # the gradients were cleared with the forward pass's fields; an objective's own reduce kernel
+        # (no declared pixel terms) writes its image gradient everywhere
+        if not self._kimg.tiled:
+            self._img.grad.fill(0)
         self._loss.grad[None] = 1.0
-        blurs = (self._k_blur_x, self._k_blur_y) if self.blur_sigma > 0 else ()
-        run_chain_backward(self._kernel_chain(), blurs)
+        run_chain_backward(
+            self._kernel_chain(), self._kimg.blur_adjoints(), (self._k_mark, self._kimg.compact)
+        )
         return self._th.grad.to_numpy().astype(np.float64).reshape(-1)
 
     # value and value_and_grad run once per evaluation of an optimizer: their Python is kept to a few
@@ -542,9 +590,11 @@ class ContrastMaximization(SetupView):
                     ti.field(real, shape=(H, W)),
                     ti.field(real, shape=(len(regs), H, W)),
                     ti.field(real, shape=(2 * len(regs), H, W)),
+                    ktiles.TileFields(W, H, [(0, 0)], lists=True),
                 )
-            self._ws.maps[key] = fields
-        count, numer, out = self._ws.maps[key]
+            tiles = fields[3]
+            self._ws.maps[key] = fields + (ktiles.make_clear_kernel(tiles, 0, images=fields[:3]),)
+        count, numer, out, tiles, clear = self._ws.maps[key]
         self._load()
         reg_key = tuple((r.name, id(r)) for r in regs)
         splat = self._splat_kernel(regs, do_iwe=False)
@@ -553,10 +603,11 @@ class ContrastMaximization(SetupView):
             lambda: kmaps.make_maps_image_kernel(tuple(r.penalty for r in regs), W, H),
         )
         self._th[None] = theta.tolist()
-        count.fill(0)
-        numer.fill(0)
+        clear()  # the last call's maps, at its touched pixels
         splat(*self._args_splat(count, numer))
-        images(count, numer, out)
+        self._mark_kernel(iwe=False, maps=True)(*self._args_mark(tiles))
+        ktiles.ops_for(tiles).compact(tiles)
+        images(count, numer, out, tiles)
         return names, count.to_numpy().astype(np.float64), out.to_numpy().astype(np.float64)
 
     def _penalties_of(self, names: list[str], count: np.ndarray, out: np.ndarray) -> dict[str, float]:

@@ -22,12 +22,15 @@ import taichi as ti
 from cmax_taichi.core import backend, checks, limits, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import iwe as kiwe
+from cmax_taichi.kernels import objectives as kobjectives
+from cmax_taichi.kernels import tiles as ktiles
 from cmax_taichi.models.objectives import OBJECTIVES, Objective
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
 
 __all__ = [
     "POLARITY_MODES",
+    "ImageKernels",
     "ProblemSetup",
     "SetupView",
     "cached_kernel",
@@ -326,18 +329,59 @@ def check_limits(setup: ProblemSetup, what: str, *, n_clusters: int = 0, n_slice
 
 
 # --- fields shared by the generic chains --------------------------------------------------------------
+#: the chains' regions (kernels/tiles.py): touched segments, blur along x, blurred image; with a Sobel
+#: objective its pixel terms' region and one more pixel, where its adjoint writes
+F0, RX, RXY, RS, RC = 0, 1, 2, 3, 4
+
+
+def objective_terms(setup: ProblemSetup, n_images: int):
+    """``(pixel_fn, slots, sobel)`` that the objective's reduce kernel declares (``pixel_terms``,
+    ``kernels/objectives.make_pixel_reduce``), or None (a reduce of its own: it runs over the whole
+    image)."""
+    return getattr(_full_reduce(setup, n_images), "pixel_terms", None)
+
+
+def images_key(setup: ProblemSetup, n_images: int) -> tuple:
+    """What :func:`allocate_images` lays out from besides the shapes (part of a workspace's key):
+    whether the objective declares pixel terms, and whether they read the Sobel responses."""
+    terms = objective_terms(setup, n_images)
+    return (terms is not None, bool(terms and terms[2]))
+
+
+def _full_reduce(setup: ProblemSetup, n_images: int):
+    W, H, obj = setup.width, setup.height, setup.objective
+    return cached_kernel(
+        ("reduce", obj.name, id(obj), W, H, n_images), lambda: obj.make_reduce(W, H, n_images)
+    )
+
+
 def allocate_images(ws, setup: ProblemSetup, n_images: int) -> None:
-    """The ``(n_images, H, W)`` vote image and, with blur, the taps and the blur-x / blurred images
-    (all three the vote image itself without blur) on a workspace."""
+    """On a workspace: the ``(n_images, H, W)`` vote image and, with blur, the taps and the blur-x /
+    blurred images (all three the vote image itself without blur); the tile masks and lists of the
+    regions the passes need (``ws.tiles``; ``ws.region_obj``: the objective's, ``ws.region_clear``:
+    everything one evaluation writes) and the objective's per-segment partial sums (``ws.part``)."""
     real = backend.real()
-    ws.vote = ti.field(real, shape=(n_images, setup.height, setup.width), needs_grad=True)
-    if setup.radius > 0:
-        ws.taps = ti.field(real, shape=2 * setup.radius + 1)
-        ws.tmp = ti.field(real, shape=(n_images, setup.height, setup.width), needs_grad=True)
-        ws.img = ti.field(real, shape=(n_images, setup.height, setup.width), needs_grad=True)
+    W, H, r = setup.width, setup.height, setup.radius
+    ws.vote = ti.field(real, shape=(n_images, H, W), needs_grad=True)
+    if r > 0:
+        ws.taps = ti.field(real, shape=2 * r + 1)
+        ws.tmp = ti.field(real, shape=(n_images, H, W), needs_grad=True)
+        ws.img = ti.field(real, shape=(n_images, H, W), needs_grad=True)
     else:
         ws.taps = workspace.dummy(real)
         ws.tmp = ws.img = ws.vote
+    terms = objective_terms(setup, n_images)
+    sobel = bool(terms and terms[2])
+    kx = ktiles.reach(r)
+    regions = [(0, 0), (kx, 0), (kx, r)] + ([(kx + 1, r + 1), (kx + 2, r + 2)] if sobel else [])
+    ws.tiles = ktiles.TileFields(W, H, regions, lists=True)
+    ws.region_obj = RS if sobel else RXY
+    ws.region_clear = RC if sobel else RXY
+    n_entries = H * ws.tiles.n_segments
+    if terms is None:
+        ws.part = workspace.dummy(real, (1, 1))
+    else:
+        ws.part = ti.field(real, shape=(n_entries, terms[1] * n_images), needs_grad=True)
 
 
 def upload(ws, setup: ProblemSetup, per_event: Mapping[str, np.ndarray | None]) -> None:
@@ -357,9 +401,40 @@ def upload(ws, setup: ProblemSetup, per_event: Mapping[str, np.ndarray | None]) 
     ws.lam[None] = setup.lam or [0.0]
 
 
-def image_kernels(setup: ProblemSetup, n_images: int):
-    """``(blur_x, blur_y, reduce)``: the (cached) blur kernels of the ``(n_images, H, W)`` images (None
-    without blur) and the objective's reduce kernel over them."""
+@dataclass(frozen=True)
+class ImageKernels:
+    """The (cached) image kernels of a chain over ``(n_images, H, W)`` images (``image_kernels``).
+
+    Attributes
+    ----------
+    blur_x, blur_y : Taichi kernels or None
+        ``blur(src, dst, taps, tiles, region)`` (None without blur).
+    reduce : Taichi kernel
+        ``reduce(img, acc, tiles, part)`` over the objective's region (``tiled``), or the objective's
+        own ``reduce(img, acc)`` over the whole image.
+    compact : Taichi kernel
+        ``compact(tiles)``: the regions and lists of the marks the splat left (forward only).
+    tiled : bool
+    """
+
+    blur_x: object
+    blur_y: object
+    reduce: object
+    compact: object
+    tiled: bool
+
+    def reduce_args(self, ws, img, acc) -> tuple:
+        return (img, acc, ws.tiles, ws.part) if self.tiled else (img, acc)
+
+    def blur_adjoints(self) -> tuple:
+        """``(kernel, region of its adjoint's output)`` pairs for :func:`run_chain_backward`: the vote
+        gradient is needed at the touched pixels, the blur-x output's along its region."""
+        return ((self.blur_x, F0), (self.blur_y, RX)) if self.blur_x is not None else ()
+
+
+def image_kernels(setup: ProblemSetup, n_images: int, ws) -> ImageKernels:
+    """The (cached) image kernels of the ``(n_images, H, W)`` images of workspace ``ws``
+    (:func:`allocate_images`)."""
     W, H, r, obj = setup.width, setup.height, setup.radius, setup.objective
     blur_x = blur_y = None
     if r > 0:
@@ -369,10 +444,24 @@ def image_kernels(setup: ProblemSetup, n_images: int):
         blur_y = cached_kernel(
             ("blur", r, 0, W, H, n_images), lambda: kiwe.make_blur_kernel(r, 0, W, H, n_images)
         )
-    reduce = cached_kernel(
-        ("reduce", obj.name, id(obj), W, H, n_images), lambda: obj.make_reduce(W, H, n_images)
-    )
-    return blur_x, blur_y, reduce
+    terms = objective_terms(setup, n_images)
+    if terms is None:
+        reduce = _full_reduce(setup, n_images)
+    else:
+        region = ws.region_obj
+        reduce = cached_kernel(
+            ("tiled_reduce", obj.name, id(obj), W, H, n_images, region),
+            lambda: kobjectives.make_tiled_reduce(*terms, W, H, n_images, region),
+        )
+    return ImageKernels(blur_x, blur_y, reduce, ktiles.ops_for(ws.tiles).compact, terms is not None)
+
+
+def make_clear(ws, images: tuple, rows: tuple = (), scalars: tuple = ()):
+    """The workspace's clear kernel (built once): ``images`` over the region everything is written in,
+    the objective's partial sums and ``rows`` (``(field, list)`` pairs), and ``scalars``
+    (``kernels/tiles.make_clear_kernel``)."""
+    part_rows = ((ws.part, ws.region_obj), (ws.part.grad, ws.region_obj)) if ws.part.grad is not None else ()
+    return ktiles.make_clear_kernel(ws.tiles, ws.region_clear, images, part_rows + tuple(rows), scalars)
 
 
 # --- the runner of a generic kernel chain ---------------------------------------------------------------
@@ -382,14 +471,19 @@ def run_chain(chain) -> None:
         kernel(*args)
 
 
-def run_chain_backward(chain, blurs=()) -> None:
+def run_chain_backward(chain, blurs=(), forward_only=()) -> None:
     """Reverse pass of ``chain``: each kernel's ``.grad`` in reverse order, with the loss adjoint
-    seeded by the caller. The kernels in ``blurs`` (``blur(src, dst, taps)`` of ``kernels/iwe.py``)
-    correlate with symmetric taps, so their adjoint is the same correlation of ``dst.grad`` into
-    ``src.grad``: ~8x cheaper than Taichi's scatter-add adjoint."""
+    seeded by the caller, skipping the kernels in ``forward_only`` (the compaction of the tile lists).
+    The kernels of ``blurs`` (pairs ``(blur, region)``, ``blur(src, dst, taps, tiles, region)`` of
+    ``kernels/iwe.py``) correlate with symmetric taps, so their adjoint is the same correlation of
+    ``dst.grad`` into ``src.grad`` (over ``region``, where it is needed): ~8x cheaper than Taichi's
+    scatter-add adjoint."""
     for kernel, args in reversed(chain):
-        if any(kernel is b for b in blurs):
-            src, dst, taps = args
-            kernel(dst.grad, src.grad, taps)
+        if any(kernel is k for k in forward_only):
+            continue
+        adjoint = [region for blur, region in blurs if kernel is blur]
+        if adjoint:
+            src, dst, taps, tiles, _ = args
+            kernel(dst.grad, src.grad, taps, tiles, adjoint[0])
         else:
             kernel.grad(*args)
