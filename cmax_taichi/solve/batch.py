@@ -32,9 +32,11 @@ Ray is optional (``pip install -e ".[ray]"``) and imported only by ``engine="ray
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
+import signal
 import sys
 import time
 import warnings
@@ -410,15 +412,30 @@ def _estimate_into(
     summary.seconds = time.perf_counter() - t0
     if not result.windows:
         raise ValueError(f"{path}: no window to estimate ({_why_none(result)})")
-    files = [result.to_csv(folder / "results.csv"), result.to_json(folder / "results.json")]
-    if hooks is not None:
-        files += hooks.finished(folder, result)
-    _write_checkpoint(folder, result, key, len(result.rows()), done=True, warm_state=last_state[0])
+    extra = hooks.finished(folder, result) if hooks is not None else []
+    with _termination_deferred():  # results.csv never stands beside an incomplete checkpoint
+        files = [result.to_csv(folder / "results.csv"), result.to_json(folder / "results.json")]
+        _write_checkpoint(folder, result, key, len(result.rows()), done=True, warm_state=last_state[0])
+    files += extra
     summary.status = "done"
     summary.windows = len(result.windows)
     summary.new_windows = len(result.windows) - len(done_rows)
     summary.not_estimated = _not_estimated(result)
     summary.files = [str(f) for f in files]
+
+
+@contextlib.contextmanager
+def _termination_deferred():
+    """SIGTERM held back for the block (a few file writes): the driver's stop on Ctrl-C / SIGTERM
+    terminates a busy worker, which then ends after the block, not between two of its writes."""
+    if not hasattr(signal, "pthread_sigmask"):  # not POSIX
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _not_estimated(result: SequenceResult) -> int:
