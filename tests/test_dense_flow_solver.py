@@ -55,6 +55,19 @@ def test_dither_spreads_integer_coordinates_over_their_pixel(scene):
     assert dithered(d) is d  # fractional coordinates (undistorted events): unchanged
 
 
+def test_dither_comes_after_the_undistortion_table(scene):
+    """Raw events with a distorted camera: undistorted through the per-pixel table, then dithered; events
+    already undistorted (fractional coordinates) are not."""
+    camera = cm.Camera(100.0, 100.0, 59.5, 44.5, dist=(0.05, 0.0, 0.0, 0.0, 0.0))
+    plain = scene.events.undistort(camera)
+    prepared = DenseFlowEstimator((4, 4), levels=2, camera=camera)._prepare(scene.events)
+    assert prepared.undistorted and len(prepared) == len(plain)
+    assert np.abs(prepared.x - plain.x).max() <= 0.5 and np.std(prepared.y - plain.y) > 0.25
+    undithered = DenseFlowEstimator((4, 4), levels=2, camera=camera, dither=False)._prepare(scene.events)
+    np.testing.assert_array_equal(undithered.x, plain.x)
+    assert DenseFlowEstimator((4, 4), levels=2)._prepare(plain) is plain
+
+
 def test_dither_removes_the_pull_of_small_components_to_zero(f64):
     """Events on the pixel grid make the IWE sharpest at zero displacement along each axis: without
     the dither a 0.7 px vertical component over the window comes out as 0."""

@@ -216,19 +216,27 @@ def _scale_factors(sensor_size: tuple[int, int], scale: int) -> tuple[int, int, 
     return Ws, Hs, (Ws - 1) / (W - 1), (Hs - 1) / (H - 1)
 
 
-def dithered(events: Events, seed: int = DITHER_SEED) -> Events:
-    """``events`` with their integer pixel coordinates spread uniformly over their pixel (+-0.5 px,
-    seeded, kept on the sensor); events with a fractional coordinate (undistorted) unchanged.
+def on_pixel_grid(events: Events) -> bool:
+    """Whether every coordinate of ``events`` is a whole number of px (as sensors record them)."""
+    x, y = events.x, events.y
+    return len(events) > 0 and np.array_equal(x, np.floor(x)) and np.array_equal(y, np.floor(y))
+
+
+def dithered(events: Events, seed: int = DITHER_SEED, grid: bool | None = None) -> Events:
+    """``events`` with their pixel coordinates spread uniformly over their pixel (+-0.5 px, seeded,
+    kept on the sensor). ``grid``: whether they lie on a pixel grid; None: when
+    :func:`on_pixel_grid` (other events, e.g. undistorted ones, are returned unchanged); True for
+    events undistorted from whole pixels (their grid is locally the pixel grid, shifted).
 
     Events on the integer grid vote, unwarped, into single pixels, and every warp that moves them
     less than a pixel splits their votes: the IWE's contrast then has a spurious maximum at zero
     displacement along each axis, which pulls small flow components towards 0 (docs/flow.md,
-    "Dithering"). Spread over their pixel (where the event happened, as far as the sensor knows)
+    "The solver"). Spread over their pixel (where the event happened, as far as the sensor knows)
     they have no preferred sub-pixel position.
     """
-    x, y = events.x, events.y
-    if len(events) == 0 or not (np.array_equal(x, np.floor(x)) and np.array_equal(y, np.floor(y))):
+    if len(events) == 0 or not (on_pixel_grid(events) if grid is None else grid):
         return events
+    x, y = events.x, events.y
     W, H = events.sensor_size
     rng = np.random.default_rng(seed)
     offsets = rng.uniform(-0.5, 0.5, (2, len(events)))
@@ -378,14 +386,15 @@ class DenseFlowEstimator:
         return FlowGrid(sensor[0], sensor[1], nx, ny)
 
     def _prepare(self, events: Events) -> Events:
-        """Undistort once (when the camera has distortion), dither integer coordinates
-        (:attr:`dither`) and set up the pyramid for the sensor."""
+        """Dither integer coordinates (:attr:`dither`), undistort once (when the camera has
+        distortion) and set up the pyramid for the sensor."""
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
+        on_grid = self.dither and on_pixel_grid(events)
         if self.camera is not None and self.camera.has_distortion and not events.undistorted:
-            events = events.undistort(self.camera)
-        if self.dither:
-            events = dithered(events)
+            events = events.undistort(self.camera)  # by its per-pixel table: dithered after it
+        if on_grid:  # the undistortion is locally a shift: its grid is as sharp as the raw one
+            events = dithered(events, grid=True)
         if self._sensor != events.sensor_size:
             finest = self._finest_for(events.sensor_size)
             self.pyramid = finest.pyramid(self.levels)
