@@ -113,15 +113,20 @@ def test_the_nearest_surface_is_drawn_and_followed_whatever_the_layer_order():
     np.testing.assert_allclose(renders[0], renders[1], atol=1e-9)
 
 
-@pytest.fixture(scope="module")
-def planes():
-    """The issue-22 scene: 'planes', 346x260, its first window (depth_example)."""
-    example = sm.depth_example("planes")
+def _first_window(name: str):
+    """``(recording, t0, t1)`` of a preset's first window (depth_example), checked against its recording."""
+    example = sm.depth_example(name)
     rec, t0, t1 = example.recording, example.t0, example.t1
-    assert (t0, t1) == (0.02, 0.02 + sm.DEPTH_PRESETS["planes"].window)
+    assert (t0, t1) == (0.02, 0.02 + sm.DEPTH_PRESETS[name].window)
     np.testing.assert_array_equal(example.flow, rec.flow(t0, t1))
     assert len(example.events) == len(example.labels) == len(rec.events(t0, np.nextafter(t1, 1.0)))
     return rec, t0, t1
+
+
+@pytest.fixture(scope="module")
+def planes():
+    """The issue-22 scene: 'planes', 346x260, its first window."""
+    return _first_window("planes")
 
 
 def test_planes_preset_is_the_issue_test_case(planes):
@@ -142,12 +147,8 @@ def test_planes_preset_is_the_issue_test_case(planes):
 
 @pytest.fixture(scope="module")
 def corridor():
-    """The smooth 3-D scene of issue 22: 'corridor', 346x260, its first window (depth_example)."""
-    example = sm.depth_example("corridor")
-    rec, t0, t1 = example.recording, example.t0, example.t1
-    assert (t0, t1) == (0.02, 0.02 + sm.DEPTH_PRESETS["corridor"].window)
-    np.testing.assert_array_equal(example.flow, rec.flow(t0, t1))
-    return rec, t0, t1
+    """The smooth 3-D scene of issue 22: 'corridor', 346x260, its first window."""
+    return _first_window("corridor")
 
 
 def test_corridor_preset_fits_the_issue_criterion(corridor):
