@@ -302,9 +302,10 @@ class DenseFlowEstimator:
         :class:`~cmax_taichi.flow.DenseFlowProblem`); default :data:`AUTO_PADDING` of the larger sensor
         side.
     dither : bool
-        Spread integer event coordinates over their pixel (:func:`dithered`) before estimating
-        (default True): without it, flow components under about a pixel over the window are pulled
-        towards 0.
+        Spread integer event coordinates over their pixel (:func:`dithered`) on the full-resolution
+        level (default True): without it, flow components under about a pixel over the window are
+        pulled towards 0. The downsampled levels take the events undithered (their pixels are 2-4 times
+        the grid's spacing).
     """
 
     def __init__(
@@ -369,6 +370,7 @@ class DenseFlowEstimator:
         self.dither = bool(dither)
         self._problems: dict[int, DenseFlowProblem] = {}
         self._loaded: dict[int, Events] = {}  # the window each problem holds now
+        self._plain: tuple = (None, None)  # (dithered window, the same undithered)
         self._sensor: tuple[int, int] | None = None
         self.pyramid: list[FlowGrid] = []
 
@@ -394,7 +396,8 @@ class DenseFlowEstimator:
         if self.camera is not None and self.camera.has_distortion and not events.undistorted:
             events = events.undistort(self.camera)  # by its per-pixel table: dithered after it
         if on_grid:  # the undistortion is locally a shift: its grid is as sharp as the raw one
-            events = dithered(events, grid=True)
+            plain, events = events, dithered(events, grid=True)
+            self._plain = (events, plain)
         if self._sensor != events.sensor_size:
             finest = self._finest_for(events.sensor_size)
             self.pyramid = finest.pyramid(self.levels)
@@ -416,7 +419,10 @@ class DenseFlowEstimator:
         need neither the whole image nor every event: their evaluations cost a quarter)."""
         if self._loaded.get(scale) is events:
             return self._problems[scale]
-        scaled = _scaled_events(events, scale, scale if self.subsample else 1)
+        source = events
+        if scale > 1 and self._plain[0] is events:
+            source = self._plain[1]  # scaled down, the pixel grid is fine enough: the events undithered
+        scaled = _scaled_events(source, scale, scale if self.subsample else 1)
         prob = self._problems.get(scale)
         if prob is None:
             finest = max(
