@@ -9,7 +9,9 @@ Scenes (346x260, one window each, all its events):
   (flow proportional to the inverse depth: 5.4-11.6 px over the 0.05 s window, a factor 2.15 across the
   image, smooth), rendered from a texture under the exact flow;
 * ``planes``, ``room``, ``object``: the simulator's depth presets (:func:`cmax_taichi.sim.depth_example`:
-  textured 3-D planes rendered by the ESIM-like simulator, with occlusions and flow discontinuities).
+  textured 3-D planes rendered by the ESIM-like simulator, with occlusions and flow discontinuities);
+* ``corridor``: the simulator's preset of a camera translating sideways along a corridor (5-14 px over
+  the window, smooth, nothing occluded): the 3-D counterpart of ``boxroom``.
 
 Each scene is scored as the benchmarks count it (:func:`cmax_taichi.metrics.flow_error`): the displacement
 over the window against the exact one on the pixels with events, AEE px, 3PE %. Methods: our dense flow
@@ -31,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-SCENES = ("boxroom", "planes", "room", "object")
+SCENES = ("boxroom", "planes", "room", "object", "corridor")
 
 
 def scene_window(name: str) -> dict:

@@ -113,15 +113,20 @@ def test_the_nearest_surface_is_drawn_and_followed_whatever_the_layer_order():
     np.testing.assert_allclose(renders[0], renders[1], atol=1e-9)
 
 
-@pytest.fixture(scope="module")
-def planes():
-    """The issue-22 scene: 'planes', 346x260, its first window (depth_example)."""
-    example = sm.depth_example("planes")
+def _first_window(name: str):
+    """``(recording, t0, t1)`` of a preset's first window (depth_example), checked against its recording."""
+    example = sm.depth_example(name)
     rec, t0, t1 = example.recording, example.t0, example.t1
-    assert (t0, t1) == (0.02, 0.02 + sm.DEPTH_PRESETS["planes"].window)
+    assert (t0, t1) == (0.02, 0.02 + sm.DEPTH_PRESETS[name].window)
     np.testing.assert_array_equal(example.flow, rec.flow(t0, t1))
     assert len(example.events) == len(example.labels) == len(rec.events(t0, np.nextafter(t1, 1.0)))
     return rec, t0, t1
+
+
+@pytest.fixture(scope="module")
+def planes():
+    """The issue-22 scene: 'planes', 346x260, its first window."""
+    return _first_window("planes")
 
 
 def test_planes_preset_is_the_issue_test_case(planes):
@@ -138,6 +143,54 @@ def test_planes_preset_is_the_issue_test_case(planes):
     # the three planes are all seen and all produce events
     assert set(np.unique(rec.label_map(t0))) == {0, 1, 2}
     assert all(np.count_nonzero(rec.label_slice(t0, t1) == k) > 5000 for k in range(3))
+
+
+@pytest.fixture(scope="module")
+def corridor():
+    """The smooth 3-D scene of issue 22: 'corridor', 346x260, its first window."""
+    return _first_window("corridor")
+
+
+def test_corridor_preset_fits_the_issue_criterion(corridor):
+    """346x260, every pixel sees a surface, 5-15 px over the window, more than 30% of variation, all
+    three surfaces seen and producing events."""
+    rec, t0, t1 = corridor
+    assert rec.sensor_size == (346, 260)
+    disp = np.hypot(*rec.flow(t0, t1))
+    assert np.isfinite(disp).all()
+    lo, hi = disp.min(), disp.max()
+    assert lo >= 5.0 and hi <= 15.0, (lo, hi)
+    assert hi / lo >= 1.3 * 1.3
+    assert 60_000 <= len(rec.events(t0, t1)) <= 200_000
+    assert set(np.unique(rec.label_map(t0))) == {0, 1, 2}
+    assert all(np.count_nonzero(rec.label_slice(t0, t1) == k) > 5000 for k in range(3))
+
+
+def test_corridor_truth_is_the_closed_form_of_a_sideways_camera(corridor):
+    """The far wall (depth 3 m, parallel to the motion) moves by ``-f V T / Z`` exactly; every pixel
+    keeps its depth along x-translation, so the flow depends on the row alone up to the slight vertical
+    motion; the floor, nearer, moves faster than the wall at every column."""
+    rec, t0, t1 = corridor
+    T = t1 - t0
+    flow, label = rec.flow(t0, t1), rec.label_map(t0)
+    wall = label == 0
+    np.testing.assert_allclose(flow[0][wall], -CAM.fx * 1.0 * T / 3.0, rtol=1e-9)
+    np.testing.assert_allclose(flow[1][wall], -CAM.fy * 0.15 * T / 3.0, rtol=1e-9)
+    np.testing.assert_allclose(rec.depth(t0)[wall], 3.0, rtol=1e-9)
+    np.testing.assert_allclose(flow[0], np.broadcast_to(flow[0][:, :1], flow[0].shape), atol=1e-9)  # per row
+    floor_rows = np.flatnonzero((label == 1).all(axis=1))
+    assert floor_rows.size > 20 and np.all(np.abs(flow[0][floor_rows]) > CAM.fx * T / 3.0)
+
+
+def test_corridor_is_seeded():
+    a = sm.simulate_depth("corridor", duration=0.03, scale=0.25)
+    b = sm.simulate_depth("corridor", duration=0.03, scale=0.25)
+    c = sm.simulate_depth("corridor", duration=0.03, scale=0.25, seed=1)
+    assert len(a) > 100
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.p, b.p)
+    assert len(a) != len(c) or not np.array_equal(a.t, c.t)
 
 
 def _variance(W, H, xw, yw):
@@ -198,8 +251,9 @@ def test_rendered_images_move_with_the_ground_truth_flow(planes):
     assert residual < 0.15 * still
 
 
-def test_the_displacement_is_the_velocity_integrated_along_the_trajectories(planes):
-    rec, t0, t1 = planes
+@pytest.mark.parametrize("window", ["planes", "corridor"])
+def test_the_displacement_is_the_velocity_integrated_along_the_trajectories(window, request):
+    rec, t0, t1 = request.getfixturevalue(window)
     cam = rec.camera
     for k, layer in enumerate(rec.scene.layers):
         mask = rec.label_map(t0) == k

@@ -165,6 +165,44 @@ class FlowGrid:
         yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         return self.interpolate(nodes, xx, yy)
 
+    def trajectories(self, nodes, dt: float, max_step_px: float = 8.0) -> np.ndarray:
+        """The displacement over ``dt`` (s) of the point at every pixel centre that moves with the flow
+        (px/s), ``(2, H, W)`` px: ``dx/dt = u(x)`` integrated along its path (RK4, steps of at most
+        ``max_step_px`` of motion), the field held fixed over ``dt``; where a path leaves the sensor it
+        takes the velocity of the nearest point of the sensor.
+
+        ``dt u(x)`` (the straight line at the start's velocity) differs from it by about
+        ``dt^2 / 2 (Du) u`` wherever the flow varies: 0.2 px on the simulator's ``room`` window,
+        whose ground truth (MVSEC's convention too) is the displacement of the scene point seen at
+        each pixel at the start."""
+        U = self.check_nodes(nodes)
+        dt = float(dt)
+        peak = float(np.abs(U).max(initial=0.0)) * abs(dt)
+        steps = max(1, math.ceil(peak / max_step_px))
+        h = dt / steps
+        yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        x, y = xx.copy(), yy.copy()
+        ux, uy = U[..., 0].ravel(), U[..., 1].ravel()
+        row = self.nx + 1
+
+        def velocity(px, py):  # interpolate() on flat node indices: a window's flow in ~10 ms
+            i, j, a, b = self._cells(np.clip(px, 0, self.width - 1), np.clip(py, 0, self.height - 1))
+            k = j * row + i
+            w00, w10, w01, w11 = (1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b
+            return tuple(
+                w00 * c.take(k) + w10 * c.take(k + 1) + w01 * c.take(k + row) + w11 * c.take(k + row + 1)
+                for c in (ux, uy)
+            )
+
+        for _ in range(steps):
+            k1 = velocity(x, y)
+            k2 = velocity(x + h / 2 * k1[0], y + h / 2 * k1[1])
+            k3 = velocity(x + h / 2 * k2[0], y + h / 2 * k2[1])
+            k4 = velocity(x + h * k3[0], y + h * k3[1])
+            x = x + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+            y = y + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        return np.stack([x - xx, y - yy])
+
     def fit(self, flow) -> np.ndarray:
         """Node values whose interpolant is closest (least squares over the finite pixels) to a dense
         ``(2, H, W)`` flow of this sensor: e.g. a previous window's flow on another grid."""

@@ -54,7 +54,11 @@ DEFAULT_OPTIONS = {
     "regularizers": DEFAULT_REGULARIZERS,
     "blur_sigma": 1.0,
     "padding": None,
+    "dither": True,
 }
+#: the seed of the sub-pixel dither of integer event coordinates (``dither=True``): fixed, so the same
+#: window gives the same flow to the last bit
+DITHER_SEED = 0
 
 
 def auto_iterations(levels: int) -> tuple[int, ...]:
@@ -148,24 +152,30 @@ class FlowResult:
     def sensor_size(self) -> tuple[int, int]:
         return (self.grid.width, self.grid.height)
 
-    def flow(self, dt: float | None = None, layout: str = "chw") -> np.ndarray:
-        """The flow on every pixel: px/s, or with ``dt`` (s) the displacement ``dt u(x)`` over ``dt``
-        (px). ``layout="chw"``: ``(2, H, W)`` (the library's layout: writers, metrics); ``"hwc"``:
+    def flow(self, dt: float | None = None, layout: str = "chw", trajectories: bool = True) -> np.ndarray:
+        """The flow on every pixel: px/s, or with ``dt`` (s) the displacement over ``dt`` (px) of the
+        point seen at each pixel at the start: its path under the flow integrated
+        (:meth:`FlowGrid.trajectories`), or with ``trajectories=False`` the straight line ``dt u(x)``.
+        ``layout="chw"``: ``(2, H, W)`` (the library's layout: writers, metrics); ``"hwc"``:
         ``(H, W, 2)``."""
-        out = self.grid.dense(self.nodes)
-        if dt is not None:
+        if dt is None:
+            out = self.grid.dense(self.nodes)
+        else:
             if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt)):
                 raise ValueError(f"dt must be a finite number of seconds, got {dt!r}")
-            out = out * float(dt)
+            if trajectories:
+                out = self.grid.trajectories(self.nodes, float(dt))
+            else:
+                out = self.grid.dense(self.nodes) * float(dt)
         if layout == "hwc":
             return np.moveaxis(out, 0, -1)
         if layout != "chw":
             raise ValueError(f"layout must be 'chw' or 'hwc', got {layout!r}")
         return out
 
-    def displacement(self, layout: str = "chw") -> np.ndarray:
+    def displacement(self, layout: str = "chw", trajectories: bool = True) -> np.ndarray:
         """The displacement over the window (px): :meth:`flow` with ``dt = duration``."""
-        return self.flow(self.duration, layout)
+        return self.flow(self.duration, layout, trajectories)
 
     def as_dict(self) -> dict:
         """A JSON-friendly summary (no node values)."""
@@ -204,6 +214,41 @@ def _scale_factors(sensor_size: tuple[int, int], scale: int) -> tuple[int, int, 
         return W, H, 1.0, 1.0
     Ws, Hs = max(2, math.ceil(W / scale)), max(2, math.ceil(H / scale))
     return Ws, Hs, (Ws - 1) / (W - 1), (Hs - 1) / (H - 1)
+
+
+def on_pixel_grid(events: Events) -> bool:
+    """Whether every coordinate of ``events`` is a whole number of px (as sensors record them)."""
+    x, y = events.x, events.y
+    return len(events) > 0 and np.array_equal(x, np.floor(x)) and np.array_equal(y, np.floor(y))
+
+
+def dithered(events: Events, seed: int = DITHER_SEED, grid: bool | None = None) -> Events:
+    """``events`` with their pixel coordinates spread uniformly over their pixel (+-0.5 px, seeded,
+    kept on the sensor). ``grid``: whether they lie on a pixel grid; None: when
+    :func:`on_pixel_grid` (other events, e.g. undistorted ones, are returned unchanged); True for
+    events undistorted from whole pixels (their grid is locally the pixel grid, shifted).
+
+    Events on the integer grid vote, unwarped, into single pixels, and every warp that moves them
+    less than a pixel splits their votes: the IWE's contrast then has a spurious maximum at zero
+    displacement along each axis, which pulls small flow components towards 0 (docs/flow.md,
+    "The solver"). Spread over their pixel (where the event happened, as far as the sensor knows)
+    they have no preferred sub-pixel position.
+    """
+    if len(events) == 0 or not (on_pixel_grid(events) if grid is None else grid):
+        return events
+    x, y = events.x, events.y
+    W, H = events.sensor_size
+    rng = np.random.default_rng(seed)
+    offsets = rng.uniform(-0.5, 0.5, (2, len(events)))
+    return Events(
+        np.clip(x + offsets[0], 0.0, W - 1.0),
+        np.clip(y + offsets[1], 0.0, H - 1.0),
+        events.t,
+        events.p,
+        events.sensor_size,
+        undistorted=events.undistorted,
+        _validated=True,  # clipped into the sensor: nothing to check or drop
+    )
 
 
 def _scaled_events(events: Events, scale: int, stride: int = 1) -> Events:
@@ -256,6 +301,11 @@ class DenseFlowEstimator:
         Margin of the IWEs around the sensor, px of the full-resolution image (see
         :class:`~cmax_taichi.flow.DenseFlowProblem`); default :data:`AUTO_PADDING` of the larger sensor
         side.
+    dither : bool
+        Spread integer event coordinates over their pixel (:func:`dithered`) on the full-resolution
+        level (default True): without it, flow components under about a pixel over the window are
+        pulled towards 0. The downsampled levels take the events undithered (their pixels are 2-4 times
+        the grid's spacing).
     """
 
     def __init__(
@@ -276,6 +326,7 @@ class DenseFlowEstimator:
         search_range: float | None = None,
         padding: int | None = None,
         subsample: bool = True,
+        dither: bool = True,
     ) -> None:
         self._grid_arg = grid
         self.levels = levels
@@ -316,8 +367,10 @@ class DenseFlowEstimator:
             )
         self.padding = None if padding is None else int(padding)
         self.subsample = bool(subsample)
+        self.dither = bool(dither)
         self._problems: dict[int, DenseFlowProblem] = {}
         self._loaded: dict[int, Events] = {}  # the window each problem holds now
+        self._plain: tuple = (None, None)  # (dithered window, the same undithered)
         self._sensor: tuple[int, int] | None = None
         self.pyramid: list[FlowGrid] = []
 
@@ -335,11 +388,16 @@ class DenseFlowEstimator:
         return FlowGrid(sensor[0], sensor[1], nx, ny)
 
     def _prepare(self, events: Events) -> Events:
-        """Undistort once (when the camera has distortion) and set up the pyramid for the sensor."""
+        """Dither integer coordinates (:attr:`dither`), undistort once (when the camera has
+        distortion) and set up the pyramid for the sensor."""
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
+        on_grid = self.dither and on_pixel_grid(events)
         if self.camera is not None and self.camera.has_distortion and not events.undistorted:
-            events = events.undistort(self.camera)
+            events = events.undistort(self.camera)  # by its per-pixel table: dithered after it
+        if on_grid:  # the undistortion is locally a shift: its grid is as sharp as the raw one
+            plain, events = events, dithered(events, grid=True)
+            self._plain = (events, plain)
         if self._sensor != events.sensor_size:
             finest = self._finest_for(events.sensor_size)
             self.pyramid = finest.pyramid(self.levels)
@@ -361,7 +419,10 @@ class DenseFlowEstimator:
         need neither the whole image nor every event: their evaluations cost a quarter)."""
         if self._loaded.get(scale) is events:
             return self._problems[scale]
-        scaled = _scaled_events(events, scale, scale if self.subsample else 1)
+        source = events
+        if scale > 1 and self._plain[0] is events:
+            source = self._plain[1]  # scaled down, the pixel grid is fine enough: the events undithered
+        scaled = _scaled_events(source, scale, scale if self.subsample else 1)
         prob = self._problems.get(scale)
         if prob is None:
             finest = max(

@@ -19,7 +19,8 @@ cameras), ``motions`` (exact motion per warp model), ``scenes`` (layers, scenes,
 
 * Depth scenes (``depth``, ``rigid``): textured 3-D planes seen by a moving camera, each under its own
   rigid motion (:class:`PlaneMotion`, :func:`plane_layer`); the renderer draws the nearest surface at
-  every pixel. Presets :data:`DEPTH_PRESETS` (``planes``, ``room``, ``object``), :func:`simulate_depth`.
+  every pixel. Presets :data:`DEPTH_PRESETS` (``planes``, ``room``, ``object``,
+  ``corridor``), :func:`simulate_depth`.
 
 Ground truth of a :class:`SimulatedRecording`: ``theta_at(t)`` per layer, the dense flow ``flow(t_a, t_b)``
 between any two times (px, indexed at the start positions, the front-most layer at each pixel), and a
@@ -29,15 +30,8 @@ to ``t_ref``), and for depth scenes ``depth(t)``. :meth:`SimulatedRecording.writ
 the MVSEC-like layout read by :func:`read_simulation` (and by the dataset readers).
 """
 
-from cmax_taichi.sim.depth import (
-    DEPTH_PRESETS,
-    DepthExample,
-    DepthPreset,
-    depth_example,
-    depth_scene,
-    plane_layer,
-    simulate_depth,
-)
+from cmax_taichi.sim import depth as _depth
+from cmax_taichi.sim.depth import *  # noqa: F403 - the depth scenes' API, named once in depth.__all__
 from cmax_taichi.sim.motions import DEFAULT_THETAS, Motion
 from cmax_taichi.sim.recording import SimulatedRecording, SimulationData, read_simulation
 from cmax_taichi.sim.rigid import PlaneMotion, RigidMotion
@@ -68,11 +62,6 @@ __all__ = [
     "read_simulation",
     "RigidMotion",
     "PlaneMotion",
-    "plane_layer",
-    "DepthPreset",
-    "DEPTH_PRESETS",
-    "depth_scene",
-    "simulate_depth",
-    "DepthExample",
-    "depth_example",
+    # the depth scenes' API (cmax_taichi.sim.depth) but its texture-coverage helper
+    *(name for name in _depth.__all__ if name != "rectangle_alpha"),
 ]
