@@ -6,8 +6,8 @@ backward) and the multi-cluster kernels (``clusters.py``).
 Blocks:
 
 * bilinear voting: :func:`in_window`, :func:`bilinear_footprint`, :func:`corner_in_image`,
-  :func:`corner_weights`, and the whole footprint, :func:`make_bilinear` (the autodiff chains' atomic
-  vote and the bilinear lookup);
+  :func:`corner_weights`, the whole footprint, :func:`make_footprint`, and its uses,
+  :func:`make_bilinear` (the autodiff chains' atomic vote and the bilinear lookup);
 * Gaussian blur along one axis: :func:`make_tap_sum` (footprint unrolled with ``ti.static``);
 * support weight of the regularizer maps: :func:`support_weight`, :func:`support_weight_grad`;
 * objectives: per-pixel terms, finalize and adjoint of ``variance``, ``mean_square`` and
@@ -64,6 +64,31 @@ def corner_weights(ax, ay, dx: ti.template(), dy: ti.template()):
     return wx, wy
 
 
+@ti.func
+def _vote_corner(img: ti.template(), _unused: ti.template(), c, y, x, wx, wy, b, _vals):
+    img[c, y, x] += b * wx * wy
+    return 0.0
+
+
+@ti.func
+def _numer_corner(_count: ti.template(), numer: ti.template(), base, y, x, wx, wy, ab, vals):
+    w = ab * wx * wy
+    for r in ti.static(range(vals.n)):
+        numer[base + r, y, x] += w * vals[r]
+    return 0.0
+
+
+@ti.func
+def _count_numer_corner(count: ti.template(), numer: ti.template(), base, y, x, wx, wy, ab, vals):
+    count[y, x] += ab * wx * wy
+    return _numer_corner(count, numer, base, y, x, wx, wy, ab, vals)
+
+
+@ti.func
+def _sample_corner(img: ti.template(), _unused: ti.template(), c, y, x, wx, wy, _b, _vals):
+    return wx * wy * img[c, y, x]
+
+
 def make_bilinear(width: int, height: int):
     """``(vote, vote_maps, sample)`` over the in-image corners of the footprint of a warped position
     ``q`` (px); nothing happens for ``q`` outside ``(-1, W) x (-1, H)`` (or not finite).
@@ -74,46 +99,53 @@ def make_bilinear(width: int, height: int):
       numerator's votes are the count's times the quantity, so a quantity of exactly 1 gives a map of
       exactly 1 (the penalties' kinks sit there);
     * ``sample(img, c, q)``: the bilinear interpolation of ``img[c]`` (0 outside the image).
+
+    All three walk one footprint, :func:`make_footprint`, with their own corner function.
     """
-    W, H = width, height
+    votes = make_footprint(_vote_corner, width, height)
+    count_numer_votes = make_footprint(_count_numer_corner, width, height)
+    numer_votes = make_footprint(_numer_corner, width, height)
+    samples = make_footprint(_sample_corner, width, height)
 
     @ti.func
     def vote(img: ti.template(), c, q, b):
-        if in_window(q, W, H):
-            ix, iy, ax, ay = bilinear_footprint(q)
-            for dy in ti.static(range(2)):
-                for dx in ti.static(range(2)):
-                    if corner_in_image(ix, iy, dx, dy, W, H):
-                        wx, wy = corner_weights(ax, ay, dx, dy)
-                        img[c, iy + dy, ix + dx] += b * wx * wy
+        votes(img, img, c, q, b, 0.0)
 
     @ti.func
     def vote_maps(count: ti.template(), numer: ti.template(), base, q, ab, vals, with_count: ti.template()):
-        if in_window(q, W, H):
-            ix, iy, ax, ay = bilinear_footprint(q)
-            for dy in ti.static(range(2)):
-                for dx in ti.static(range(2)):
-                    if corner_in_image(ix, iy, dx, dy, W, H):
-                        wx, wy = corner_weights(ax, ay, dx, dy)
-                        w = ab * wx * wy
-                        if ti.static(with_count):
-                            count[iy + dy, ix + dx] += w
-                        for r in ti.static(range(vals.n)):
-                            numer[base + r, iy + dy, ix + dx] += w * vals[r]
+        if ti.static(with_count):
+            count_numer_votes(count, numer, base, q, ab, vals)
+        else:
+            numer_votes(count, numer, base, q, ab, vals)
 
     @ti.func
     def sample(img: ti.template(), c, q):
-        v = 0.0
+        return samples(img, img, c, q, 0.0, 0.0)
+
+    return vote, vote_maps, sample
+
+
+def make_footprint(corner, width: int, height: int):
+    """``over(dst, aux, c, q, b, vals)``: the sum of ``corner(dst, aux, c, y, x, wx, wy, b, vals)`` over
+    the in-image corners ``(y, x)`` of the bilinear footprint of ``q`` (px), ``(wx, wy)`` their weights
+    (:func:`corner_weights`); 0 for ``q`` outside ``(-1, W) x (-1, H)`` (or not finite). ``corner`` is a
+    ``ti.func``: a vote writes (atomic adds) and returns 0, a lookup returns its term. The corners are
+    unrolled with ``ti.static``."""
+    W, H = width, height
+
+    @ti.func
+    def over(dst: ti.template(), aux: ti.template(), c, q, b, vals):
+        total = 0.0
         if in_window(q, W, H):
             ix, iy, ax, ay = bilinear_footprint(q)
             for dy in ti.static(range(2)):
                 for dx in ti.static(range(2)):
                     if corner_in_image(ix, iy, dx, dy, W, H):
                         wx, wy = corner_weights(ax, ay, dx, dy)
-                        v += wx * wy * img[c, iy + dy, ix + dx]
-        return v
+                        total += corner(dst, aux, c, iy + dy, ix + dx, wx, wy, b, vals)
+        return total
 
-    return vote, vote_maps, sample
+    return over
 
 
 # --- Gaussian blur ----------------------------------------------------------------------------------

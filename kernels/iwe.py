@@ -11,8 +11,50 @@ Formulas: docs/FORMULAS.md, "Image of warped events".
 import taichi as ti
 
 from . import blocks as _b
+from . import events as _ev
 from . import tiles as _t
 from . import whitening as _whitening
+
+
+def make_warp_vote(
+    warp_fn, quantity_fns: tuple, *, width: int, height: int, do_iwe: bool, whiten: bool, with_count: bool
+):
+    """The votes of one event under one warp, shared by the splat kernels of one warp and of K clusters.
+
+    Returns the ``ti.func`` ``vote(p, dt, theta, c, b, ch, base, wmom, img, count, numer)``: warp the
+    event at ``p`` (px), time ``dt`` (s) with the parameters ``theta`` and context ``c``, vote ``b``
+    into channel ``ch`` of ``img`` (``do_iwe``; at the whitened position with ``whiten``, moments in the
+    0-D field ``wmom``) and ``|b|`` with the per-event quantities into the map numerators
+    ``numer[base + r]`` (and into ``count`` with ``with_count``). All flags are static.
+    """
+    n_q = len(quantity_fns)
+    vote_at, vote_maps, _ = _b.make_bilinear(width, height)
+
+    @ti.func
+    def vote(
+        p,
+        dt,
+        theta,
+        c,
+        b,
+        ch,
+        base,
+        wmom: ti.template(),
+        img: ti.template(),
+        count: ti.template(),
+        numer: ti.template(),
+    ):
+        q = warp_fn(p, dt, theta, c)
+        if ti.static(do_iwe):
+            if ti.static(whiten):
+                vote_at(img, ch, _whitening.apply(q, wmom[None], c), b)
+            else:
+                vote_at(img, ch, q, b)
+        if ti.static(n_q > 0):
+            vals = ti.Vector([quantity_fns[r](p, dt, theta, c) for r in ti.static(range(n_q))])
+            vote_maps(count, numer, base, q, ti.abs(b), vals, with_count)
+
+    return vote
 
 
 def make_splat_kernel(
@@ -49,48 +91,33 @@ def make_splat_kernel(
     whiten : bool
         Vote the IWE at the whitened positions (moments in ``wmom``; see ``whitening.py``).
 
-    The kernel signature is ``(n, ex, ey, edt, ew, ech, th, ctx, wmom, vote, count, numer)``;
-    :func:`make_mark_kernel` marks the segments its votes touch.
+    The kernel signature is ``(n, ev, ew, ech, wmom, vote, count, numer)`` with ``ev`` the
+    ``events.WarpInputs``; :func:`make_mark_kernel` marks the segments its votes touch.
     """
-    n_q = len(quantity_fns)
-    W, H = width, height
-    vote_at, vote_maps, _ = _b.make_bilinear(W, H)
+    vote_event = make_warp_vote(
+        warp_fn, quantity_fns, width=width, height=height, do_iwe=do_iwe, whiten=whiten, with_count=True
+    )
 
     @ti.kernel
     def splat(
         n: ti.i32,
-        ex: ti.template(),
-        ey: ti.template(),
-        edt: ti.template(),
+        ev: ti.template(),
         ew: ti.template(),
         ech: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
         wmom: ti.template(),
         vote: ti.template(),
         count: ti.template(),
         numer: ti.template(),
     ):
         for i in range(n):
-            p = ti.Vector([ex[i], ey[i]])
-            dt = edt[i]
-            theta = th[None]
-            c = ctx[None]
-            q = warp_fn(p, dt, theta, c)
+            p, dt = _ev.event_point(ev, i)
             b = 1.0
             if ti.static(weighted):
                 b = ew[i]
             ch = 0
             if ti.static(split_polarity):
                 ch = ti.cast(ech[i], ti.i32)
-            if ti.static(do_iwe):
-                if ti.static(whiten):
-                    vote_at(vote, ch, _whitening.apply(q, wmom[None], c), b)
-                else:
-                    vote_at(vote, ch, q, b)
-            if ti.static(n_q > 0):
-                vals = ti.Vector([quantity_fns[r](p, dt, theta, c) for r in ti.static(range(n_q))])
-                vote_maps(count, numer, 0, q, ti.abs(b), vals, True)
+            vote_event(p, dt, ev.th[None], ev.ctx[None], b, ch, 0, wmom, vote, count, numer)
 
     _ = n_channels  # the channel count is carried by the field shapes
     return splat
@@ -102,26 +129,16 @@ def make_mark_kernel(warp_fn, *, width: int, height: int, iwe: bool, maps: bool,
 
     A kernel of its own (one more pass over the events) because Taichi 1.7.4's reverse mode failed to
     compile the splat with the marks inside for some options (per-polarity images without maps).
-    Signature ``(n, ex, ey, edt, th, ctx, wmom, tiles)``.
+    Signature ``(n, ev, wmom, tiles)``.
     """
     mark = _t.make_mark_position(width, height)
 
     @ti.kernel
-    def mark_events(
-        n: ti.i32,
-        ex: ti.template(),
-        ey: ti.template(),
-        edt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        wmom: ti.template(),
-        tiles: ti.template(),
-    ):
+    def mark_events(n: ti.i32, ev: ti.template(), wmom: ti.template(), tiles: ti.template()):
         for i in range(n):
-            c = ctx[None]
-            q = warp_fn(ti.Vector([ex[i], ey[i]]), edt[i], th[None], c)
+            q = _ev.warped_point(warp_fn, ev, i)
             if ti.static(iwe and whiten):
-                mark(tiles, _whitening.apply(q, wmom[None], c))
+                mark(tiles, _whitening.apply(q, wmom[None], ev.ctx[None]))
             if ti.static(maps or (iwe and not whiten)):
                 mark(tiles, q)
 

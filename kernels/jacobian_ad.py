@@ -10,54 +10,41 @@ their own fields (``px, py`` with ``needs_grad``), never the problem's event arr
 
 import taichi as ti
 
+from . import events as _ev
 
-def _per_event_vector_kernel(vector_fn):
-    """A kernel writing ``out_x[i], out_y[i] = vector_fn(p_i, dt_i, th, ctx)`` for the first ``n`` events."""
+
+def _per_event_kernel(vector_fn):
+    """Kernel ``per_event(n, ev, outs)``: ``outs[k][i] = vector_fn(p_i, dt_i, th, ctx)[k]`` for the first
+    ``n`` events, ``ev`` the ``events.WarpInputs`` (its own position fields here), ``outs`` a tuple of
+    fields, one per component."""
 
     @ti.kernel
-    def per_event(
-        n: ti.i32,
-        px: ti.template(),
-        py: ti.template(),
-        pdt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        out_x: ti.template(),
-        out_y: ti.template(),
-    ):
+    def per_event(n: ti.i32, ev: ti.template(), outs: ti.template()):
         for i in range(n):
-            v = vector_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
-            out_x[i] = v[0]
-            out_y[i] = v[1]
+            v = _ev.warped_point(vector_fn, ev, i)
+            for k in ti.static(range(len(outs))):
+                outs[k][i] = v[k]
 
     return per_event
 
 
 def make_position_kernels(warp_fn, flow_fn):
-    """Return ``(warp_positions, flow_positions)`` kernels writing ``out_x, out_y`` for the first ``n``
-    events."""
+    """Return ``(warp_positions, flow_positions)`` kernels ``(n, ev, (out_x, out_y))`` writing the warped
+    position and the flow of the first ``n`` events."""
 
     @ti.func
     def flow_at(p, dt, th, ctx):  # the flow does not depend on the event time
         return flow_fn(p, th, ctx)
 
-    return _per_event_vector_kernel(warp_fn), _per_event_vector_kernel(flow_at)
+    return _per_event_kernel(warp_fn), _per_event_kernel(flow_at)
 
 
 def make_quantity_kernel(quantity_fn):
-    """Forward-only: ``out[i] = quantity(p_i, dt_i, th, ctx)`` (closed-form det or div per event)."""
+    """Forward-only kernel ``(n, ev, (out,))``: ``out[i] = quantity(p_i, dt_i, th, ctx)`` (closed-form
+    det or div per event)."""
 
-    @ti.kernel
-    def per_event(
-        n: ti.i32,
-        px: ti.template(),
-        py: ti.template(),
-        pdt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        out: ti.template(),
-    ):
-        for i in range(n):
-            out[i] = quantity_fn(ti.Vector([px[i], py[i]]), pdt[i], th[None], ctx[None])
+    @ti.func
+    def as_vector(p, dt, th, ctx):
+        return ti.Vector([quantity_fn(p, dt, th, ctx)])
 
-    return per_event
+    return _per_event_kernel(as_vector)

@@ -53,11 +53,24 @@ PENALTY_GRADS = {
 }
 
 
-def make_maps_reduce(penalty_fns: tuple, width: int, height: int):
+@ti.func
+def _count_hw(count: ti.template(), j: ti.template(), y, x):
+    """Pixel of the one-warp count image ``(H, W)``."""
+    return count[y, x]
+
+
+def make_maps_reduce(penalty_fns: tuple, width: int, height: int, n_clusters: int = 0):
     """Kernel ``reduce(count, numer, macc, tiles, part)``: ``macc[0] += sum m``,
     ``macc[1 + r] += sum m P_r(N_r / C)`` over the touched pixels (list 0 of ``tiles``) with ``C > 0``,
-    through the per-segment partial sums ``part[k, .]`` (zero before)."""
+    through the per-segment partial sums ``part[k, .]`` (zero before), added in list order.
+
+    ``n_clusters = K > 0``: the same per cluster j (``clusters.py``), with the count ``count[j]`` of a
+    ``(K, H, W)`` image, the numerators ``numer[j n_r + r]`` and the slots ``j (1 + n_r) + .`` of
+    ``macc`` and ``part``; 0: one warp, count ``(H, W)``."""
     n_r = len(penalty_fns)
+    K = max(n_clusters, 1)
+    S = 1 + n_r
+    count_at = _b.read_chw if n_clusters else _count_hw
     entry = _t.make_entry(width)
 
     @ti.kernel
@@ -73,16 +86,17 @@ def make_maps_reduce(penalty_fns: tuple, width: int, height: int):
             for p in ti.static(range(_t.SEG)):
                 x = x0 + p
                 if x < width:
-                    cnt = count[y, x]
-                    if cnt > 0.0:
-                        m = _b.support_weight(cnt)
-                        part[k, 0] += m
-                        for r in ti.static(range(n_r)):
-                            part[k, 1 + r] += m * penalty_fns[r](numer[r, y, x] / cnt)
+                    for j in ti.static(range(K)):
+                        cnt = count_at(count, j, y, x)
+                        if cnt > 0.0:
+                            m = _b.support_weight(cnt)
+                            part[k, j * S] += m
+                            for r in ti.static(range(n_r)):
+                                part[k, j * S + 1 + r] += m * penalty_fns[r](numer[j * n_r + r, y, x] / cnt)
         ti.loop_config(serialize=True)  # the partial sums in list order
         for k in range(tiles.count[0]):
-            for j in ti.static(range(1 + n_r)):
-                macc[None][j] += part[k, j]
+            for i in ti.static(range(K * S)):
+                macc[None][i] += part[k, i]
 
     return reduce
 

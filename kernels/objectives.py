@@ -16,21 +16,33 @@ from . import blocks as _b
 from . import tiles as _t
 
 
+def _make_pixel_terms(pixel_fn, sobel: bool, width: int, height: int):
+    """``terms_at(img, c, y, x)``: ``pixel(I_c(y, x), gx, gy)`` of the ``(C, H, W)`` image, with the Sobel
+    responses of ``I_c`` where ``sobel`` (static; else 0)."""
+    sobel_fn = _b.make_sobel(_b.read_chw, width, height)
+
+    @ti.func
+    def terms_at(img: ti.template(), c: ti.template(), y, x):
+        gx = 0.0
+        gy = 0.0
+        if ti.static(sobel):
+            gx, gy = sobel_fn(img, c, y, x)
+        return pixel_fn(img[c, y, x], gx, gy)
+
+    return terms_at
+
+
 def make_pixel_reduce(pixel_fn, slots: int, sobel: bool, width: int, height: int, n_channels: int):
     """Kernel ``reduce(img, acc)``: ``acc[None][slots c + s] += sum_x pixel(I_c(x), gx, gy)[s]`` over
     the ``(C, H, W)`` image, with the Sobel responses ``gx, gy`` of ``I_c`` where ``sobel`` (else 0).
     ``reduce.pixel_terms = (pixel_fn, slots, sobel)`` lets the chains build :func:`make_tiled_reduce`."""
-    sobel_fn = _b.make_sobel(_b.read_chw, width, height)
+    terms_at = _make_pixel_terms(pixel_fn, sobel, width, height)
 
     @ti.kernel
     def reduce(img: ti.template(), acc: ti.template()):
         for y, x in ti.ndrange(height, width):
             for c in ti.static(range(n_channels)):
-                gx = 0.0
-                gy = 0.0
-                if ti.static(sobel):
-                    gx, gy = sobel_fn(img, c, y, x)
-                terms = pixel_fn(img[c, y, x], gx, gy)
+                terms = terms_at(img, c, y, x)
                 for s in ti.static(range(slots)):
                     acc[None][slots * c + s] += terms[s]
 
@@ -45,7 +57,7 @@ def make_tiled_reduce(
     ``region`` of ``tiles`` (the blurred IWE's support, one pixel more with ``sobel``), through the
     per-segment partial sums ``part[k, slots c + s]`` (zero before), and the other pixels' terms
     ``pixel(0, 0, 0)`` in closed form."""
-    sobel_fn = _b.make_sobel(_b.read_chw, width, height)
+    terms_at = _make_pixel_terms(pixel_fn, sobel, width, height)
     entry = _t.make_entry(width)
     n_pixels = width * height
 
@@ -57,11 +69,7 @@ def make_tiled_reduce(
                 x = x0 + p
                 if x < width:
                     for c in ti.static(range(n_channels)):
-                        gx = 0.0
-                        gy = 0.0
-                        if ti.static(sobel):
-                            gx, gy = sobel_fn(img, c, y, x)
-                        terms = pixel_fn(img[c, y, x], gx, gy)
+                        terms = terms_at(img, c, y, x)
                         for s in ti.static(range(slots)):
                             part[k, slots * c + s] += terms[s]
         ti.loop_config(serialize=True)  # the partial sums in list order

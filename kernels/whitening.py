@@ -13,6 +13,7 @@ sentinel position would make ``mu`` and ``S`` depend on an arbitrary constant (-
 
 import taichi as ti
 
+from . import events as _ev
 from .warps.common import OUTSIDE
 
 N_SLOTS = 11
@@ -61,25 +62,18 @@ def apply(q, m, c):
 
 def make_moments_kernel(warp_fn):
     """Reduce the first and second moments of the warped positions into ``wmom`` (slots 0-4); an
-    event sent nowhere is taken off the count in slot 5 instead."""
+    event sent nowhere is taken off the count in slot 5 instead. Signature ``moments(n, ev, wmom)``,
+    ``ev`` the ``events.WarpInputs``."""
 
     @ti.kernel
-    def moments(
-        n: ti.i32,
-        ex: ti.template(),
-        ey: ti.template(),
-        edt: ti.template(),
-        th: ti.template(),
-        ctx: ti.template(),
-        wmom: ti.template(),
-    ):
+    def moments(n: ti.i32, ev: ti.template(), wmom: ti.template()):
         for i in range(n):
-            q = warp_fn(ti.Vector([ex[i], ey[i]]), edt[i], th[None], ctx[None])
+            q = _ev.warped_point(warp_fn, ev, i)
             if _nowhere(q):
                 wmom[None][5] -= 1.0
             else:
-                ux = q[0] - ctx[None][0]
-                uy = q[1] - ctx[None][1]
+                ux = q[0] - ev.ctx[None][0]
+                uy = q[1] - ev.ctx[None][1]
                 wmom[None][0] += ux
                 wmom[None][1] += uy
                 wmom[None][2] += ux * ux

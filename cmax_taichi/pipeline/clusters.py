@@ -25,6 +25,7 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import clusters as kcl
+from cmax_taichi.kernels import events as kevents
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel, get_warp
 from cmax_taichi.pipeline import setup as psetup
@@ -44,6 +45,11 @@ def _resolve_warps(warp, n_clusters: int) -> list[WarpModel]:
             f"got {len(warps)} warps for {n_clusters} clusters: give one warp or one per cluster"
         )
     return [get_warp(w) for w in warps]
+
+
+def _warp_inputs(ws) -> kevents.WarpInputs:
+    """The events, parameters and context of a cluster workspace, as the per-event kernels read them."""
+    return kevents.WarpInputs(ws.ex, ws.ey, ws.edt, ws.th, ws.ctx)
 
 
 class MultiClusterCMax(psetup.SetupView):
@@ -367,12 +373,9 @@ class MultiClusterCMax(psetup.SetupView):
     def _kernel_chain(self):
         ws = self._ws
         chain = [
-            (
-                self._k_splat,
-                (self.n_events, ws.ex, ws.ey, ws.edt, ws.pw, ws.th, ws.ctx, ws.vote, ws.numer),
-            ),
+            (self._k_splat, (self.n_events, _warp_inputs(ws), ws.pw, ws.vote, ws.numer)),
             # forward only: the touched segments and the regions of the passes
-            (self._k_mark, (self.n_events, ws.ex, ws.ey, ws.edt, ws.pw, ws.th, ws.ctx, ws.tiles)),
+            (self._k_mark, (self.n_events, _warp_inputs(ws), ws.pw, ws.tiles)),
             (self._kimg.compact, (ws.tiles,)),
         ]
         if self.blur_sigma > 0:
@@ -475,7 +478,7 @@ class MultiClusterCMax(psetup.SetupView):
         self._require_memberships()
         self._forward(self.flatten(thetas), images_only=images_only)
         ws = self._ws
-        self._k_lookup(self.n_events, ws.ex, ws.ey, ws.edt, ws.th, ws.ctx, ws.img, ws.look, ws.pos)
+        self._k_lookup(self.n_events, _warp_inputs(ws), ws.img, ws.look, ws.pos)
         values = self._unsort(ws.look.to_numpy())
         return values, (self._unsort(ws.pos.to_numpy()) if positions else None)
 
@@ -491,7 +494,7 @@ class MultiClusterCMax(psetup.SetupView):
         self._load()
         ws = self._ws
         ws.th[None] = self.flatten(thetas).tolist()
-        self._k_lookup(self.n_events, ws.ex, ws.ey, ws.edt, ws.th, ws.ctx, ws.img, ws.look, ws.pos)
+        self._k_lookup(self.n_events, _warp_inputs(ws), ws.img, ws.look, ws.pos)
         return self._unsort(ws.pos.to_numpy())
 
     def value_and_images(self, thetas) -> tuple[float, np.ndarray]:

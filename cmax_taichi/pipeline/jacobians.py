@@ -13,6 +13,7 @@ import numpy as np
 import taichi as ti
 
 from cmax_taichi.core import backend, workspace
+from cmax_taichi.kernels import events as kevents
 from cmax_taichi.kernels import jacobian_ad as kad
 from cmax_taichi.pipeline.parameters import check_theta as _check_theta
 from cmax_taichi.pipeline.parameters import require_finite as _require_finite
@@ -58,7 +59,7 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
     n = problem.n_events
     problem._load()
     problem._th[None] = theta.tolist()
-    args = (n, problem._ex, problem._ey, problem._edt, problem._th, problem._ctx)
+    events = kevents.WarpInputs(problem._ex, problem._ey, problem._edt, problem._th, problem._ctx)
     cap = workspace.capacity_for(n)
 
     def build(ws):  # pooled by capacity: fields are never freed, so none is made per call
@@ -74,7 +75,7 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
                 ("quantity", name, model.name, id(model)),
                 lambda fn=fn: kad.make_quantity_kernel(fn),
             )
-            k(*args, out)
+            k(n, events, (out,))
             result[name] = out.to_numpy()[:n].astype(np.float64)
         _require_finite(model, theta, "a per-event det or div", *result.values())
         return result
@@ -90,7 +91,7 @@ def event_jacobians(problem: ContrastMaximization, theta, method: str = "closed"
         f.from_numpy(padded)
     rows = {}
     for label, kernel in (("warp", warp_k), ("flow", flow_k)):
-        kargs = (n, px, py, problem._edt, problem._th, problem._ctx, ox, oy)
+        kargs = (n, events._replace(ex=px, ey=py), (ox, oy))
         kernel(*kargs)
         jac = np.empty((n, 2, 2))
         for row, (sx, sy) in enumerate(((1.0, 0.0), (0.0, 1.0))):

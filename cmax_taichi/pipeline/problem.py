@@ -22,6 +22,7 @@ import taichi as ti
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.kernels import blocks as kblocks
+from cmax_taichi.kernels import events as kevents
 from cmax_taichi.kernels import iwe as kiwe
 from cmax_taichi.kernels import loss as kloss
 from cmax_taichi.kernels import maps as kmaps
@@ -441,13 +442,9 @@ class ContrastMaximization(SetupView):
         """Arguments of a splat kernel; ``count``, ``numer``: other map fields than the chain's."""
         return (
             self.n_events,
-            self._ex,
-            self._ey,
-            self._edt,
+            self._warp_inputs(),
             self._ew,
             self._ech,
-            self._th,
-            self._ctx,
             self._wmom,
             self._vote,
             self._count if count is None else count,
@@ -464,18 +461,17 @@ class ContrastMaximization(SetupView):
         )
 
     def _args_mark(self, tiles):
-        return (self.n_events, self._ex, self._ey, self._edt, self._th, self._ctx, self._wmom, tiles)
+        return (self.n_events, self._warp_inputs(), self._wmom, tiles)
+
+    def _warp_inputs(self) -> kevents.WarpInputs:
+        """The events, parameters and context that the per-event kernels read."""
+        return kevents.WarpInputs(self._ex, self._ey, self._edt, self._th, self._ctx)
 
     def _kernel_chain(self):
         """The forward kernels with their arguments, in order."""
         chain = []
         if self.whitening:
-            chain.append(
-                (
-                    self._k_moments,
-                    (self.n_events, self._ex, self._ey, self._edt, self._th, self._ctx, self._wmom),
-                )
-            )
+            chain.append((self._k_moments, (self.n_events, self._warp_inputs(), self._wmom)))
             chain.append((self._k_wsplat, self._args_splat()))
         chain.append((self._k_splat, self._args_splat()))
         # forward only: the touched segments and the regions of the passes
