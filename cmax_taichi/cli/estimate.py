@@ -37,6 +37,7 @@ import sys
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
+from cmax_taichi.core.windows import describe_events
 from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 from cmax_taichi.pipeline.problem import POLARITY_MODES
 from cmax_taichi.solve.optimize import INITS, METHODS
@@ -625,8 +626,8 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
     events = result.events
     if events.get("total"):
         left = events["total"] - events["estimated"]
-        counted = {k: v for k, v in events.items() if k not in ("total", "estimated", "windows") and v}
-        reasons = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counted.items())
+        count_windows = args.window if args.duration is None else None
+        reasons = describe_events(events, count_windows, args.max_windows)
         note = f"; {left} not estimated ({reasons}; {len(result.skipped)} window(s) skipped)" if left else ""
         print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
     if example is not None:
