@@ -23,38 +23,57 @@ import numpy as np
 from cmax_taichi.core import backend
 from cmax_taichi.lab import bench_impls
 
-DEFAULT_ROWS = [
-    (1000, "346x260", "translation2", "none"),
-    (1000, "1280x720", "translation2", "none"),
-    (1000, "346x260", "mitrokhin4", "div+def"),
-    (1000, "1280x720", "mitrokhin4", "div+def"),
-    (30000, "346x260", "mitrokhin4", "div+def"),
-    (1000000, "346x260", "mitrokhin4", "div+def"),
-]
-SMALL_ROWS = [
-    (1000, "1280x720", "rotation3", "div+def"),
-    (1000, "1280x720", "translation2", "none"),
-    (1000, "240x180", "translation2", "div+def"),
-    (1000, "346x260", "rotation3", "div+def"),
-    (1000, "640x480", "rotation3", "none"),
-    (10000, "240x180", "mitrokhin4", "none"),
-    (10000, "240x180", "translation2", "none"),
-    (10000, "346x260", "rotation3", "none"),
-]
-#: (events, sensor, warp, regularizers, window kind): issue 20's targets and the 1M rows
-ISSUE20_ROWS = [
-    (1000, "240x180", "translation2", "none", "textured"),
-    (1000, "240x180", "translation2", "none", "uniform"),
-    (5000, "1280x720", "translation2", "none", "textured"),
-    (5000, "1280x720", "translation2", "none", "uniform"),
-    (5000, "1280x720", "mitrokhin4", "div+def", "textured"),
-    (300000, "240x180", "translation2", "none", "edges"),
-    (300000, "240x180", "rotation3", "none", "edges"),
-    (300000, "240x180", "translation2", "none", "textured"),
-    (300000, "240x180", "rotation3", "none", "textured"),
-    (1000000, "346x260", "mitrokhin4", "div+def", "textured"),
-    (1000000, "346x260", "translation2", "none", "edges"),
-]
+
+def _rows(table: str, kind: str = "edges") -> list[tuple[int, str, str, str, str]]:
+    """``(events, sensor, warp, regularizers, window kind)`` per line "EVENTS SENSOR WARP REGS [KIND]"
+    of ``table`` (``kind`` where a line names none)."""
+    rows = []
+    for line in table.strip().splitlines():
+        n, sensor, warp, regs, *rest = line.split()
+        rows.append((int(n), sensor, warp, regs, rest[0] if rest else kind))
+    return rows
+
+
+#: the default six windows, small and large, on the synthetic edges
+DEFAULT_ROWS = _rows(
+    """
+    1000 346x260 translation2 none
+    1000 1280x720 translation2 none
+    1000 346x260 mitrokhin4 div+def
+    1000 1280x720 mitrokhin4 div+def
+    30000 346x260 mitrokhin4 div+def
+    1000000 346x260 mitrokhin4 div+def
+    """
+)
+#: the eight small rows that one pair of full runs showed slower after issue 16
+SMALL_ROWS = _rows(
+    """
+    1000 1280x720 rotation3 div+def
+    1000 1280x720 translation2 none
+    1000 240x180 translation2 div+def
+    1000 346x260 rotation3 div+def
+    1000 640x480 rotation3 none
+    10000 240x180 mitrokhin4 none
+    10000 240x180 translation2 none
+    10000 346x260 rotation3 none
+    """
+)
+#: issue 20's targets and the 1M rows
+ISSUE20_ROWS = _rows(
+    """
+    1000 240x180 translation2 none textured
+    1000 240x180 translation2 none uniform
+    5000 1280x720 translation2 none textured
+    5000 1280x720 translation2 none uniform
+    5000 1280x720 mitrokhin4 div+def textured
+    300000 240x180 translation2 none edges
+    300000 240x180 rotation3 none edges
+    300000 240x180 translation2 none textured
+    300000 240x180 rotation3 none textured
+    1000000 346x260 mitrokhin4 div+def textured
+    1000000 346x260 translation2 none edges
+    """
+)
 STREAM_EVENTS = 1_000_000  # the full sweep's textured stream length (its prefixes are the windows)
 
 
@@ -108,10 +127,10 @@ def main(argv: list[str]) -> int:
         rows = ISSUE20_ROWS
         repeats = [max(5, int(scale * (15 if n >= 300_000 else 100))) for n, *_ in rows]
     elif "--small" in argv:
-        rows = [(*r, "edges") for r in SMALL_ROWS]
+        rows = SMALL_ROWS
         repeats = [max(5, int(scale * 60))] * len(rows)
     else:
-        rows = [(*r, "edges") for r in DEFAULT_ROWS]
+        rows = DEFAULT_ROWS
         repeats = [max(5, int(scale * (15 if n >= 1_000_000 else 100))) for n, *_ in rows]
     for (n, sensor, warp, regs, kind), reps in zip(rows, repeats, strict=True):
         wall, cpu = time_row(n, sensor, warp, regs, reps, kind)

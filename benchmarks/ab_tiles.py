@@ -81,6 +81,30 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def _timed(value_and_grad, theta: np.ndarray, repeats: int) -> dict:
+    """Medians of ``repeats`` calls ``value_and_grad(theta)`` after three warm-up calls: wall and process
+    CPU time, ms, and the 1-minute load average after them."""
+    for _ in range(3):
+        value_and_grad(theta)
+    wall, cpu = [], []
+    for _ in range(repeats):
+        c0, t0 = _cpu(), time.perf_counter()
+        value_and_grad(theta)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(_cpu() - c0)
+    return dict(
+        wall_ms=float(np.median(wall)) * 1e3,
+        cpu_ms=float(np.median(cpu)) * 1e3,
+        load=os.getloadavg()[0],
+    )
+
+
+def _write_json(results: list[dict], json_out: str | None) -> None:
+    if json_out:
+        with open(json_out, "w") as fh:
+            json.dump(results, fh, indent=1)
+
+
 def _time(path: str, rows: list[str], repeats: int, json_out: str | None) -> int:
     import cmax_taichi as cm
 
@@ -106,58 +130,27 @@ def _time(path: str, rows: list[str], repeats: int, json_out: str | None) -> int
                 blur_sigma=1.0,
             )
             theta = 0.8 * np.asarray(MOTIONS[warp](W), dtype=np.float64) + np.asarray(OFFSETS[warp])
-            for _ in range(3):
-                prob.value_and_grad(theta)
-            wall, cpu = [], []
-            for _ in range(repeats):
-                c0, t0 = _cpu(), time.perf_counter()
-                prob.value_and_grad(theta)
-                wall.append(time.perf_counter() - t0)
-                cpu.append(_cpu() - c0)
-            row = dict(
-                key=key,
-                regs=regs,
-                wall_ms=float(np.median(wall)) * 1e3,
-                cpu_ms=float(np.median(cpu)) * 1e3,
-                load=os.getloadavg()[0],
-            )
+            row = dict(key=key, regs=regs, **_timed(prob.value_and_grad, theta, repeats))
             results.append(row)
             print(
                 f"{n:>5} {sensor:9s} {warp:13s} {regs:8s} {kind:9s} wall {row['wall_ms']:7.3f} ms"
                 f"  cpu {row['cpu_ms']:7.3f} ms  load {row['load']:.1f}",
                 flush=True,
             )
-    if json_out:
-        with open(json_out, "w") as fh:
-            json.dump(results, fh, indent=1)
+    _write_json(results, json_out)
     return 0
 
 
 def _time_rows(rows_of, rows: list[str], repeats: int, json_out: str | None) -> int:
     results = []
     for label, prob_vg, theta in rows_of(rows):
-        for _ in range(3):
-            prob_vg(theta)
-        wall, cpu = [], []
-        for _ in range(repeats):
-            c0, t0 = _cpu(), time.perf_counter()
-            prob_vg(theta)
-            wall.append(time.perf_counter() - t0)
-            cpu.append(_cpu() - c0)
-        row = dict(
-            key=label,
-            wall_ms=float(np.median(wall)) * 1e3,
-            cpu_ms=float(np.median(cpu)) * 1e3,
-            load=os.getloadavg()[0],
-        )
+        row = dict(key=label, **_timed(prob_vg, theta, repeats))
         results.append(row)
         print(
             f"{label:45s} wall {row['wall_ms']:8.3f} ms  cpu {row['cpu_ms']:8.3f} ms  load {row['load']:.1f}",
             flush=True,
         )
-    if json_out:
-        with open(json_out, "w") as fh:
-            json.dump(results, fh, indent=1)
+    _write_json(results, json_out)
     return 0
 
 

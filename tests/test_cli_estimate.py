@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from cmax_taichi import cli
+from cmax_taichi.core.windows import describe_events
 
 SENSOR = (64, 48)
 V = (150.0, -60.0)  # px/s
@@ -158,6 +159,10 @@ def test_estimate_then_evaluate_end_to_end(tmp_path):
     tail = results["windows"][2]
     assert tail["theta"] == {"v_x": None, "v_y": None}
     assert tail["n_events"] + 2000 == results["events"]["total"]
+    # the summary line renders the counts as the end-of-run warning does (one renderer)
+    reasons = describe_events(results["events"], 1000)
+    assert reasons.startswith(f"{tail['n_events']} in the partial last window")
+    assert f"{tail['n_events']} not estimated ({reasons}; " in proc.stdout, proc.stdout
     for w in results["windows"][:2]:
         assert abs(w["theta"]["v_x"] - V[0]) < 10 and abs(w["theta"]["v_y"] - V[1]) < 10, w
     header = (out / "results.csv").read_text().splitlines()[0]

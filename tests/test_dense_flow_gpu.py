@@ -12,33 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from test_dense_flow import CASES, check_dense_against_reference
-from test_gpu_path import GPU_ARCHS, REQUESTED, _start_gpu, misaligned_fields
+from test_gpu_path import gpu_backend, misaligned_fields, on_gpu, pytestmark  # noqa: F401 - GPU fixtures, marks
 
-import cmax_taichi as cm
-from cmax_taichi.core import backend
 from cmax_taichi.flow import DenseFlowEstimator, FlowGrid
-
-pytestmark = [
-    pytest.mark.gpu,
-    pytest.mark.skipif(
-        REQUESTED not in GPU_ARCHS,
-        reason=f"GPU-path tests run only with {backend.ARCH_ENV} set to one of {', '.join(GPU_ARCHS)} "
-        f"(it is {REQUESTED or 'unset'}); see docs/GPU.md",
-    ),
-]
-
-
-@pytest.fixture(scope="module")
-def gpu_backend() -> backend.BackendInfo:
-    return _start_gpu()
-
-
-@pytest.fixture(autouse=True)
-def on_gpu(gpu_backend) -> backend.BackendInfo:
-    info = cm.backend_info()
-    if info.arch != gpu_backend.arch or info.precision != "f32":
-        info = _start_gpu()
-    return info
 
 
 @pytest.mark.parametrize("case", list(CASES))

@@ -82,16 +82,9 @@ def _check(precision: str, case: str, **options) -> MultiClusterCMax:
     value, grad = prob.value_and_grad(thetas)
     flat = prob.flatten(thetas)
     ref = _ref_sum(raw, P, spec["warps"], thetas, kwargs)
-    fd = np.empty_like(flat)
-    for a in range(flat.size):
-        h = 1e-6 * max(1.0, abs(flat[a]))
-        up, dn = flat.copy(), flat.copy()
-        up[a] += h
-        dn[a] -= h
-        fd[a] = (
-            _ref_sum(raw, P, spec["warps"], prob.unpack(up), kwargs)
-            - _ref_sum(raw, P, spec["warps"], prob.unpack(dn), kwargs)
-        ) / (2 * h)
+    fd = reference.central_differences(
+        lambda f: _ref_sum(raw, P, spec["warps"], prob.unpack(f), kwargs), flat, rel_step=1e-6
+    )
     tol = TOL[precision]
     assert value == pytest.approx(ref, rel=tol["value"], abs=tol["value"])
     err = np.max(np.abs(grad - fd)) / max(np.max(np.abs(fd)), 1e-12)

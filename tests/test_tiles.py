@@ -311,13 +311,7 @@ def test_clusters_on_a_sparse_window():
     value, grad = prob.value_and_grad(thetas)
     assert value == pytest.approx(ref_sum(thetas), rel=TOL["value"], abs=TOL["value"])
     flat = prob.flatten(thetas)
-    fd = np.empty_like(flat)
-    for a in range(flat.size):
-        h = 1e-6 * max(1.0, abs(flat[a]))
-        up, dn = flat.copy(), flat.copy()
-        up[a] += h
-        dn[a] -= h
-        fd[a] = (ref_sum(prob.unpack(up)) - ref_sum(prob.unpack(dn))) / (2 * h)
+    fd = reference.central_differences(lambda f: ref_sum(prob.unpack(f)), flat, rel_step=1e-6)
     err = np.max(np.abs(grad - fd)) / max(np.max(np.abs(fd)), 1e-12)
     assert err < TOL["grad"], f"gradient {grad} vs finite differences {fd} (rel err {err:.2e})"
     prob.value_and_grad([t * 3.0 for t in thetas])

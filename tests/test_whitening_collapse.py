@@ -23,7 +23,7 @@ BEHIND = {"pitch": [0.0, 40.0, 0.0], "oblique": [25.0, -25.0, 10.0]}
 
 def _n_behind(theta) -> int:
     x, y, t, _ = edge_events(n=400, seed=0)
-    geometry = dict(center=(CAMERA.cx, CAMERA.cy), focal=(CAMERA.fx, CAMERA.fy), duration=t.max() - t.min())
+    geometry = dict(**reference.camera_geometry(CAMERA), duration=t.max() - t.min())
     xw, _, _, _ = reference.warp_events("rotation3", x, y, t - t.min(), np.asarray(theta), **geometry)
     return int(np.sum(~np.isfinite(xw)))
 
@@ -55,22 +55,11 @@ def test_whitening_collapse_of_rotation3_on_poster_rotation(f64):
         white = cm.ContrastMaximization(events, warp="rotation3", camera=camera, whitening=True)
         plain = cm.ContrastMaximization(events, warp="rotation3", camera=camera)
     ev = white.events
-    geometry = dict(center=(camera.cx, camera.cy), focal=(camera.fx, camera.fy))
     j_gyro = white.value(w_gt)
     assert j_gyro == pytest.approx(plain.value(w_gt), rel=0.01)  # near the truth whitening is harmless
     for s, factor in ((0.4, 40.0), (0.5, 300.0), (1.0, 500.0)):
         theta = s * np.asarray(WHITENING_RAY)
-        ref = reference.evaluate(
-            ev.x,
-            ev.y,
-            ev.t,
-            ev.p,
-            theta,
-            warp="rotation3",
-            sensor_size=(white.width, white.height),
-            whitening=True,
-            **geometry,
-        )
+        ref = reference.evaluate_window(ev, theta, warp="rotation3", camera=camera, whitening=True)
         j = white.value(theta)
         assert j == pytest.approx(ref["J"], rel=1e-9)
         assert j > factor * j_gyro, (s, j, j_gyro)

@@ -168,6 +168,23 @@ def add_recording_arguments(
     add_plugin_argument(parser)
 
 
+def add_window_arguments(parser):
+    """The group "windows" of a pass over a recording: ``--window`` (events, default 30000),
+    ``--duration``, ``--stride`` and ``--max-windows``; returns it for the command's own window options."""
+    win = parser.add_argument_group("windows")
+    win.add_argument(
+        "--window", type=int, default=30000, metavar="N", help="events per window (default 30000)"
+    )
+    win.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="window length in seconds instead"
+    )
+    win.add_argument(
+        "--stride", type=float, default=None, help="start-to-start step (events, or s with --duration)"
+    )
+    win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
+    return win
+
+
 def add_t_ref_argument(parser) -> None:
     """``--t-ref`` (default ``first``), on a parser or an argument group; read it with :func:`parse_t_ref`."""
     parser.add_argument(

@@ -37,6 +37,7 @@ import sys
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
+from cmax_taichi.core.windows import describe_events
 from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 from cmax_taichi.pipeline.problem import POLARITY_MODES
 from cmax_taichi.solve.optimize import INITS, METHODS
@@ -64,17 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--whitening", action="store_true", help="whitening baseline (whitened warped events)"
     )
-    win = parser.add_argument_group("windows")
-    win.add_argument(
-        "--window", type=int, default=30000, metavar="N", help="events per window (default 30000)"
-    )
-    win.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="window length in seconds instead"
-    )
-    win.add_argument(
-        "--stride", type=float, default=None, help="start-to-start step (events, or s with --duration)"
-    )
-    win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
+    win = common.add_window_arguments(parser)
     win.add_argument(
         "--keep-tail",
         action="store_true",
@@ -625,8 +616,8 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
     events = result.events
     if events.get("total"):
         left = events["total"] - events["estimated"]
-        counted = {k: v for k, v in events.items() if k not in ("total", "estimated", "windows") and v}
-        reasons = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counted.items())
+        count_windows = args.window if args.duration is None else None
+        reasons = describe_events(events, count_windows, args.max_windows)
         note = f"; {left} not estimated ({reasons}; {len(result.skipped)} window(s) skipped)" if left else ""
         print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
     if example is not None:

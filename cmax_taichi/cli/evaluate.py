@@ -149,15 +149,7 @@ def run(args: argparse.Namespace) -> int:
             f"{data}: no ground truth to compare with (angular velocity for rotation3, or optical flow)"
         )
     out = Path(args.out) if args.out else results_path.parent
-    out.mkdir(parents=True, exist_ok=True)
-    keys: list[str] = []
-    for r in rows:
-        keys += [k for k in r if k not in keys]
-    with (out / "metrics.csv").open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(keys)
-        for r in rows:
-            writer.writerow([json.dumps(r[k]) if isinstance(r.get(k), list) else r.get(k, "") for k in keys])
+    _write_metrics_csv(out, rows)
     summary: dict = {"windows": len(rows), "warp": result.warp, "recording": str(data)}
     ang = [r for r in rows if "error_deg_s" in r]
     print(f"{len(rows)} window(s) of {data}, warp {result.warp}")
@@ -194,6 +186,20 @@ def run(args: argparse.Namespace) -> int:
     (out / "metrics.json").write_text(json.dumps({"summary": summary, "windows": rows}, indent=1))
     print(f"wrote: {out / 'metrics.csv'}, {out / 'metrics.json'}")
     return 0
+
+
+def _write_metrics_csv(out: Path, rows: list[dict]) -> None:
+    """``out/metrics.csv`` (``out`` made if missing): a row per window, the columns every key of any row
+    in first-seen order; a key a row lacks is empty, a list (per-threshold values) is written as JSON."""
+    out.mkdir(parents=True, exist_ok=True)
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    with (out / "metrics.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(keys)
+        for r in rows:
+            writer.writerow([json.dumps(r[k]) if isinstance(r.get(k), list) else r.get(k, "") for k in keys])
 
 
 def _size(args: argparse.Namespace) -> dict:
@@ -246,15 +252,7 @@ def _run_flows(args: argparse.Namespace, source: Path, thresholds: tuple[float, 
                 raise CliError(f"{args.data}: no flow ground truth to compare with")
             rows.append({"index": k, "file": w.path.name, "t_start": w.t_start, "t_end": w.t_end, **err})
     out = Path(args.out) if args.out else (source if source.is_dir() else source.parent)
-    out.mkdir(parents=True, exist_ok=True)
-    keys: list[str] = []
-    for r in rows:
-        keys += [key for key in r if key not in keys]
-    with (out / "metrics.csv").open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(keys)
-        for r in rows:
-            writer.writerow([r.get(key, "") for key in keys])
+    _write_metrics_csv(out, rows)
     scored = [r for r in rows if math.isfinite(r["AEE"])]
     summary: dict = {
         "windows": len(rows),

@@ -104,15 +104,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PX",
         help="margin of the IWE around the sensor, px (default 5%% of the larger sensor side)",
     )
-    win = parser.add_argument_group("windows")
-    win.add_argument(
-        "--window", type=int, default=30000, metavar="N", help="events per window (default 30000)"
-    )
-    win.add_argument("--duration", type=float, default=None, metavar="S", help="window length in s instead")
-    win.add_argument(
-        "--stride", type=float, default=None, help="start-to-start step (events, or s with --duration)"
-    )
-    win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
+    win = common.add_window_arguments(parser)
     win.add_argument(
         "--dt",
         type=float,

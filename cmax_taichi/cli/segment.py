@@ -62,11 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--t-start", type=float, default=None, metavar="S", help="start time in seconds instead of --start"
     )
     win.add_argument(
-        "--duration",
-        type=float,
-        default=None,
-        metavar="S",
-        help="window length in seconds instead of --events",
+        "--duration", type=float, metavar="S", help="window length in seconds instead of --events"
     )
     seg = parser.add_argument_group("segmentation")
     seg.add_argument(

@@ -82,26 +82,41 @@ def seconds(name: str, value, positive: bool = False) -> float:
     return number
 
 
+def real_array(values, name: str, readable_as: str, real_what: str) -> np.ndarray:
+    """``np.asarray(values)``, checked to hold no complex value.
+
+    ValueError when ``values`` cannot be read as an array (ragged nested lists and the like: "``name``
+    cannot be read as ``readable_as``"); TypeError for complex values, whose imaginary part a cast
+    would drop without a word ("``real_what`` must be real")."""
+    try:
+        arr = np.asarray(values)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} cannot be read as {readable_as} ({exc})") from None
+    if np.iscomplexobj(arr):
+        raise TypeError(f"{name} has complex values (dtype {arr.dtype}); {real_what} must be real")
+    return arr
+
+
+def check_finite(arr: np.ndarray, name: str) -> None:
+    """ValueError naming how many values of ``arr`` are NaN or infinite."""
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        raise ValueError(f"{name} has {bad} non-finite value(s) (NaN or inf)")
+
+
 def vote_weights(values, n_events: int, name: str = "weights") -> np.ndarray:
     """Per-event vote weights as a float64 array of ``n_events`` values.
 
     Raises TypeError for values that are not real numbers (strings, even numeric ones, objects,
     complex values: the imaginary part is never dropped silently, datetimes), ValueError for another
     count, a NaN or an infinity, or a magnitude above :data:`MAX_ABS_WEIGHT`."""
-    try:
-        arr = np.asarray(values)
-    except (TypeError, ValueError) as exc:  # ragged nested lists and the like
-        raise ValueError(f"{name} cannot be read as a numeric array ({exc})") from None
-    if np.iscomplexobj(arr):
-        raise TypeError(f"{name} has complex values (dtype {arr.dtype}); vote weights must be real")
+    arr = real_array(values, name, "a numeric array", "vote weights")
     if arr.dtype.kind not in "biuf":
         raise TypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
     arr = arr.astype(np.float64).reshape(-1)
     if arr.size != n_events:
         raise ValueError(f"{name} has {arr.size} values for {n_events} events")
-    if not np.all(np.isfinite(arr)):
-        bad = int(np.count_nonzero(~np.isfinite(arr)))
-        raise ValueError(f"{name} has {bad} non-finite value(s) (NaN or inf)")
+    check_finite(arr, name)
     largest = float(np.max(np.abs(arr))) if arr.size else 0.0
     if largest > MAX_ABS_WEIGHT:
         raise ValueError(

@@ -13,20 +13,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cmax_taichi.core.checks import EventsDroppedWarning, time_windows, warn_dropped
+from cmax_taichi.core.checks import EventsDroppedWarning, check_finite, real_array, time_windows, warn_dropped
 from cmax_taichi.core.checks import sensor_size as _check_sensor_size
 
 __all__ = ["Events", "Camera", "EventsDroppedWarning"]
 
 
 def _as_1d(name: str, values, dtype) -> np.ndarray:
-    try:
-        arr = np.asarray(values)
-    except (TypeError, ValueError) as exc:  # ragged nested lists and the like
-        raise ValueError(f"{name} cannot be read as a one-dimensional numeric array ({exc})") from None
-    if np.iscomplexobj(arr):
-        # casting would drop the imaginary part without a word
-        raise TypeError(f"{name} has complex values (dtype {arr.dtype}); event coordinates must be real")
+    arr = real_array(values, name, "a one-dimensional numeric array", "event coordinates")
     if arr.dtype.kind in "mM":  # timedelta64 / datetime64: the unit would be lost in the cast
         raise TypeError(f"{name} has dtype {arr.dtype}; convert it to seconds (float) first")
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)):
@@ -34,9 +28,7 @@ def _as_1d(name: str, values, dtype) -> np.ndarray:
     if arr.ndim != 1:
         raise ValueError(f"{name} must be one-dimensional, got shape {arr.shape}")
     arr = arr.astype(dtype, copy=True)
-    if not np.all(np.isfinite(arr)):
-        bad = int(np.count_nonzero(~np.isfinite(arr)))
-        raise ValueError(f"{name} has {bad} non-finite value(s) (NaN or inf)")
+    check_finite(arr, name)
     return arr
 
 

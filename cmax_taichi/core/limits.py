@@ -235,25 +235,29 @@ def check_dense_flow(sensor_size, itemsize: int) -> tuple[int, int]:
     return W, H
 
 
+def _unrolled_beyond(limit_name: str, value: str, limit: str, unrolled: str) -> ValueError:
+    """The error of a value above a limit on what the kernels unroll at compile time."""
+    return ValueError(
+        f"{value} is above the limit {limit_name} = {limit}: {unrolled}; raise the limit with "
+        f"cmax_taichi.set_limits({limit_name}=...) or {ENV_VARS[limit_name]}"
+    )
+
+
 def check_blur_sigma(blur_sigma: float) -> None:
     """ValueError when ``blur_sigma`` exceeds ``max_blur_sigma`` (compile cost grows with it)."""
     limit = get_limits().max_blur_sigma
     if blur_sigma > limit:
-        raise ValueError(
-            f"blur_sigma = {blur_sigma:g} px is above the limit max_blur_sigma = {limit:g} px: the "
-            f"{2 * math.ceil(3 * blur_sigma) + 1}-tap footprint is unrolled at compile time (compile "
-            f"time and memory grow with it); raise the limit with "
-            f"cmax_taichi.set_limits(max_blur_sigma=...) or {ENV_VARS['max_blur_sigma']}"
-        )
+        taps = 2 * math.ceil(3 * blur_sigma) + 1
+        why = f"the {taps}-tap footprint is unrolled at compile time (compile time and memory grow with it)"
+        raise _unrolled_beyond("max_blur_sigma", f"blur_sigma = {blur_sigma:g} px", f"{limit:g} px", why)
 
 
 def check_clusters(n_clusters: int) -> None:
     """ValueError when ``n_clusters`` exceeds ``max_clusters`` (compile cost grows with K)."""
     limit = get_limits().max_clusters
     if n_clusters > limit:
-        raise ValueError(
-            f"n_clusters = {n_clusters} is above the limit max_clusters = {limit}: the K-cluster "
-            f"kernels are unrolled over K (compile time grows with K; K = 100 exceeded Taichi's limit "
-            f"on fields); raise the limit with cmax_taichi.set_limits(max_clusters=...) or "
-            f"{ENV_VARS['max_clusters']}"
+        why = (
+            "the K-cluster kernels are unrolled over K (compile time grows with K; K = 100 exceeded "
+            "Taichi's limit on fields)"
         )
+        raise _unrolled_beyond("max_clusters", f"n_clusters = {n_clusters}", f"{limit}", why)

@@ -169,6 +169,56 @@ def window_status(span: Span, n_used: int, duration: float) -> str:
     return SHORT_TAIL if span.tail else ESTIMATED
 
 
+def describe_events(events: dict, n_events: int | None = None, max_windows: int | None = None) -> str:
+    """The counts of the events not estimated, by reason, with the remedies, for a message.
+
+    Parameters
+    ----------
+    events : dict
+        Counts per category as :meth:`EventLedger.as_dict` returns them (``SequenceResult.events``):
+        a category or ``"windows"`` that is missing counts 0.
+    n_events : int, optional
+        Events per window of a pass of count windows: the partial tail's count then names
+        ``keep_tail`` (``--keep-tail``) and whether it would keep it.
+    max_windows : int, optional
+        The limit that stopped the pass, named beside the events after its last window.
+
+    Returns
+    -------
+    str
+        ``"<count> <reason>, ..."``; empty when every event was estimated.
+    """
+    c = {name: events.get(name, 0) for name in (*CATEGORIES, _AFTER)}
+    w = {**dict.fromkeys(STATUSES, 0), **events.get("windows", {})}
+    parts = []
+    if c["partial_tail"]:
+        hint = ""
+        if n_events is not None:
+            least = min_tail_events(n_events)
+            hint = (
+                f" (keep_tail=True / --keep-tail keeps a tail of at least {least})"
+                if c["partial_tail"] >= least
+                else f" (shorter than the {least} that keep_tail=True / --keep-tail keeps)"
+            )
+        parts.append(f"{c['partial_tail']} in the partial last window{hint}")
+    if c["outside_sensor"]:
+        parts.append(f"{c['outside_sensor']} outside the sensor")
+    if c["undistortion"]:
+        parts.append(f"{c['undistortion']} lost in undistortion (the first such window's warning says why)")
+    if c["too_few_events"]:
+        parts.append(
+            f"{c['too_few_events']} in {w[TOO_FEW_EVENTS]} window(s) of fewer than {MIN_WINDOW_EVENTS} events"
+        )
+    if c["zero_duration"]:
+        parts.append(f"{c['zero_duration']} in {w[ZERO_DURATION]} window(s) whose events share one time")
+    if c["between_windows"]:
+        parts.append(f"{c['between_windows']} between windows (a stride longer than the window)")
+    if c[_AFTER]:
+        limit = f"={max_windows}" if max_windows is not None else ""
+        parts.append(f"{c[_AFTER]} after the last window of max_windows{limit}")
+    return ", ".join(parts)
+
+
 class EventLedger:
     """Where every event of one pass of windows went (see the module docstring).
 
@@ -260,38 +310,9 @@ class EventLedger:
         return {"total": self.n_total, **self.counts, "windows": dict(self.windows)}
 
     def describe(self, n_events: int | None = None, max_windows: int | None = None) -> str:
-        """The counts of the events not estimated, for a message (empty when every event was)."""
-        c, w = self.counts, self.windows
-        parts = []
-        if c["partial_tail"]:
-            hint = ""
-            if n_events is not None:
-                least = min_tail_events(n_events)
-                hint = (
-                    f" (keep_tail=True / --keep-tail keeps a tail of at least {least})"
-                    if c["partial_tail"] >= least
-                    else f" (shorter than the {least} that keep_tail=True / --keep-tail keeps)"
-                )
-            parts.append(f"{c['partial_tail']} in the partial last window{hint}")
-        if c["outside_sensor"]:
-            parts.append(f"{c['outside_sensor']} outside the sensor")
-        if c["undistortion"]:
-            parts.append(
-                f"{c['undistortion']} lost in undistortion (the first such window's warning says why)"
-            )
-        if c["too_few_events"]:
-            parts.append(
-                f"{c['too_few_events']} in {w[TOO_FEW_EVENTS]} window(s) of fewer than "
-                f"{MIN_WINDOW_EVENTS} events"
-            )
-        if c["zero_duration"]:
-            parts.append(f"{c['zero_duration']} in {w[ZERO_DURATION]} window(s) whose events share one time")
-        if c["between_windows"]:
-            parts.append(f"{c['between_windows']} between windows (a stride longer than the window)")
-        if c[_AFTER]:
-            limit = f"={max_windows}" if max_windows is not None else ""
-            parts.append(f"{c[_AFTER]} after the last window of max_windows{limit}")
-        return ", ".join(parts)
+        """The counts of the events not estimated, for a message (empty when every event was); see
+        :func:`describe_events`."""
+        return describe_events(self.as_dict(), n_events, max_windows)
 
     def warn(
         self,

@@ -28,7 +28,8 @@ from cmax_taichi.flow.grid import FlowGrid
 from cmax_taichi.flow.smoothness import SMOOTHNESS
 from cmax_taichi.kernels import dense_flow as kdense
 from cmax_taichi.models.regularizers import REGULARIZERS
-from cmax_taichi.pipeline.setup import POLARITY_MODES, ProblemSetup, check_regularizers
+from cmax_taichi.pipeline.footprint import KernelFootprint, kernels_key, n_slices
+from cmax_taichi.pipeline.setup import POLARITY_MODES, ProblemSetup, SetupOptions, check_regularizers
 
 __all__ = ["DenseEvaluation", "DenseFlowProblem", "MULTI_REFERENCE", "resolve_references"]
 
@@ -227,14 +228,8 @@ class DenseFlowProblem:
         backend.ensure_initialized()
         self.fractions, self.reference_weights = resolve_references(references, reference_weights)
         map_regs, self.smoothness_weights = split_regularizers(regularizers)
-        self._options = dict(
-            objective=objective,
-            regularizers=map_regs,
-            camera=camera,
-            blur_sigma=blur_sigma,
-            normalize=normalize,
-            polarity=polarity,
-        )
+        # the IWEs' reference times are self.fractions; the set-up keeps t_ref "first"
+        self._options = SetupOptions(objective, map_regs, camera, "first", blur_sigma, normalize, polarity)
         setup = self._setup_for(events, weights)
         self.objective = setup.objective
         if self.objective.fused is None:
@@ -269,35 +264,27 @@ class DenseFlowProblem:
 
     # --- set-up -------------------------------------------------------------------------------------
     def _setup_for(self, events: Events, weights) -> ProblemSetup:
-        o = self._options
-        return ProblemSetup.build(
-            events,
-            [],
-            o["objective"],
-            o["regularizers"],
-            o["camera"],
-            "first",
-            o["blur_sigma"],
-            o["normalize"],
-            o["polarity"],
-            weights,
-        )
+        return self._options.build(events, [], weights)
 
     def _build(self, setup: ProblemSetup) -> None:
         P = self.padding
         W, H, C = setup.width + 2 * P, setup.height + 2 * P, setup.n_channels  # the image of the kernels
         R, Q = len(self.fractions), len(self.regularizers)
         obj = self.objective.fused
-        slots = self.objective.slots_per_channel
         self._atomic = backend.info().arch != "cpu"
-        slices = 1
-        if not self._atomic:
-            import taichi as ti
-
-            slices = max(1, int(ti.lang.impl.current_cfg().cpu_max_num_threads))
         weighted = setup.vote_weights is not None
         split = setup.polarity == "split"
-        shared = Q > 0 and not weighted and not split
+        footprint = KernelFootprint(
+            width=W,
+            height=H,
+            n_channels=C,
+            radius=setup.radius,
+            n_slices=n_slices(),
+            shared_count=Q > 0 and not weighted and not split,
+            objective_slots=self.objective.slots_per_channel,
+            sobel=obj.sobel,
+        )
+        slices, shared = footprint.n_slices, footprint.shared_count
         self._weighted, self._split = weighted, split
         cap = _node_capacity(self.finest.n_nodes)
         itemsize = np.dtype(backend.numpy_real()).itemsize
@@ -314,74 +301,30 @@ class DenseFlowProblem:
             f"sensor {W}x{H}, {R} reference(s), {Q} regularizer(s), {setup.n_events:,} events",
         )
         real = backend.real()
-        key = (
-            "dense_flow",
-            backend.info().generation,
-            W,
-            H,
-            C,
-            R,
-            Q,
-            setup.radius,
-            slots,
-            obj.sobel,
-            slices,
-            shared,
-            cap,
-        )
+        key = ("dense_flow", backend.info().generation, footprint, R, Q, cap)
 
         def build(ws):
             ws.fields = kdense.DenseFlowFields(
-                real,
-                width=W,
-                height=H,
-                n_channels=C,
-                n_refs=R,
-                n_regs=Q,
-                radius=setup.radius,
-                n_slices=slices,
-                shared_count=shared,
-                objective_slots=slots,
-                sobel=obj.sobel,
-                max_nodes=cap,
-                atomic=self._atomic,
+                real, n_refs=R, n_regs=Q, max_nodes=cap, atomic=self._atomic, **footprint.fields_options()
             )
             ws.kernels = {}
 
         self._ws = workspace.acquire(key, build, f"a {W}x{H} dense flow problem")
         self.fields = self._ws.fields
-        kkey = (
-            self.objective.name,
-            id(obj),
-            tuple((r.name, id(r)) for r in self.regularizers),
-            weighted,
-            split,
-            self._atomic,
-        )
+        kkey = kernels_key(self.objective.name, obj, self.regularizers, weighted, split, self._atomic)
         if kkey not in self._ws.kernels:
             regs = self.regularizers
+            options = footprint.kernel_options(
+                obj, atomic=self._atomic, weighted=weighted, split=split, real=real
+            )
             self._ws.kernels[kkey] = kdense.make_dense_flow_kernels(
                 self.fields,
                 tuple(r.kind for r in regs),
                 tuple(r.penalty for r in regs),
                 tuple(r.penalty_grad for r in regs),
                 tuple(bool(r.one_sided) for r in regs),
-                pixel_fn=obj.pixel,
-                finalize_fn=obj.finalize,
-                adjoint_fn=obj.adjoint,
-                objective_slots=slots,
-                sobel=obj.sobel,
-                width=W,
-                height=H,
-                n_channels=C,
                 n_refs=R,
-                radius=setup.radius,
-                n_slices=slices,
-                atomic_scatter=self._atomic,
-                weighted=weighted,
-                split_polarity=split,
-                shared_count=shared,
-                real=real,
+                **options,
             )
         self._run_k = self._ws.kernels[kkey]
         self._out = np.zeros(2 + R + Q + Q * R)

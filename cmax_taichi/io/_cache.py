@@ -217,6 +217,28 @@ class CachedTableReads:
         :func:`cached_table` returns, as keyword arguments of ``Recording.__init__``."""
         return event_span(meta["n"], lambda i: meta["t_start"] if i == 0 else meta["t_end"])
 
+    def _load_table(
+        self, path: Path, fmt: str, key: dict, decode, *, cache_dir, cache: bool, sort: bool
+    ) -> dict:
+        """``self._table`` of ``path`` through :func:`cached_table` (``decode(out)`` fills it on a cache
+        miss) and ``self.rows_out_of_order``; returns the table's metadata."""
+        self._table, meta = cached_table(
+            path, fmt, key, decode, cache_dir=cache_dir, use_cache=cache, sort=bool(sort)
+        )
+        self.rows_out_of_order = int(meta.get("rows_out_of_order", 0))
+        return meta
+
+    def _init_decoded(self, path: Path, meta: dict, sensor_size, camera) -> None:
+        """``Recording.__init__`` for a decoded binary format: integer pixel coordinates (never
+        undistorted), on the sensor the file names unless ``sensor_size`` is given."""
+        super().__init__(
+            path,
+            sensor_size=sensor_size or tuple(meta["sensor_size"]),
+            camera=camera,
+            undistorted=False,
+            **self.table_span(meta),
+        )
+
     def _columns(self, start: int, stop: int):
         rows = np.asarray(self._table[start:stop])
         return rows[:, 1], rows[:, 2], rows[:, 0], rows[:, 3]

@@ -19,7 +19,7 @@ from typing import BinaryIO
 import numpy as np
 
 from cmax_taichi.core.events import Camera
-from cmax_taichi.io._cache import CachedTableReads, cached_table
+from cmax_taichi.io._cache import CachedTableReads
 from cmax_taichi.io._files import check_regular
 from cmax_taichi.io.base import Recording
 
@@ -119,18 +119,16 @@ class AEDAT4Recording(CachedTableReads, Recording):
             path = found[0]
         check_regular(path)
         _decoder(path)  # fails early, before any cache look-up, without the package or on a bad file
-        self._table, meta = cached_table(
-            path, "aedat4", {}, lambda out: _decode(path, out, check_order=not sort), cache_dir=cache_dir,
-            use_cache=cache, sort=bool(sort),
-        )  # fmt: skip
-        self.rows_out_of_order = int(meta.get("rows_out_of_order", 0))
-        super().__init__(
+        meta = self._load_table(
             path,
-            sensor_size=sensor_size or tuple(meta["sensor_size"]),
-            camera=camera,
-            undistorted=False,
-            **self.table_span(meta),
+            "aedat4",
+            {},
+            lambda out: _decode(path, out, check_order=not sort),
+            cache_dir=cache_dir,
+            cache=cache,
+            sort=sort,
         )
+        self._init_decoded(path, meta, sensor_size, camera)
 
     def imu(self) -> np.ndarray | None:
         """The IMU samples ``(M, 7)``: ``t ax ay az gx gy gz`` (s, g, deg/s as the file stores them,

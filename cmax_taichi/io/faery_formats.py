@@ -36,7 +36,7 @@ from typing import BinaryIO
 import numpy as np
 
 from cmax_taichi.core.events import Camera
-from cmax_taichi.io._cache import CachedTableReads, cached_table
+from cmax_taichi.io._cache import CachedTableReads
 from cmax_taichi.io._files import check_regular
 from cmax_taichi.io.base import Recording
 
@@ -330,23 +330,16 @@ class FaeryRecording(CachedTableReads, Recording):
         # fails early, before any cache look-up, without the package or on an unreadable header
         decoder, self.encoding = self._decoder(path, sensor_size, version)
         check_whole_words(path, self._faery_type, version)
-        self._table, meta = cached_table(
+        meta = self._load_table(
             path,
             self.format,
             {"version": version, "sensor_size": None if sensor_size is None else list(sensor_size)},
             lambda out: _decode(decoder, path, self._what, out, check_order=not sort),
             cache_dir=cache_dir,
-            use_cache=cache,
-            sort=bool(sort),
+            cache=cache,
+            sort=sort,
         )
-        self.rows_out_of_order = int(meta.get("rows_out_of_order", 0))
-        super().__init__(
-            path,
-            sensor_size=sensor_size or tuple(meta["sensor_size"]),
-            camera=camera,
-            undistorted=False,
-            **self.table_span(meta),
-        )
+        self._init_decoded(path, meta, sensor_size, camera)
 
     def _decoder(self, path: Path, sensor_size, version: str | None):
         """(an iterable of event packets with ``dimensions()``, the encoding name)."""

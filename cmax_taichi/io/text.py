@@ -19,7 +19,7 @@ import numpy as np
 
 from cmax_taichi.core import checks
 from cmax_taichi.core.events import Camera
-from cmax_taichi.io._cache import CachedTableReads, cached_table
+from cmax_taichi.io._cache import CachedTableReads
 from cmax_taichi.io._files import check_regular, is_present
 from cmax_taichi.io.base import Recording
 
@@ -293,16 +293,15 @@ class TextRecording(CachedTableReads, Recording):
         self.events_file = find_events_file(path)
         self.folder = path if path.is_dir() else path.parent
         names, _ = resolve_columns(self.events_file, columns)
-        self._table, self._meta = cached_table(
+        self._meta = self._load_table(
             self.events_file,
             "text",
             {"columns": names},
             lambda out: parse_text_events(self.events_file, names, out, check_order=not sort),
             cache_dir=cache_dir,
-            use_cache=cache,
-            sort=bool(sort),
+            cache=cache,
+            sort=sort,
         )
-        self.rows_out_of_order = int(self._meta.get("rows_out_of_order", 0))
         calib_camera, calib_size = read_calib(self.folder / "calib.txt")
         meta = self._meta
         integer = bool(meta["integer_coords"])

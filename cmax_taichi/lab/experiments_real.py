@@ -402,7 +402,7 @@ def whitening_rows(
     white = cm.ContrastMaximization(events, warp="rotation3", camera=camera, whitening=True)
     plain = cm.ContrastMaximization(events, warp="rotation3", camera=camera)
     ev = white.events  # undistorted, as the problems see them
-    geometry = dict(center=(camera.cx, camera.cy), focal=(camera.fx, camera.fy))
+    geometry = reference.camera_geometry(camera)
     dt = ev.t - ev.t[0]
     for s in steps:
         theta = s * np.asarray(ray, dtype=np.float64)
@@ -415,17 +415,7 @@ def whitening_rows(
         votes = np.sort(
             reference.bilinear_votes(xs, ys, np.ones_like(xs), white.width, white.height), axis=None
         )
-        ref = reference.evaluate(
-            ev.x,
-            ev.y,
-            ev.t,
-            ev.p,
-            theta,
-            warp="rotation3",
-            sensor_size=(white.width, white.height),
-            whitening=True,
-            **geometry,
-        )
+        ref = reference.evaluate_window(ev, theta, warp="rotation3", camera=camera, whitening=True)
         yield {
             "label": f"{s:g} x ray",
             "theta": theta,

@@ -288,11 +288,6 @@ class MultiClusterCMax(psetup.SetupView):
             lambda: kcl.make_cluster_lookup_kernel(warp_fns, self.offsets, self.n_params, width=W, height=H),
         )
         self._kimg = psetup.image_kernels(self.setup, K, self._ws)
-        self._k_blur_x, self._k_blur_y, self._k_reduce = (
-            self._kimg.blur_x,
-            self._kimg.blur_y,
-            self._kimg.reduce,
-        )
         obj = self.objective
         if regs:
             self._k_maps = psetup.cached_kernel(
@@ -379,9 +374,9 @@ class MultiClusterCMax(psetup.SetupView):
             (self._kimg.compact, (ws.tiles,)),
         ]
         if self.blur_sigma > 0:
-            chain.append((self._k_blur_x, (ws.vote, ws.tmp, ws.taps, ws.tiles, psetup.RX)))
-            chain.append((self._k_blur_y, (ws.tmp, ws.img, ws.taps, ws.tiles, psetup.RXY)))
-        chain.append((self._k_reduce, self._kimg.reduce_args(ws, ws.img, ws.acc)))
+            chain.append((self._kimg.blur_x, (ws.vote, ws.tmp, ws.taps, ws.tiles, psetup.RX)))
+            chain.append((self._kimg.blur_y, (ws.tmp, ws.img, ws.taps, ws.tiles, psetup.RXY)))
+        chain.append((self._kimg.reduce, self._kimg.reduce_args(ws, ws.img, ws.acc)))
         if self._reg_names:
             chain.append((self._k_maps, (ws.count, ws.numer, ws.macc, ws.tiles, ws.mpart)))
         chain.append((self._k_loss, (ws.acc, ws.macc, ws.lam, ws.g0, ws.cw, ws.loss, ws.diag)))

@@ -27,13 +27,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import taichi as ti
 from taichi.lang import impl as ti_impl
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
+from cmax_taichi.pipeline.footprint import KernelFootprint, kernels_key, n_slices
 
 __all__ = ["ChainPathWarning", "FusedPipeline", "PathChoice"]
 
@@ -159,13 +159,6 @@ def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
     return np.clip(y, 0, height - 1).astype(dtype)
 
 
-def n_slices() -> int:
-    """Accumulation slices of the splat: one per CPU thread; 1 (atomics) on a GPU."""
-    if backend.info().arch != "cpu":
-        return 1
-    return max(1, int(ti.lang.impl.current_cfg().cpu_max_num_threads))
-
-
 class FusedPipeline:
     """J and dJ/dtheta of one problem by the fused kernels.
 
@@ -214,98 +207,60 @@ class FusedPipeline:
     def __init__(self, problem, objective, regs: list, vote_w: np.ndarray | None) -> None:
         self.problem = problem
         model = problem.model
-        C, W, H, P = problem.n_channels, problem.width, problem.height, model.n_params
+        P = model.n_params
         weighted = vote_w is not None
         split = problem.polarity == "split"
-        radius = problem.setup.radius
-        slots = problem.objective.slots_per_channel
         atomic = backend.info().arch != "cpu" or self.force_atomic
-        slices = 1 if atomic else n_slices()
-        shared = bool(regs) and not weighted and not split
+        footprint = KernelFootprint(
+            width=problem.width,
+            height=problem.height,
+            n_channels=problem.n_channels,
+            radius=problem.setup.radius,
+            n_slices=1 if atomic else n_slices(),
+            shared_count=bool(regs) and not weighted and not split,
+            objective_slots=problem.objective.slots_per_channel,
+            sobel=objective.sobel,
+        )
         real = backend.real()
         self.n_params = P
         # the declared capabilities (for_problem checked that they are there)
         kinds = tuple(r.kind for r in regs)
         constant = tuple(k in model.constant_quantities for k in kinds)
         n_voted = len(regs) - sum(constant)
-
-        key = (
-            "fused",
-            problem._backend.generation,
-            W,
-            H,
-            C,
-            len(regs),
-            n_voted,
-            P,
-            radius,
-            slots,
-            objective.sobel,
-            slices,
-            shared,
-        )
+        key = ("fused", problem._backend.generation, footprint, len(regs), n_voted, P)
 
         def build(ws):
             ws.fields = kfused.FusedFields(
-                real,
-                width=W,
-                height=H,
-                n_channels=C,
-                n_regs=len(regs),
-                n_voted=n_voted,
-                n_params=P,
-                radius=radius,
-                n_slices=slices,
-                shared_count=shared,
-                objective_slots=slots,
-                sobel=objective.sobel,
+                real, n_regs=len(regs), n_voted=n_voted, n_params=P, **footprint.fields_options()
             )
             ws.kernels = {}
 
+        W, H = footprint.width, footprint.height
         self._ws = workspace.acquire(key, build, f"a {W}x{H} problem (fused pipeline)")
         self.fields = self._ws.fields
-        penalties = tuple(r.penalty for r in regs)
         kkey = (
             model.name,
             id(model),
-            tuple((r.name, id(r)) for r in regs),
-            problem.objective.name,
-            id(objective),
-            weighted,
-            split,
-            atomic,
-            constant,
+            *kernels_key(problem.objective.name, objective, regs, weighted, split, atomic, constant),
         )
         if kkey not in self._ws.kernels:
             self._ws.kernels[kkey] = kfused.make_fused_kernels(
                 self.fields,
                 model.warp,
                 tuple(r.quantity_fn(model) for r in regs),
-                penalties,
+                tuple(r.penalty for r in regs),
                 tuple(r.penalty_grad for r in regs),
                 tuple(bool(getattr(r, "one_sided", False)) for r in regs),
-                pixel_fn=objective.pixel,
-                finalize_fn=objective.finalize,
-                adjoint_fn=objective.adjoint,
-                objective_slots=slots,
-                sobel=objective.sobel,
-                width=W,
-                height=H,
-                n_channels=C,
                 n_params=P,
-                radius=radius,
-                n_slices=slices,
-                atomic_scatter=atomic,
-                weighted=weighted,
-                split_polarity=split,
-                shared_count=shared,
-                real=real,
                 param_jac=model.param_jac,
                 quantity_kinds=kinds,
                 constant=constant,
                 det_fn=model.det,
                 warp_terms=model.warp_terms,
                 positive_det=model.positive_det,
+                **footprint.kernel_options(
+                    objective, atomic=atomic, weighted=weighted, split=split, real=real
+                ),
             )
         self._run_k = self._ws.kernels[kkey]
 

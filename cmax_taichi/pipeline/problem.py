@@ -41,6 +41,7 @@ from cmax_taichi.pipeline.setup import (
     RX,
     RXY,
     ProblemSetup,
+    SetupOptions,
     SetupView,
     allocate_images,
     check_limits,
@@ -157,34 +158,14 @@ class ContrastMaximization(SetupView):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
         self.model: WarpModel = get_warp(warp)
         # what set_events needs to check and derive the next window as this one
-        self._options = dict(
-            objective=objective,
-            regularizers=regularizers,
-            camera=camera,
-            t_ref=t_ref,
-            blur_sigma=blur_sigma,
-            normalize=normalize,
-            polarity=polarity,
-        )
+        self._options = SetupOptions(objective, regularizers, camera, t_ref, blur_sigma, normalize, polarity)
         self.whitening = bool(whitening)
         self._fused = None
         self._theta_limit = _float_limit()  # holds for this backend generation (_check_alive)
         self._take_window(self._setup_for(events, weights))
 
     def _setup_for(self, events: Events, weights) -> ProblemSetup:
-        o = self._options
-        setup = ProblemSetup.build(
-            events,
-            [self.model],
-            o["objective"],
-            o["regularizers"],
-            o["camera"],
-            o["t_ref"],
-            o["blur_sigma"],
-            o["normalize"],
-            o["polarity"],
-            weights,
-        )
+        setup = self._options.build(events, [self.model], weights)
         check_limits(setup, "this problem", n_slices=n_slices())  # before anything is allocated
         return setup
 
@@ -417,11 +398,6 @@ class ContrastMaximization(SetupView):
             self._k_moments = _cached(("moments", m.name, id(m)), lambda: kwhite.make_moments_kernel(m.warp))
         self._k_mark = self._mark_kernel(iwe=True, maps=bool(regs))
         self._kimg = image_kernels(self.setup, C, self._ws)
-        self._k_blur_x, self._k_blur_y, self._k_reduce = (
-            self._kimg.blur_x,
-            self._kimg.blur_y,
-            self._kimg.reduce,
-        )
         obj = self.objective
         if regs:
             self._k_maps = _cached(("maps", reg_key, W, H), lambda: kmaps.make_maps_reduce(penalties, W, H))
@@ -478,9 +454,9 @@ class ContrastMaximization(SetupView):
         chain.append((self._k_mark, self._args_mark(self._tiles)))
         chain.append((self._kimg.compact, (self._tiles,)))
         if self.blur_sigma > 0:
-            chain.append((self._k_blur_x, (self._vote, self._tmp, self._taps, self._tiles, RX)))
-            chain.append((self._k_blur_y, (self._tmp, self._img, self._taps, self._tiles, RXY)))
-        chain.append((self._k_reduce, self._kimg.reduce_args(self._ws, self._img, self._acc)))
+            chain.append((self._kimg.blur_x, (self._vote, self._tmp, self._taps, self._tiles, RX)))
+            chain.append((self._kimg.blur_y, (self._tmp, self._img, self._taps, self._tiles, RXY)))
+        chain.append((self._kimg.reduce, self._kimg.reduce_args(self._ws, self._img, self._acc)))
         if self._reg_names:
             chain.append((self._k_maps, (self._count, self._numer, self._macc, self._tiles, self._mpart)))
         chain.append(

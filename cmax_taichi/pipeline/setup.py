@@ -274,6 +274,40 @@ class ProblemSetup:
         return tuple(bool(r.one_sided) for r in self.regularizers)
 
 
+@dataclass(frozen=True)
+class SetupOptions:
+    """The options a problem sets up every window it takes with (:meth:`ProblemSetup.build`), kept so
+    that ``set_events`` checks and derives the next window as the first."""
+
+    objective: str
+    regularizers: Mapping[str, float] | None
+    camera: Camera | None
+    t_ref: str | float
+    blur_sigma: float
+    normalize: bool
+    polarity: str = "ignore"
+
+    def build(
+        self,
+        events: Events,
+        models: Sequence[WarpModel],
+        weights: Sequence[float] | np.ndarray | None = None,
+    ) -> ProblemSetup:
+        """The set-up of the window ``events`` for the warp ``models`` (see :meth:`ProblemSetup.build`)."""
+        return ProblemSetup.build(
+            events,
+            models,
+            self.objective,
+            self.regularizers,
+            self.camera,
+            self.t_ref,
+            self.blur_sigma,
+            self.normalize,
+            self.polarity,
+            weights,
+        )
+
+
 def _from_setup(name: str, doc: str) -> property:
     return property(lambda self: getattr(self.setup, name), doc=doc)
 

@@ -43,7 +43,7 @@ import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, TextIO
+from typing import Any, Literal, Protocol, TextIO
 
 import numpy as np
 
@@ -155,7 +155,7 @@ class RecordingSummary:
 
     name: str
     path: str
-    status: str
+    status: Literal["done", "failed"]
     windows: int = 0
     resumed_from: int = 0
     new_windows: int = 0

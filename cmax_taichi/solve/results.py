@@ -81,6 +81,19 @@ class WindowResult:
     status: str = ESTIMATED
     n_dropped: int = 0
 
+    @classmethod
+    def of_optimization(cls, res, **window) -> WindowResult:
+        """The row of a window estimated by ``res`` (an :class:`~cmax_taichi.OptimizeResult`): its
+        estimate, value, iterations, convergence and evaluations; ``window`` gives the other fields."""
+        return cls(
+            theta=np.asarray(res.theta, dtype=np.float64),
+            value=float(res.value),
+            iterations=res.n_iterations,
+            converged=res.converged,
+            evaluations=res.n_evaluations,
+            **window,
+        )
+
     @property
     def estimated(self) -> bool:
         """Whether the window was estimated (``status`` ``"estimated"`` or ``"short_tail"``)."""

@@ -333,7 +333,7 @@ def segment(
     steps: int = 8,
     learning_rate: float = 0.5,
     tol: float = 2e-3,
-    init_thetas=None,
+    init_thetas: np.ndarray | Sequence[np.ndarray] | None = None,
     max_displacement: float | None = None,
     init_events: int = 4000,
     min_cluster_fraction: float = 0.01,

@@ -591,18 +591,14 @@ def process(
                         else:
                             fprob.set_events(prob.events)
                         value_fwl = fprob.value(res.theta)
-                row = WindowResult(
+                row = WindowResult.of_optimization(
+                    res,
                     index=index,
                     t_start=float(used.t[0]),
                     t_end=float(used.t[-1]),
                     n_events=prob.n_events,
-                    theta=np.asarray(res.theta, dtype=np.float64),
-                    value=float(res.value),
                     fwl=float(value_fwl),
-                    iterations=res.n_iterations,
                     seconds=time.perf_counter() - t0,
-                    converged=res.converged,
-                    evaluations=res.n_evaluations,
                     search=search,
                     status=status,
                     n_dropped=len(span) - prob.n_events,

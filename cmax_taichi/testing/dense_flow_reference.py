@@ -20,8 +20,8 @@ from cmax_taichi.testing.reference import (
     DEF_FLOOR,
     KAPPA,
     bilinear_votes,
-    gaussian_blur,
     objective_value,
+    polarity_iwe,
 )
 
 #: Charbonnier constant of ``total_variation`` (strain units)
@@ -166,14 +166,7 @@ def dense_evaluate(
     mean_t = float(np.mean(t))
 
     def iwe_of(xw, yw):
-        if polarity == "ignore":
-            chans = [w]
-        elif polarity == "signed":
-            chans = [w * pol]
-        else:
-            chans = [np.where(pol > 0, w, 0.0), np.where(pol < 0, w, 0.0)]
-        votes = np.stack([bilinear_votes(xw, yw, b, W, H) for b in chans])
-        return gaussian_blur(votes, blur_sigma)
+        return polarity_iwe(xw, yw, w, pol, polarity, W, H, blur_sigma)
 
     g0 = objective_value(objective, iwe_of(x, y)) if normalize else 1.0
     G, iwes, r_div, r_def = [], [], [], []

@@ -408,7 +408,12 @@ def _resolve_t_ref(t_ref, t: np.ndarray) -> float:
     return float(t_ref)
 
 
-def _iwe(xw, yw, weights, pol, polarity, width, height, blur_sigma) -> np.ndarray:
+def polarity_iwe(
+    xw, yw, weights, pol, polarity: str, width: int, height: int, blur_sigma: float
+) -> np.ndarray:
+    """The blurred IWE channels ``(C, H, W)`` of the warped events ``(xw, yw)``, px: one of the votes
+    ``weights`` (``polarity="ignore"``), of ``weights * pol`` ("signed"), or two, of the positive and
+    the negative events ("split"); ``pol`` is +1 or -1 per event."""
     if polarity == "ignore":
         channels = [weights]
     elif polarity == "signed":
@@ -537,11 +542,11 @@ def evaluate(
 
     # objective at theta and at the identity warp
     xw, yw, det, div = warp_events(warp, x, y, dt, theta, center=center, focal=focal, duration=T)
-    iwe = _iwe(*positions_for_iwe(xw, yw), w, pol, polarity, width, height, blur_sigma)
+    iwe = polarity_iwe(*positions_for_iwe(xw, yw), w, pol, polarity, width, height, blur_sigma)
     g_raw = objective_value(objective, iwe)
 
     xw0, yw0, _, _ = warp_events(warp, x, y, dt, np.zeros_like(theta), center=center, focal=focal, duration=T)
-    iwe0 = _iwe(*positions_for_iwe(xw0, yw0), w, pol, polarity, width, height, blur_sigma)
+    iwe0 = polarity_iwe(*positions_for_iwe(xw0, yw0), w, pol, polarity, width, height, blur_sigma)
     g0 = objective_value(objective, iwe0)
     if normalize:
         if g0 == 0.0:
@@ -589,6 +594,20 @@ def evaluate(
         "det": det,
         "div": div,
     }
+
+
+def camera_geometry(camera) -> dict:
+    """The ``center`` and ``focal`` keywords (px) of :func:`warp_events` and :func:`evaluate` from a
+    :class:`~cmax_taichi.Camera`'s intrinsics."""
+    return dict(center=(camera.cx, camera.cy), focal=(camera.fx, camera.fy))
+
+
+def evaluate_window(events, theta, *, warp: str, camera=None, **kwargs) -> dict:
+    """:func:`evaluate` of an :class:`~cmax_taichi.Events` window on its sensor, with the geometry of
+    ``camera`` (:func:`camera_geometry`) where one is given; ``kwargs`` go to :func:`evaluate`."""
+    geometry = {} if camera is None else camera_geometry(camera)
+    x, y, t, p, size = events.x, events.y, events.t, events.p, events.sensor_size
+    return evaluate(x, y, t, p, theta, warp=warp, sensor_size=size, **geometry, **kwargs)
 
 
 def central_differences(fn, theta, *, rel_step: float) -> np.ndarray:
