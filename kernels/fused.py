@@ -69,6 +69,8 @@ def params_layout(n_regs: int) -> dict:
     n_lam = max(2 * n_regs, 1)
     return {"theta": 0, "ctx": MAX_PARAMS, "g0": MAX_PARAMS + 5, "lam": MAX_PARAMS + 6,
             "n_lam": n_lam, "size": MAX_PARAMS + 6 + n_lam}  # fmt: skip
+
+
 QUANTITY_KINDS = ("div", "absdet")  # per-event quantities the hand-written backward differentiates
 
 
@@ -304,8 +306,7 @@ def make_fused_kernels(
     sobel_t = _b.make_sobel_transpose(_read_gx, _read_gy, W, H)
     tf = f.tiles
     tiles = _t.ops_for(tf)
-    masks = tf.masks
-    SEG, NW = _t.SEG, tf.n_words
+    SEG = _t.SEG
     in_image = tiles.in_image  # a column of a segment is in the image
     F0, RX, RXY = 0, 1, 2
     R_OBJ = 3 if sobel else RXY  # the region of the objective's pixel terms
@@ -437,10 +438,6 @@ def make_fused_kernels(
     store_segment, clear_segment, twice_taps = seg.store, seg.clear, seg.twice_taps
 
     @ti.func
-    def twice_blur_y_segment(wide, c: ti.template(), y, x0):
-        return seg.twice_blur_y(f.tmp, wide, c, y, x0)
-
-    @ti.func
     def keep_image(grad):
         """Whether this call keeps the blurred IWE in ``img``: for a Sobel objective (its pass reads it)
         or when asked (bit 2 of ``grad``, ``FusedPipeline.image``)."""
@@ -448,6 +445,92 @@ def make_fused_kernels(
         if ti.static(not sobel):
             keep = grad & 2 != 0
         return keep
+
+    # The bodies of the row passes, ``body(y, x0 or x, state)`` of ``tiles.each_segment`` / ``each_pixel``:
+    # ``state`` is passed by reference (its vectors accumulate the row's sums), tuples indexed, not unpacked.
+
+    @ti.func
+    def sum_slices_and_maps(y, x, sums: ti.template()):
+        """Stage 3 at a touched pixel: the slices summed into slice 0; ``sums`` += (m, m P_v)."""
+        if ti.static(S > 1):
+            for k in ti.static(range(K)):
+                v = f.acc[0, y, x, k]
+                for s in ti.static(range(1, S)):
+                    v += f.acc[s, y, x, k]
+                    f.acc[s, y, x, k] = 0.0
+                f.acc[0, y, x, k] = v
+        if ti.static(R > 0):
+            cnt = f.acc[0, y, x, i_cnt]
+            if cnt > 0.0:
+                m = _b.support_weight(cnt)
+                sums[0] += m
+                for v in ti.static(range(RV)):
+                    sums[1 + v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
+
+    @ti.func
+    def blur_x_votes(y, x0, tv):
+        """Stage 3 over Rx: the IWE channels of the votes blurred along x into ``tmp``."""
+        for c in ti.static(range(C)):
+            store_segment(f.tmp, c, y, x0, blur_x_segment(f.acc, True, c, y, x0, tv))
+
+    @ti.func
+    def blur_y_and_terms(y, x0, st: ti.template()):
+        """Stage 4 over Rxy, ``st = (taps, keep, objective sums)``: ``tmp`` blurred along y (into ``img``
+        where kept), the objective's terms (without Sobel) into the sums."""
+        for c in ti.static(range(C)):
+            v = blur_y_segment(f.tmp, c, y, x0, st[0])
+            if st[1]:
+                store_segment(f.img, c, y, x0, v)
+            if ti.static(not sobel):
+                for p in ti.static(range(SEG)):
+                    if in_image(x0 + p):
+                        terms = pixel_fn(v[p], 0.0, 0.0)
+                        for k in ti.static(range(SL)):
+                            st[2][SL * c + k] += terms[k]
+
+    @ti.func
+    def clear_votes(y, x, grad):
+        """Stage 4 at a touched pixel: the votes stage 3's blur read, cleared: the IWE channels now, the
+        maps (and a shared count) after the backward where it runs (it reads them and clears them)."""
+        if ti.static(R > 0):  # noqa: SIM102 - compile-time if
+            if grad & 1 == 0:
+                for k in ti.static(range(i_cnt, K)):
+                    f.acc[0, y, x, k] = 0.0
+        for c in ti.static(range(C)):
+            if ti.static(shared_count and c == i_cnt):
+                if grad & 1 == 0:
+                    f.acc[0, y, x, c] = 0.0
+            else:
+                f.acc[0, y, x, c] = 0.0
+
+    @ti.func
+    def sobel_and_terms(y, x, sums: ti.template()):
+        """Stage 5 over Rs: the Sobel images (kept for the backward), the objective's terms into ``sums``."""
+        for c in ti.static(range(C)):
+            gx, gy = sobel_fn(f.img, c, y, x)
+            f.sobel[y, x, 2 * c] = gx
+            f.sobel[y, x, 2 * c + 1] = gy
+            terms = pixel_fn(f.img[y, x, c], gx, gy)
+            for k in ti.static(range(SL)):
+                sums[SL * c + k] += terms[k]
+
+    @ti.func
+    def transposed_sobel(y, x, ibar: ti.template()):
+        """Stage 7 over Rxy: ``L(I)``, the transposed Sobel of the Sobel images."""
+        for c in ti.static(range(C)):
+            ibar[y, x, c] = sobel_t(f.sobel, c, y, x)
+
+    @ti.func
+    def blur_y_adjoint(y, x0, st: ti.template()):
+        """Stage 7 over Rx, ``st = (taps, B_y^T B_y taps, scale / G0, offset tap sum / G0)`` per channel:
+        the transposed blur along y of dJ/dI into ``tmp2``."""
+        for c in ti.static(range(C)):
+            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
+            if ti.static(sobel):
+                v = blur_y_segment(f.ibar, c, y, x0, st[0])
+            else:
+                v = seg.twice_blur_y(f.tmp, st[1], c, y, x0)
+            store_segment(f.tmp2, c, y, x0, st[2][c] * v + st[3][c])
 
     @ti.func
     def map_adjoints(y, x, msum):
@@ -474,6 +557,17 @@ def make_fused_kernels(
             f.adj[y, x, i_cnt] = dc
         for k in ti.static(range(i_cnt, K)):
             f.acc[0, y, x, k] = 0.0
+
+    @ti.func
+    def blur_x_adjoint(y, x0, st: ti.template()):
+        """Stage 7 over F0, ``st = (taps, sum m)``: the transposed blur along x of ``tmp2`` into ``adj``,
+        the map adjoints (and the maps cleared)."""
+        for c in ti.static(range(C)):
+            store_segment(f.adj, c, y, x0, blur_x_segment(f.tmp2, False, c, y, x0, st[0]))
+        if ti.static(R > 0):
+            for p in ti.static(range(SEG)):
+                if in_image(x0 + p):
+                    map_adjoints(y, x0 + p, st[1])
 
     @ti.kernel
     def run(
@@ -512,114 +606,31 @@ def make_fused_kernels(
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             tiles.build_x(tf, y)
-            msum = 0.0
-            psum = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
-            for j in range(NW):
-                w = masks[F0, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for p in ti.static(range(SEG)):
-                        x = x0 + p
-                        if in_image(x):
-                            if ti.static(S > 1):
-                                for k in ti.static(range(K)):
-                                    v = f.acc[0, y, x, k]
-                                    for s in ti.static(range(1, S)):
-                                        v += f.acc[s, y, x, k]
-                                        f.acc[s, y, x, k] = 0.0
-                                    f.acc[0, y, x, k] = v
-                            if ti.static(R > 0):
-                                cnt = f.acc[0, y, x, i_cnt]
-                                if cnt > 0.0:
-                                    m = _b.support_weight(cnt)
-                                    msum += m
-                                    for v in ti.static(range(RV)):
-                                        psum[v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
-            f.part_map[y, 0] = msum
-            for v in ti.static(range(RV)):
-                f.part_map[y, 1 + v] = psum[v]
-            tv = load_taps(f.taps)
-            for j in range(NW):
-                w = tiles.stale(tf, 0, y, j)  # tmp: in the previous call's Rx, not in this one's
-                while w != ti.u32(0):
-                    clear_segment(f.tmp, y, _t.first_pixel(j, w))
-                    w = _t.drop_lowest(w)
-                w = masks[RX, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for c in ti.static(range(C)):
-                        store_segment(f.tmp, c, y, x0, blur_x_segment(f.acc, True, c, y, x0, tv))
+            sums = ti.Vector([0.0 for _ in ti.static(range(1 + RV))])  # sum m, sum m P_v
+            tiles.each_pixel(tf, F0, y, sum_slices_and_maps, sums)
+            for k in ti.static(range(1 + RV)):
+                f.part_map[y, k] = sums[k]
+            tiles.each_stale_segment(tf, 0, y, clear_segment, f.tmp)  # in the previous Rx, not in this one
+            tiles.each_segment(tf, RX, y, blur_x_votes, load_taps(f.taps))
         # --- 4. rows: Rxy (and Rs); blur along y over Rxy, the objective's terms; the votes cleared --------
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             tiles.build_y(tf, y)
             keep = keep_image(grad)
-            if keep:
-                for j in range(NW):
-                    w = tiles.stale(tf, 1, y, j)  # img: in the previous kept image's Rxy, not in this one's
-                    while w != ti.u32(0):
-                        clear_segment(f.img, y, _t.first_pixel(j, w))
-                        w = _t.drop_lowest(w)
+            if keep:  # img: in the previous kept image's Rxy, not in this one's
+                tiles.each_stale_segment(tf, 1, y, clear_segment, f.img)
             rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-            tv = load_taps(f.taps)
-            for j in range(NW):
-                w = masks[RXY, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for c in ti.static(range(C)):
-                        v = blur_y_segment(f.tmp, c, y, x0, tv)
-                        if keep:
-                            store_segment(f.img, c, y, x0, v)
-                        if ti.static(not sobel):
-                            for p in ti.static(range(SEG)):
-                                if in_image(x0 + p):
-                                    terms = pixel_fn(v[p], 0.0, 0.0)
-                                    for k in ti.static(range(SL)):
-                                        rsum[SL * c + k] += terms[k]
-                # the votes, read by stage 3's blur: the IWE channels now, the maps after the backward
-                w = masks[F0, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for p in ti.static(range(SEG)):
-                        x = x0 + p
-                        if in_image(x):
-                            if ti.static(R > 0):  # noqa: SIM102 - compile-time if
-                                if grad & 1 == 0:  # else the backward reads the maps and clears them
-                                    for k in ti.static(range(i_cnt, K)):
-                                        f.acc[0, y, x, k] = 0.0
-                            for c in ti.static(range(C)):
-                                if ti.static(shared_count and c == i_cnt):
-                                    if grad & 1 == 0:
-                                        f.acc[0, y, x, c] = 0.0
-                                else:
-                                    f.acc[0, y, x, c] = 0.0
+            tiles.each_segment(tf, RXY, y, blur_y_and_terms, (load_taps(f.taps), keep, rsum))
+            tiles.each_pixel(tf, F0, y, clear_votes, grad)
             if ti.static(not sobel):
                 for k in ti.static(range(SL * C)):
                     f.part_obj[y, k] = rsum[k]
         if ti.static(sobel):
-            # Sobel images (kept for the backward) and the pixel terms that read them, over Rs
+            # --- 5. rows: Sobel images (kept for the backward) and the pixel terms that read them, over Rs
             ti.loop_config(block_dim=row_block)
             for y in range(H):
                 rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-                for j in range(NW):
-                    w = masks[R_OBJ, y, j]
-                    while w != ti.u32(0):
-                        x0 = _t.first_pixel(j, w)
-                        w = _t.drop_lowest(w)
-                        for p in ti.static(range(SEG)):
-                            x = x0 + p
-                            if in_image(x):
-                                for c in ti.static(range(C)):
-                                    gx, gy = sobel_fn(f.img, c, y, x)
-                                    f.sobel[y, x, 2 * c] = gx
-                                    f.sobel[y, x, 2 * c + 1] = gy
-                                    terms = pixel_fn(f.img[y, x, c], gx, gy)
-                                    for k in ti.static(range(SL)):
-                                        rsum[SL * c + k] += terms[k]
+                tiles.each_pixel(tf, R_OBJ, y, sobel_and_terms, rsum)
                 for k in ti.static(range(SL * C)):
                     f.part_obj[y, k] = rsum[k]
         # --- 6. serial: the row sums in row order, the untouched pixels in closed form, J -------------------
@@ -676,15 +687,7 @@ def make_fused_kernels(
             ti.loop_config(block_dim=row_block)
             for y in range(H):
                 if grad & 1 != 0:
-                    for j in range(NW):
-                        w = masks[RXY, y, j]
-                        while w != ti.u32(0):
-                            x0 = _t.first_pixel(j, w)
-                            w = _t.drop_lowest(w)
-                            for p in ti.static(range(SEG)):
-                                if in_image(x0 + p):
-                                    for c in ti.static(range(C)):
-                                        f.ibar[y, x0 + p, c] = sobel_t(f.sobel, c, y, x0 + p)
+                    tiles.each_pixel(tf, RXY, y, transposed_sobel, f.ibar)
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             if grad & 1 != 0:
@@ -704,37 +707,13 @@ def make_fused_kernels(
                     c1[c] = scale / f.g0[None]
                     c0[c] = offset / f.g0[None] * tapsum
                 tv = load_taps(f.taps)
-                wide = twice_taps(y, tv)
-                for j in range(NW):
-                    w = masks[RX, y, j]
-                    while w != ti.u32(0):
-                        x0 = _t.first_pixel(j, w)
-                        w = _t.drop_lowest(w)
-                        for c in ti.static(range(C)):
-                            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-                            if ti.static(sobel):
-                                v = blur_y_segment(f.ibar, c, y, x0, tv)
-                            else:
-                                v = twice_blur_y_segment(wide, c, y, x0)
-                            store_segment(f.tmp2, c, y, x0, c1[c] * v + c0[c])
+                tiles.each_segment(tf, RX, y, blur_y_adjoint, (tv, twice_taps(y, tv), c1, c0))
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             if grad & 1 != 0:
                 # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps
                 msum = red[i_m][None] if ti.static(R > 0) else 0.0
-                tv = load_taps(f.taps)
-                for j in range(NW):
-                    w = masks[F0, y, j]
-                    while w != ti.u32(0):
-                        x0 = _t.first_pixel(j, w)
-                        w = _t.drop_lowest(w)
-                        for c in ti.static(range(C)):
-                            store_segment(f.adj, c, y, x0, blur_x_segment(f.tmp2, False, c, y, x0, tv))
-                        if ti.static(R > 0):
-                            for p in ti.static(range(SEG)):
-                                x = x0 + p
-                                if in_image(x):
-                                    map_adjoints(y, x, msum)
+                tiles.each_segment(tf, F0, y, blur_x_adjoint, (load_taps(f.taps), msum))
         # --- 8. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):
