@@ -54,9 +54,12 @@ The formulas (bilinear weights, blur taps, support weight, objectives, loss) are
 Formulas: docs/FORMULAS.md; derivatives of the map penalties: ``maps.py``.
 """
 
+from dataclasses import astuple
+
 import taichi as ti
 
 from . import blocks as _b
+from . import fused_common as _c
 from . import tiles as _t
 
 MAX_PARAMS = 8  # theta's slots in ``params``
@@ -100,40 +103,20 @@ class FusedFields:
 
     Parameters
     ----------
-    real : Taichi float type
-    width, height, n_channels, n_regs, n_params : int
+    layout : fused_common.ImageLayout
+        Sensor, channels, blur radius, splat slices, objective slots, Sobel images.
+    n_regs, n_params : int
+        Regularizers, warp parameters.
     n_voted : int
         Regularizer quantities voted into maps (the others are the same for every event).
-    radius : int
-        Blur footprint radius (px); 0 = no blur.
-    n_slices : int
-        Accumulation slices of the splat (CPU threads; 1 with atomics).
-    shared_count : bool
-        The count ``C`` shares IWE channel 0 (unit weights, one channel).
-    objective_slots : int
-        Accumulator slots per channel of the objective.
-    sobel : bool
-        Allocate the Sobel images (objectives whose pixel terms read the Sobel responses).
     """
 
-    def __init__(
-        self,
-        real,
-        *,
-        width: int,
-        height: int,
-        n_channels: int,
-        n_regs: int,
-        n_voted: int,
-        n_params: int,
-        radius: int,
-        n_slices: int,
-        shared_count: bool,
-        objective_slots: int,
-        sobel: bool,
-    ) -> None:
-        W, H, C = width, height, n_channels
-        self.n_acc = channel_layout(C, n_regs, n_voted, shared_count)[2]
+    def __init__(self, layout: _c.ImageLayout, *, n_regs: int, n_voted: int, n_params: int) -> None:
+        self.layout, self.n_params = layout, n_params
+        real, W, H, C = layout.real, layout.width, layout.height, layout.n_channels
+        radius, n_slices, sobel = layout.radius, layout.n_slices, layout.sobel
+        objective_slots = layout.objective_slots
+        self.n_acc = channel_layout(C, n_regs, n_voted, layout.shared_count)[2]
         images = ti.FieldsBuilder()
         self.acc = _planes(images, real, (n_slices,), H, W, self.n_acc)  # votes; zero between calls
         self.tmp = _planes(images, real, (), H, W, C)  # blur-x output
@@ -179,24 +162,8 @@ class FusedFields:
 
     def nbytes(self) -> int:
         """Bytes held by the image fields."""
-        total = self.tiles.nbytes()
         images = (self.acc, self.tmp, self.tmp2, self.img, self.adj, self.sobel, self.ibar)
-        for f in images + (self.part_obj, self.part_map):
-            size = 1
-            for s in f.shape:
-                size *= s
-            total += size * (4 if f.dtype == ti.f32 else 8)
-        return total
-
-
-@ti.func
-def _read_gx(src: ti.template(), c, y, x):
-    return src[y, x, 2 * c]
-
-
-@ti.func
-def _read_gy(src: ti.template(), c, y, x):
-    return src[y, x, 2 * c + 1]
+        return self.tiles.nbytes() + _c.field_bytes(images + (self.part_obj, self.part_map))
 
 
 def _composed_warp_terms(warp_fn, det_fn, param_jac):
@@ -223,22 +190,8 @@ def make_fused_kernels(
     penalty_grads: tuple,
     one_sided: tuple,
     *,
-    pixel_fn,
-    finalize_fn,
-    adjoint_fn,
-    objective_slots: int,
-    sobel: bool,
-    width: int,
-    height: int,
-    n_channels: int,
-    n_params: int,
-    radius: int,
-    n_slices: int,
-    atomic_scatter: bool,
-    weighted: bool,
-    split_polarity: bool,
-    shared_count: bool,
-    real,
+    objective,
+    events: _c.EventLayout,
     param_jac=None,
     quantity_kinds: tuple = (),
     constant: tuple = (),
@@ -246,13 +199,15 @@ def make_fused_kernels(
     warp_terms=None,
     positive_det: bool = True,
 ):
-    """Build the kernel ``run`` closed over ``fields`` (see the module docstring).
+    """The kernel ``run`` of the fused pipeline over ``fields`` (see the module docstring); the shape
+    (sensor, channels, blur, slices, objective slots, Sobel) is ``fields.layout``'s.
 
-    ``ev`` is an ndarray of per-event vectors ``(x, y, dt[, w][, channel])`` (px, px, s).
-    The objective comes as its blocks (``blocks.py``): ``pixel_fn(v, gx, gy)`` (``objective_slots``
-    terms per channel, Sobel responses where ``sobel``), ``finalize_fn(a, c, n_pixels)`` and
-    ``adjoint_fn(a, c, n_pixels) -> (scale, offset)`` with ``dG_c/dI = scale * L(I) + offset``
-    (``L``: identity, or the transposed Sobel of the Sobel images where ``sobel``).
+    ``ev`` is an ndarray of per-event vectors as ``events`` lays them out (``fused_common.EventLayout``,
+    which also says whether the event passes add atomically). The ``objective`` comes as its blocks
+    (``blocks.py``; ``models.objectives.FusedObjective``): ``objective.pixel(v, gx, gy)``
+    (``objective_slots`` terms per channel, Sobel responses where ``sobel``), ``objective.finalize(a,
+    c, n_pixels)`` and ``objective.adjoint(a, c, n_pixels) -> (scale, offset)`` with ``dG_c/dI = scale
+    * L(I) + offset`` (``L``: identity, or the transposed Sobel of the Sobel images where ``sobel``).
     Regularizer ``r`` enters J as ``-lambda_r R_r`` with ``R_r = s_r sum m P_r / sum m``
     (``max(0, R_r)`` where ``one_sided[r]``); ``lam`` holds ``lambda_r`` then ``s_r``.
     ``param_jac`` is the model's closed-form parameter Jacobian (``WarpModel.param_jac``, e.g. in
@@ -267,7 +222,11 @@ def make_fused_kernels(
     compose it from ``warp_fn``, ``det_fn`` and ``param_jac``. The event loops use only what they need
     of it (the rest is dead code to the compiler).
     """
-    if n_params > MAX_PARAMS:
+    f, P = fields, fields.n_params
+    real, W, H, C, r_, S, shared_count, SL, sobel = astuple(f.layout)
+    weighted, split_polarity, atomic_scatter = astuple(events)
+    pixel_fn, finalize_fn, adjoint_fn = _c.objective_blocks(objective, sobel)
+    if P > MAX_PARAMS:
         raise ValueError(f"the fused pipeline takes at most {MAX_PARAMS} parameters")
     if shared_count and (weighted or split_polarity or not quantity_fns):
         raise ValueError("the count shares the IWE channel only with unit weights and one channel")
@@ -289,21 +248,19 @@ def make_fused_kernels(
     row_block = None if atomic_scatter else 4
     vpos = tuple(voted.index(r) if r in voted else -1 for r in range(R))  # regularizer -> voted slot
     RV = len(voted)
-    f = fields
-    W, H, C, P, S, r_ = width, height, n_channels, n_params, n_slices, radius
-    SL = objective_slots
     i_cnt, i_num, K = channel_layout(C, R, RV, shared_count)
     n_pix = float(W * H)
     red, gsum = f.red, f.gsum
     i_m = SL * C  # red[i_m] = sum m, red[i_m + 1 + r] = sum m P_r
-    k_ev = 3 + (1 if weighted else 0) + (1 if split_polarity else 0)
-    i_w, i_ch = 3, (4 if weighted else 3)
-    ev_type = ti.types.ndarray(dtype=ti.types.vector(k_ev, real), ndim=1)
-    out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
-    lay = params_layout(R)
-    p_theta, p_ctx, p_g0, p_lam, n_lam = lay["theta"], lay["ctx"], lay["g0"], lay["lam"], lay["n_lam"]
+    ev_type, out_type = events.ndarray_type(real), _c.F64_ARRAY
+    slots_at = params_layout(R)
+    p_theta, p_ctx, p_g0, p_lam = slots_at["theta"], slots_at["ctx"], slots_at["g0"], slots_at["lam"]
+    n_lam = slots_at["n_lam"]
     sobel_fn = _b.make_sobel(_b.read_hwc, W, H)
-    sobel_t = _b.make_sobel_transpose(_read_gx, _read_gy, W, H)
+    sobel_t = _b.make_sobel_transpose(_c.read_gx, _c.read_gy, W, H)
+    slice_events = events.slices(S)  # the events [lo, hi) of thread slice s
+    event = events.reader()  # (p, dt, b, ch) of an event vector
+    vote = events.vote(f.acc)  # slice s of the votes += v
     tf = f.tiles
     tiles = _t.ops_for(tf)
     SEG = _t.SEG
@@ -316,28 +273,8 @@ def make_fused_kernels(
         return f.thv[None]
 
     @ti.func
-    def slice_events(s, n):
-        """The events ``[lo, hi)`` of thread slice ``s``."""
-        chunk = n // S
-        lo = s * chunk
-        hi = lo + chunk
-        if s == S - 1:
-            hi = n
-        return lo, hi
-
-    @ti.func
     def objective_slots_vec():
         return ti.Vector([red[j][None] for j in ti.static(range(SL * C))])
-
-    @ti.func
-    def event(e):
-        b = 1.0
-        if ti.static(weighted):
-            b = e[i_w]
-        ch = 0
-        if ti.static(split_polarity):
-            ch = ti.cast(e[i_ch], ti.i32)
-        return ti.Vector([e[0], e[1]]), e[2], b, ch
 
     @ti.func
     def quantities(p, dt, theta, c, det):
@@ -349,13 +286,6 @@ def make_fused_kernels(
             else:
                 vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
         return vals
-
-    @ti.func
-    def vote(s, iy, ix, k, v):
-        if ti.static(atomic_scatter):
-            f.acc[s, iy, ix, k] += v
-        else:  # slice s belongs to one thread: a plain read-modify-write, no atomic
-            f.acc[s, iy, ix, k] = f.acc[s, iy, ix, k] + v
 
     @ti.func
     def splat_event(s, e, theta, c):

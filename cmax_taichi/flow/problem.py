@@ -27,6 +27,7 @@ from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.flow.grid import FlowGrid
 from cmax_taichi.flow.smoothness import SMOOTHNESS
 from cmax_taichi.kernels import dense_flow as kdense
+from cmax_taichi.kernels import fused_common as kcommon
 from cmax_taichi.models.regularizers import REGULARIZERS
 from cmax_taichi.pipeline.setup import POLARITY_MODES, ProblemSetup, check_regularizers
 
@@ -331,21 +332,8 @@ class DenseFlowProblem:
         )
 
         def build(ws):
-            ws.fields = kdense.DenseFlowFields(
-                real,
-                width=W,
-                height=H,
-                n_channels=C,
-                n_refs=R,
-                n_regs=Q,
-                radius=setup.radius,
-                n_slices=slices,
-                shared_count=shared,
-                objective_slots=slots,
-                sobel=obj.sobel,
-                max_nodes=cap,
-                atomic=self._atomic,
-            )
+            layout = kcommon.ImageLayout(real, W, H, C, setup.radius, slices, shared, slots, obj.sobel)
+            ws.fields = kdense.DenseFlowFields(layout, n_refs=R, n_regs=Q, max_nodes=cap, atomic=self._atomic)
             ws.kernels = {}
 
         self._ws = workspace.acquire(key, build, f"a {W}x{H} dense flow problem")
@@ -366,22 +354,8 @@ class DenseFlowProblem:
                 tuple(r.penalty for r in regs),
                 tuple(r.penalty_grad for r in regs),
                 tuple(bool(r.one_sided) for r in regs),
-                pixel_fn=obj.pixel,
-                finalize_fn=obj.finalize,
-                adjoint_fn=obj.adjoint,
-                objective_slots=slots,
-                sobel=obj.sobel,
-                width=W,
-                height=H,
-                n_channels=C,
-                n_refs=R,
-                radius=setup.radius,
-                n_slices=slices,
-                atomic_scatter=self._atomic,
-                weighted=weighted,
-                split_polarity=split,
-                shared_count=shared,
-                real=real,
+                objective=obj,
+                events=kcommon.EventLayout(weighted, split, self._atomic),
             )
         self._run_k = self._ws.kernels[kkey]
         self._out = np.zeros(2 + R + Q + Q * R)

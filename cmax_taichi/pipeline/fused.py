@@ -32,6 +32,7 @@ from taichi.lang import impl as ti_impl
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
+from cmax_taichi.kernels import fused_common as kcommon
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
 
@@ -246,20 +247,8 @@ class FusedPipeline:
         )
 
         def build(ws):
-            ws.fields = kfused.FusedFields(
-                real,
-                width=W,
-                height=H,
-                n_channels=C,
-                n_regs=len(regs),
-                n_voted=n_voted,
-                n_params=P,
-                radius=radius,
-                n_slices=slices,
-                shared_count=shared,
-                objective_slots=slots,
-                sobel=objective.sobel,
-            )
+            layout = kcommon.ImageLayout(real, W, H, C, radius, slices, shared, slots, objective.sobel)
+            ws.fields = kfused.FusedFields(layout, n_regs=len(regs), n_voted=n_voted, n_params=P)
             ws.kernels = {}
 
         self._ws = workspace.acquire(key, build, f"a {W}x{H} problem (fused pipeline)")
@@ -284,22 +273,8 @@ class FusedPipeline:
                 penalties,
                 tuple(r.penalty_grad for r in regs),
                 tuple(bool(getattr(r, "one_sided", False)) for r in regs),
-                pixel_fn=objective.pixel,
-                finalize_fn=objective.finalize,
-                adjoint_fn=objective.adjoint,
-                objective_slots=slots,
-                sobel=objective.sobel,
-                width=W,
-                height=H,
-                n_channels=C,
-                n_params=P,
-                radius=radius,
-                n_slices=slices,
-                atomic_scatter=atomic,
-                weighted=weighted,
-                split_polarity=split,
-                shared_count=shared,
-                real=real,
+                objective=objective,
+                events=kcommon.EventLayout(weighted, split, atomic),
                 param_jac=model.param_jac,
                 quantity_kinds=kinds,
                 constant=constant,
