@@ -47,9 +47,12 @@ event passes. Formulas shared with the other pipelines come from ``blocks.py``; 
 an objective's or a regularizer's name.
 """
 
+from dataclasses import astuple
+
 import taichi as ti
 
 from . import blocks as _b
+from . import fused_common as _c
 
 QUANTITY_KINDS = ("div", "absdet")
 #: node-gradient copies per CPU thread: consecutive events add into different copies, so that events of
@@ -77,21 +80,10 @@ class DenseFlowFields:
 
     Parameters
     ----------
-    real : Taichi float type
-    width, height, n_channels : int
-        Sensor (px) and IWE channels per reference.
+    layout : fused_common.ImageLayout
+        Sensor, IWE channels per reference, blur radius, event-pass slices, objective slots, Sobel images.
     n_refs, n_regs : int
         Reference times, and regularizers (each votes a map at every reference).
-    radius : int
-        Blur footprint radius (px); 0 = no blur.
-    n_slices : int
-        Accumulation slices of the event passes (CPU threads; 1 with atomics).
-    shared_count : bool
-        The count ``C`` shares IWE channel 0 (unit weights, one channel).
-    objective_slots : int
-        Accumulator slots per channel of the objective.
-    sobel : bool
-        Allocate the Sobel images.
     max_nodes : int
         Node capacity (the finest grid of a coarse-to-fine run).
     atomic : bool
@@ -100,24 +92,12 @@ class DenseFlowFields:
     """
 
     def __init__(
-        self,
-        real,
-        *,
-        width: int,
-        height: int,
-        n_channels: int,
-        n_refs: int,
-        n_regs: int,
-        radius: int,
-        n_slices: int,
-        shared_count: bool,
-        objective_slots: int,
-        sobel: bool,
-        max_nodes: int,
-        atomic: bool = False,
+        self, layout: _c.ImageLayout, *, n_refs: int, n_regs: int, max_nodes: int, atomic: bool = False
     ) -> None:
-        W, H, C, R = width, height, n_channels, n_refs
-        self.block = channel_layout(C, n_regs, shared_count)[2]
+        self.layout, self.n_refs = layout, n_refs
+        real, W, H, C, R = layout.real, layout.width, layout.height, layout.n_channels, n_refs
+        radius, n_slices, sobel = layout.radius, layout.n_slices, layout.sobel
+        self.block = channel_layout(C, n_regs, layout.shared_count)[2]
         K, IC = R * self.block, R * C
         self.acc = ti.field(real, shape=(n_slices, H, W, K))  # votes; zero between calls
         self.tmp = ti.field(real, shape=(H, W, IC))  # blur-x output; then the blur-y adjoint
@@ -132,7 +112,7 @@ class DenseFlowFields:
         self.ref_w = ti.field(real, shape=R)  # weights omega_r (sum 1)
         self.lam = ti.Vector.field(max(n_regs * (1 + R), 1), real, shape=())  # lambda_q, then s_qr
         self.g0 = ti.field(real, shape=())
-        n_slots = n_reduction_slots(R, C, objective_slots, n_regs)
+        n_slots = n_reduction_slots(R, C, layout.objective_slots, n_regs)
         self.rowred = ti.field(real, shape=(H, n_slots))  # per-row partial sums
         self.red = ti.field(real, shape=n_slots)
         self.graw = ti.field(real, shape=R)  # G_r
@@ -149,29 +129,13 @@ class DenseFlowFields:
 
     def nbytes(self) -> int:
         """Bytes held by the image fields."""
-        total = 0
-        for f in (self.acc, self.tmp, self.img, self.adj, self.sobel, self.ibar, self.rowred):
-            size = 1
-            for s in f.shape:
-                size *= s
-            total += size * (4 if f.dtype == ti.f32 else 8)
-        return total
+        return _c.field_bytes((self.acc, self.tmp, self.img, self.adj, self.sobel, self.ibar, self.rowred))
 
 
 @ti.func
 def _read_slice0(src: ti.template(), c, y, x):
     """Pixel of slice 0 of the ``(S, H, W, K)`` vote field."""
     return src[0, y, x, c]
-
-
-@ti.func
-def _read_gx(src: ti.template(), c, y, x):
-    return src[y, x, 2 * c]
-
-
-@ti.func
-def _read_gy(src: ti.template(), c, y, x):
-    return src[y, x, 2 * c + 1]
 
 
 @ti.func
@@ -217,31 +181,23 @@ def make_dense_flow_kernels(
     penalty_grads: tuple,
     one_sided: tuple,
     *,
-    pixel_fn,
-    finalize_fn,
-    adjoint_fn,
-    objective_slots: int,
-    sobel: bool,
-    width: int,
-    height: int,
-    n_channels: int,
-    n_refs: int,
-    radius: int,
-    n_slices: int,
-    atomic_scatter: bool,
-    weighted: bool,
-    split_polarity: bool,
-    shared_count: bool,
-    real,
+    objective,
+    events: _c.EventLayout,
 ):
-    """Build the kernel ``run`` closed over ``fields`` (see the module docstring).
+    """The dense-flow kernel ``run`` over ``fields`` (see the module docstring; the image shape is
+    ``fields.layout``'s) with ``fields.ref_off``'s reference times.
 
-    ``ev`` is an ndarray of per-event vectors ``(x, y, t - t_first[, w][, channel])`` (px, px, s);
-    ``out`` (float64) receives ``J, H, G_0..G_{R-1}, R_q (Q values), R_qr (Q x R values)``, ``gout``
-    (float64) ``dJ/dU`` as ``(n_nodes, 2)`` row-major (per node px/s, x then y). The objective comes
-    as its blocks (``pixel_fn``, ``finalize_fn``, ``adjoint_fn``; see ``kernels/fused.py``), each
-    regularizer as its quantity kind ("div" or "absdet"), pixel penalty, its derivative and its hinge.
+    ``ev`` is an ndarray of per-event vectors ``(x, y, t - t_first[, w][, channel])`` (px, px, s) as
+    ``events`` lays them out; ``out`` (float64) receives ``J, H, G_0..G_{R-1}, R_q (Q values), R_qr (Q x
+    R values)``, ``gout`` (float64) ``dJ/dU`` as ``(n_nodes, 2)`` row-major (per node px/s, x then y).
+    The objective comes as its blocks (``pixel``, ``finalize``, ``adjoint``; see ``kernels/fused.py``),
+    each regularizer as its quantity kind ("div" or "absdet"), pixel penalty, its derivative and its
+    hinge.
     """
+    f, R = fields, fields.n_refs
+    real, W, H, C, r_, S, shared_count, SL, sobel = astuple(f.layout)
+    weighted, split_polarity, atomic_scatter = astuple(events)
+    pixel_fn, finalize_fn, adjoint_fn = _c.objective_blocks(objective, sobel)
     Q = len(quantity_kinds)
     if any(k not in QUANTITY_KINDS for k in quantity_kinds):
         raise ValueError(f"quantity_kinds must name each quantity one of {QUANTITY_KINDS}")
@@ -249,44 +205,22 @@ def make_dense_flow_kernels(
         raise ValueError("one penalty, penalty derivative and hinge flag per regularizer")
     if shared_count and (weighted or split_polarity or Q == 0):
         raise ValueError("the count shares the IWE channel only with unit weights and one channel")
-    f = fields
-    W, H, C, R, S, r_ = width, height, n_channels, n_refs, n_slices, radius
-    SL = objective_slots
     IC = R * C
     i_cnt, i_num, KR = channel_layout(C, Q, shared_count)
     n_pix = float(W * H)
     n_slots = n_reduction_slots(R, C, SL, Q)
     MB = R * C * SL  # first map slot
     # rows of a task: about H / (2 threads), a power of two (the per-row sums make J independent of it)
-    row_block = None if atomic_scatter else 1 << max(0, (height // (2 * n_slices)).bit_length() - 1)
-    k_ev = 3 + (1 if weighted else 0) + (1 if split_polarity else 0)
-    i_w, i_ch = 3, (4 if weighted else 3)
-    ev_type = ti.types.ndarray(dtype=ti.types.vector(k_ev, real), ndim=1)
-    out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
+    row_block = None if atomic_scatter else 1 << max(0, (H // (2 * S)).bit_length() - 1)
+    ev_type, out_type = events.ndarray_type(real), _c.F64_ARRAY
+    slice_events = events.slices(S)  # the events [lo, hi) of thread slice s
+    event = events.reader()  # (p, dt, b, ch) of an event vector
+    vote = events.vote(f.acc)  # slice s of the votes += v
     tap_x_votes = _b.make_tap_sum(_read_slice0, r_, 1, W, H)
     tap_x = _b.make_tap_sum(_b.read_hwc, r_, 1, W, H)
     tap_y = _b.make_tap_sum(_b.read_hwc, r_, 0, W, H)
     sobel_fn = _b.make_sobel(_b.read_hwc, W, H)
-    sobel_t = _b.make_sobel_transpose(_read_gx, _read_gy, W, H)
-
-    @ti.func
-    def slice_events(s, n):
-        chunk = n // S
-        lo = s * chunk
-        hi = lo + chunk
-        if s == S - 1:
-            hi = n
-        return lo, hi
-
-    @ti.func
-    def event(e):
-        b = 1.0
-        if ti.static(weighted):
-            b = e[i_w]
-        ch = 0
-        if ti.static(split_polarity):
-            ch = ti.cast(e[i_ch], ti.i32)
-        return ti.Vector([e[0], e[1]]), e[2], b, ch
+    sobel_t = _b.make_sobel_transpose(_c.read_gx, _c.read_gy, W, H)
 
     @ti.func
     def quantities(div, du_dx, du_dy, dt):
@@ -303,13 +237,6 @@ def make_dense_flow_kernels(
     @ti.func
     def ref_slots(r):
         return ti.Vector([f.red[r * C * SL + k] for k in ti.static(range(C * SL))])
-
-    @ti.func
-    def vote(s, iy, ix, k, v):
-        if ti.static(atomic_scatter):
-            f.acc[s, iy, ix, k] += v
-        else:  # slice s belongs to one thread
-            f.acc[s, iy, ix, k] = f.acc[s, iy, ix, k] + v
 
     @ti.func
     def splat_event(s, e, gp, maps):
@@ -407,26 +334,18 @@ def make_dense_flow_kernels(
         add_node(s, n00 + stride + 1, ti.cast(w11 * gu + bb * ix_ * gdx + a * iy_ * gdy, ti.f64))
 
     @ti.func
-    def blur_x_votes(y, k, ic):
-        """tmp[y, :, ic] = blur along x of channel k of the summed votes (zero padding)."""
+    def blur_x_row(tap: ti.template(), read: ti.template(), src: ti.template(), c, dst: ti.template(), k, y):
+        """``dst[y, :, k]`` = the blur along x (zero padding) of channel ``c`` of row ``y`` of ``src``, read
+        by ``read`` (its tap sum ``tap``). The Gaussian is symmetric: the same pass is its own transpose."""
         for x in range(W):
             acc = 0.0
-            if x >= r_ and x < W - r_:
-                acc = tap_x_votes(f.acc, f.taps, k, y, x, False)
+            if ti.static(r_ == 0):
+                acc = read(src, c, y, x)
+            elif x >= r_ and x < W - r_:
+                acc = tap(src, f.taps, c, y, x, False)
             else:
-                acc = tap_x_votes(f.acc, f.taps, k, y, x, True)
-            f.tmp[y, x, ic] = acc
-
-    @ti.func
-    def blur_x_adjoint(y, ic, k):
-        """adj[y, :, k] = the (symmetric, so self-transposed) blur along x of tmp[y, :, ic]."""
-        for x in range(W):
-            acc = 0.0
-            if x >= r_ and x < W - r_:
-                acc = tap_x(f.tmp, f.taps, ic, y, x, False)
-            else:
-                acc = tap_x(f.tmp, f.taps, ic, y, x, True)
-            f.adj[y, x, k] = acc
+                acc = tap(src, f.taps, c, y, x, True)
+            dst[y, x, k] = acc
 
     @ti.func
     def blur_y_at(src: ti.template(), c, y, x, interior):
@@ -511,13 +430,8 @@ def make_dense_flow_kernels(
                             v += f.acc[s, y, x, k]
                             f.acc[s, y, x, k] = 0.0
                         f.acc[0, y, x, k] = v
-            for ic in range(IC):
-                k = (ic // C) * KR + ic % C
-                if ti.static(r_ > 0):
-                    blur_x_votes(y, k, ic)
-                else:
-                    for x in range(W):
-                        f.tmp[y, x, ic] = f.acc[0, y, x, k]
+            for ic in range(IC):  # the IWE channels of the summed votes, blurred along x into tmp
+                blur_x_row(tap_x_votes, _read_slice0, f.acc, (ic // C) * KR + ic % C, f.tmp, ic, y)
             if ti.static(Q > 0):
                 for r in range(R):
                     msum = 0.0
@@ -610,13 +524,8 @@ def make_dense_flow_kernels(
                             else:
                                 acc = blur_y_at(f.img, ic, y, x, interior)
                             f.tmp[y, x, ic] = c1 * acc + c0
-                for ic in range(IC):
-                    k = (ic // C) * KR + ic % C
-                    if ti.static(r_ > 0):
-                        blur_x_adjoint(y, ic, k)
-                    else:
-                        for x in range(W):
-                            f.adj[y, x, k] = f.tmp[y, x, ic]
+                for ic in range(IC):  # the transposed blur along x of tmp into the IWE channels of adj
+                    blur_x_row(tap_x, _b.read_hwc, f.tmp, ic, f.adj, (ic // C) * KR + ic % C, y)
                 if ti.static(Q > 0):
                     for r in range(R):
                         base = MB + r * (1 + Q)

@@ -54,9 +54,12 @@ The formulas (bilinear weights, blur taps, support weight, objectives, loss) are
 Formulas: docs/FORMULAS.md; derivatives of the map penalties: ``maps.py``.
 """
 
+from dataclasses import astuple
+
 import taichi as ti
 
 from . import blocks as _b
+from . import fused_common as _c
 from . import tiles as _t
 
 MAX_PARAMS = 8  # theta's slots in ``params``
@@ -69,6 +72,8 @@ def params_layout(n_regs: int) -> dict:
     n_lam = max(2 * n_regs, 1)
     return {"theta": 0, "ctx": MAX_PARAMS, "g0": MAX_PARAMS + 5, "lam": MAX_PARAMS + 6,
             "n_lam": n_lam, "size": MAX_PARAMS + 6 + n_lam}  # fmt: skip
+
+
 QUANTITY_KINDS = ("div", "absdet")  # per-event quantities the hand-written backward differentiates
 
 
@@ -98,40 +103,20 @@ class FusedFields:
 
     Parameters
     ----------
-    real : Taichi float type
-    width, height, n_channels, n_regs, n_params : int
+    layout : fused_common.ImageLayout
+        Sensor, channels, blur radius, splat slices, objective slots, Sobel images.
+    n_regs, n_params : int
+        Regularizers, warp parameters.
     n_voted : int
         Regularizer quantities voted into maps (the others are the same for every event).
-    radius : int
-        Blur footprint radius (px); 0 = no blur.
-    n_slices : int
-        Accumulation slices of the splat (CPU threads; 1 with atomics).
-    shared_count : bool
-        The count ``C`` shares IWE channel 0 (unit weights, one channel).
-    objective_slots : int
-        Accumulator slots per channel of the objective.
-    sobel : bool
-        Allocate the Sobel images (objectives whose pixel terms read the Sobel responses).
     """
 
-    def __init__(
-        self,
-        real,
-        *,
-        width: int,
-        height: int,
-        n_channels: int,
-        n_regs: int,
-        n_voted: int,
-        n_params: int,
-        radius: int,
-        n_slices: int,
-        shared_count: bool,
-        objective_slots: int,
-        sobel: bool,
-    ) -> None:
-        W, H, C = width, height, n_channels
-        self.n_acc = channel_layout(C, n_regs, n_voted, shared_count)[2]
+    def __init__(self, layout: _c.ImageLayout, *, n_regs: int, n_voted: int, n_params: int) -> None:
+        self.layout, self.n_params = layout, n_params
+        real, W, H, C = layout.real, layout.width, layout.height, layout.n_channels
+        radius, n_slices, sobel = layout.radius, layout.n_slices, layout.sobel
+        objective_slots = layout.objective_slots
+        self.n_acc = channel_layout(C, n_regs, n_voted, layout.shared_count)[2]
         images = ti.FieldsBuilder()
         self.acc = _planes(images, real, (n_slices,), H, W, self.n_acc)  # votes; zero between calls
         self.tmp = _planes(images, real, (), H, W, C)  # blur-x output
@@ -177,24 +162,8 @@ class FusedFields:
 
     def nbytes(self) -> int:
         """Bytes held by the image fields."""
-        total = self.tiles.nbytes()
         images = (self.acc, self.tmp, self.tmp2, self.img, self.adj, self.sobel, self.ibar)
-        for f in images + (self.part_obj, self.part_map):
-            size = 1
-            for s in f.shape:
-                size *= s
-            total += size * (4 if f.dtype == ti.f32 else 8)
-        return total
-
-
-@ti.func
-def _read_gx(src: ti.template(), c, y, x):
-    return src[y, x, 2 * c]
-
-
-@ti.func
-def _read_gy(src: ti.template(), c, y, x):
-    return src[y, x, 2 * c + 1]
+        return self.tiles.nbytes() + _c.field_bytes(images + (self.part_obj, self.part_map))
 
 
 def _composed_warp_terms(warp_fn, det_fn, param_jac):
@@ -221,22 +190,8 @@ def make_fused_kernels(
     penalty_grads: tuple,
     one_sided: tuple,
     *,
-    pixel_fn,
-    finalize_fn,
-    adjoint_fn,
-    objective_slots: int,
-    sobel: bool,
-    width: int,
-    height: int,
-    n_channels: int,
-    n_params: int,
-    radius: int,
-    n_slices: int,
-    atomic_scatter: bool,
-    weighted: bool,
-    split_polarity: bool,
-    shared_count: bool,
-    real,
+    objective,
+    events: _c.EventLayout,
     param_jac=None,
     quantity_kinds: tuple = (),
     constant: tuple = (),
@@ -244,13 +199,15 @@ def make_fused_kernels(
     warp_terms=None,
     positive_det: bool = True,
 ):
-    """Build the kernel ``run`` closed over ``fields`` (see the module docstring).
+    """The kernel ``run`` of the fused pipeline over ``fields`` (see the module docstring); the shape
+    (sensor, channels, blur, slices, objective slots, Sobel) is ``fields.layout``'s.
 
-    ``ev`` is an ndarray of per-event vectors ``(x, y, dt[, w][, channel])`` (px, px, s).
-    The objective comes as its blocks (``blocks.py``): ``pixel_fn(v, gx, gy)`` (``objective_slots``
-    terms per channel, Sobel responses where ``sobel``), ``finalize_fn(a, c, n_pixels)`` and
-    ``adjoint_fn(a, c, n_pixels) -> (scale, offset)`` with ``dG_c/dI = scale * L(I) + offset``
-    (``L``: identity, or the transposed Sobel of the Sobel images where ``sobel``).
+    ``ev`` is an ndarray of per-event vectors as ``events`` lays them out (``fused_common.EventLayout``,
+    which also says whether the event passes add atomically). The ``objective`` comes as its blocks
+    (``blocks.py``; ``models.objectives.FusedObjective``): ``objective.pixel(v, gx, gy)``
+    (``objective_slots`` terms per channel, Sobel responses where ``sobel``), ``objective.finalize(a,
+    c, n_pixels)`` and ``objective.adjoint(a, c, n_pixels) -> (scale, offset)`` with ``dG_c/dI = scale
+    * L(I) + offset`` (``L``: identity, or the transposed Sobel of the Sobel images where ``sobel``).
     Regularizer ``r`` enters J as ``-lambda_r R_r`` with ``R_r = s_r sum m P_r / sum m``
     (``max(0, R_r)`` where ``one_sided[r]``); ``lam`` holds ``lambda_r`` then ``s_r``.
     ``param_jac`` is the model's closed-form parameter Jacobian (``WarpModel.param_jac``, e.g. in
@@ -265,7 +222,11 @@ def make_fused_kernels(
     compose it from ``warp_fn``, ``det_fn`` and ``param_jac``. The event loops use only what they need
     of it (the rest is dead code to the compiler).
     """
-    if n_params > MAX_PARAMS:
+    f, P = fields, fields.n_params
+    real, W, H, C, r_, S, shared_count, SL, sobel = astuple(f.layout)
+    weighted, split_polarity, atomic_scatter = astuple(events)
+    pixel_fn, finalize_fn, adjoint_fn = _c.objective_blocks(objective, sobel)
+    if P > MAX_PARAMS:
         raise ValueError(f"the fused pipeline takes at most {MAX_PARAMS} parameters")
     if shared_count and (weighted or split_polarity or not quantity_fns):
         raise ValueError("the count shares the IWE channel only with unit weights and one channel")
@@ -287,25 +248,22 @@ def make_fused_kernels(
     row_block = None if atomic_scatter else 4
     vpos = tuple(voted.index(r) if r in voted else -1 for r in range(R))  # regularizer -> voted slot
     RV = len(voted)
-    f = fields
-    W, H, C, P, S, r_ = width, height, n_channels, n_params, n_slices, radius
-    SL = objective_slots
     i_cnt, i_num, K = channel_layout(C, R, RV, shared_count)
     n_pix = float(W * H)
     red, gsum = f.red, f.gsum
     i_m = SL * C  # red[i_m] = sum m, red[i_m + 1 + r] = sum m P_r
-    k_ev = 3 + (1 if weighted else 0) + (1 if split_polarity else 0)
-    i_w, i_ch = 3, (4 if weighted else 3)
-    ev_type = ti.types.ndarray(dtype=ti.types.vector(k_ev, real), ndim=1)
-    out_type = ti.types.ndarray(dtype=ti.f64, ndim=1)
-    lay = params_layout(R)
-    p_theta, p_ctx, p_g0, p_lam, n_lam = lay["theta"], lay["ctx"], lay["g0"], lay["lam"], lay["n_lam"]
+    ev_type, out_type = events.ndarray_type(real), _c.F64_ARRAY
+    slots_at = params_layout(R)
+    p_theta, p_ctx, p_g0, p_lam = slots_at["theta"], slots_at["ctx"], slots_at["g0"], slots_at["lam"]
+    n_lam = slots_at["n_lam"]
     sobel_fn = _b.make_sobel(_b.read_hwc, W, H)
-    sobel_t = _b.make_sobel_transpose(_read_gx, _read_gy, W, H)
+    sobel_t = _b.make_sobel_transpose(_c.read_gx, _c.read_gy, W, H)
+    slice_events = events.slices(S)  # the events [lo, hi) of thread slice s
+    event = events.reader()  # (p, dt, b, ch) of an event vector
+    vote = events.vote(f.acc)  # slice s of the votes += v
     tf = f.tiles
     tiles = _t.ops_for(tf)
-    masks = tf.masks
-    SEG, NW = _t.SEG, tf.n_words
+    SEG = _t.SEG
     in_image = tiles.in_image  # a column of a segment is in the image
     F0, RX, RXY = 0, 1, 2
     R_OBJ = 3 if sobel else RXY  # the region of the objective's pixel terms
@@ -315,28 +273,8 @@ def make_fused_kernels(
         return f.thv[None]
 
     @ti.func
-    def slice_events(s, n):
-        """The events ``[lo, hi)`` of thread slice ``s``."""
-        chunk = n // S
-        lo = s * chunk
-        hi = lo + chunk
-        if s == S - 1:
-            hi = n
-        return lo, hi
-
-    @ti.func
     def objective_slots_vec():
         return ti.Vector([red[j][None] for j in ti.static(range(SL * C))])
-
-    @ti.func
-    def event(e):
-        b = 1.0
-        if ti.static(weighted):
-            b = e[i_w]
-        ch = 0
-        if ti.static(split_polarity):
-            ch = ti.cast(e[i_ch], ti.i32)
-        return ti.Vector([e[0], e[1]]), e[2], b, ch
 
     @ti.func
     def quantities(p, dt, theta, c, det):
@@ -348,13 +286,6 @@ def make_fused_kernels(
             else:
                 vals[v] = quantity_fns[voted[v]](p, dt, theta, c)
         return vals
-
-    @ti.func
-    def vote(s, iy, ix, k, v):
-        if ti.static(atomic_scatter):
-            f.acc[s, iy, ix, k] += v
-        else:  # slice s belongs to one thread: a plain read-modify-write, no atomic
-            f.acc[s, iy, ix, k] = f.acc[s, iy, ix, k] + v
 
     @ti.func
     def splat_event(s, e, theta, c):
@@ -437,10 +368,6 @@ def make_fused_kernels(
     store_segment, clear_segment, twice_taps = seg.store, seg.clear, seg.twice_taps
 
     @ti.func
-    def twice_blur_y_segment(wide, c: ti.template(), y, x0):
-        return seg.twice_blur_y(f.tmp, wide, c, y, x0)
-
-    @ti.func
     def keep_image(grad):
         """Whether this call keeps the blurred IWE in ``img``: for a Sobel objective (its pass reads it)
         or when asked (bit 2 of ``grad``, ``FusedPipeline.image``)."""
@@ -448,6 +375,92 @@ def make_fused_kernels(
         if ti.static(not sobel):
             keep = grad & 2 != 0
         return keep
+
+    # The bodies of the row passes, ``body(y, x0 or x, state)`` of ``tiles.each_segment`` / ``each_pixel``:
+    # ``state`` is passed by reference (its vectors accumulate the row's sums), tuples indexed, not unpacked.
+
+    @ti.func
+    def sum_slices_and_maps(y, x, sums: ti.template()):
+        """Stage 3 at a touched pixel: the slices summed into slice 0; ``sums`` += (m, m P_v)."""
+        if ti.static(S > 1):
+            for k in ti.static(range(K)):
+                v = f.acc[0, y, x, k]
+                for s in ti.static(range(1, S)):
+                    v += f.acc[s, y, x, k]
+                    f.acc[s, y, x, k] = 0.0
+                f.acc[0, y, x, k] = v
+        if ti.static(R > 0):
+            cnt = f.acc[0, y, x, i_cnt]
+            if cnt > 0.0:
+                m = _b.support_weight(cnt)
+                sums[0] += m
+                for v in ti.static(range(RV)):
+                    sums[1 + v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
+
+    @ti.func
+    def blur_x_votes(y, x0, tv):
+        """Stage 3 over Rx: the IWE channels of the votes blurred along x into ``tmp``."""
+        for c in ti.static(range(C)):
+            store_segment(f.tmp, c, y, x0, blur_x_segment(f.acc, True, c, y, x0, tv))
+
+    @ti.func
+    def blur_y_and_terms(y, x0, st: ti.template()):
+        """Stage 4 over Rxy, ``st = (taps, keep, objective sums)``: ``tmp`` blurred along y (into ``img``
+        where kept), the objective's terms (without Sobel) into the sums."""
+        for c in ti.static(range(C)):
+            v = blur_y_segment(f.tmp, c, y, x0, st[0])
+            if st[1]:
+                store_segment(f.img, c, y, x0, v)
+            if ti.static(not sobel):
+                for p in ti.static(range(SEG)):
+                    if in_image(x0 + p):
+                        terms = pixel_fn(v[p], 0.0, 0.0)
+                        for k in ti.static(range(SL)):
+                            st[2][SL * c + k] += terms[k]
+
+    @ti.func
+    def clear_votes(y, x, grad):
+        """Stage 4 at a touched pixel: the votes stage 3's blur read, cleared: the IWE channels now, the
+        maps (and a shared count) after the backward where it runs (it reads them and clears them)."""
+        if ti.static(R > 0):  # noqa: SIM102 - compile-time if
+            if grad & 1 == 0:
+                for k in ti.static(range(i_cnt, K)):
+                    f.acc[0, y, x, k] = 0.0
+        for c in ti.static(range(C)):
+            if ti.static(shared_count and c == i_cnt):
+                if grad & 1 == 0:
+                    f.acc[0, y, x, c] = 0.0
+            else:
+                f.acc[0, y, x, c] = 0.0
+
+    @ti.func
+    def sobel_and_terms(y, x, sums: ti.template()):
+        """Stage 5 over Rs: the Sobel images (kept for the backward), the objective's terms into ``sums``."""
+        for c in ti.static(range(C)):
+            gx, gy = sobel_fn(f.img, c, y, x)
+            f.sobel[y, x, 2 * c] = gx
+            f.sobel[y, x, 2 * c + 1] = gy
+            terms = pixel_fn(f.img[y, x, c], gx, gy)
+            for k in ti.static(range(SL)):
+                sums[SL * c + k] += terms[k]
+
+    @ti.func
+    def transposed_sobel(y, x, ibar: ti.template()):
+        """Stage 7 over Rxy: ``L(I)``, the transposed Sobel of the Sobel images."""
+        for c in ti.static(range(C)):
+            ibar[y, x, c] = sobel_t(f.sobel, c, y, x)
+
+    @ti.func
+    def blur_y_adjoint(y, x0, st: ti.template()):
+        """Stage 7 over Rx, ``st = (taps, B_y^T B_y taps, scale / G0, offset tap sum / G0)`` per channel:
+        the transposed blur along y of dJ/dI into ``tmp2``."""
+        for c in ti.static(range(C)):
+            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
+            if ti.static(sobel):
+                v = blur_y_segment(f.ibar, c, y, x0, st[0])
+            else:
+                v = seg.twice_blur_y(f.tmp, st[1], c, y, x0)
+            store_segment(f.tmp2, c, y, x0, st[2][c] * v + st[3][c])
 
     @ti.func
     def map_adjoints(y, x, msum):
@@ -474,6 +487,17 @@ def make_fused_kernels(
             f.adj[y, x, i_cnt] = dc
         for k in ti.static(range(i_cnt, K)):
             f.acc[0, y, x, k] = 0.0
+
+    @ti.func
+    def blur_x_adjoint(y, x0, st: ti.template()):
+        """Stage 7 over F0, ``st = (taps, sum m)``: the transposed blur along x of ``tmp2`` into ``adj``,
+        the map adjoints (and the maps cleared)."""
+        for c in ti.static(range(C)):
+            store_segment(f.adj, c, y, x0, blur_x_segment(f.tmp2, False, c, y, x0, st[0]))
+        if ti.static(R > 0):
+            for p in ti.static(range(SEG)):
+                if in_image(x0 + p):
+                    map_adjoints(y, x0 + p, st[1])
 
     @ti.kernel
     def run(
@@ -512,114 +536,31 @@ def make_fused_kernels(
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             tiles.build_x(tf, y)
-            msum = 0.0
-            psum = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
-            for j in range(NW):
-                w = masks[F0, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for p in ti.static(range(SEG)):
-                        x = x0 + p
-                        if in_image(x):
-                            if ti.static(S > 1):
-                                for k in ti.static(range(K)):
-                                    v = f.acc[0, y, x, k]
-                                    for s in ti.static(range(1, S)):
-                                        v += f.acc[s, y, x, k]
-                                        f.acc[s, y, x, k] = 0.0
-                                    f.acc[0, y, x, k] = v
-                            if ti.static(R > 0):
-                                cnt = f.acc[0, y, x, i_cnt]
-                                if cnt > 0.0:
-                                    m = _b.support_weight(cnt)
-                                    msum += m
-                                    for v in ti.static(range(RV)):
-                                        psum[v] += m * penalty_fns[voted[v]](f.acc[0, y, x, i_num + v] / cnt)
-            f.part_map[y, 0] = msum
-            for v in ti.static(range(RV)):
-                f.part_map[y, 1 + v] = psum[v]
-            tv = load_taps(f.taps)
-            for j in range(NW):
-                w = tiles.stale(tf, 0, y, j)  # tmp: in the previous call's Rx, not in this one's
-                while w != ti.u32(0):
-                    clear_segment(f.tmp, y, _t.first_pixel(j, w))
-                    w = _t.drop_lowest(w)
-                w = masks[RX, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for c in ti.static(range(C)):
-                        store_segment(f.tmp, c, y, x0, blur_x_segment(f.acc, True, c, y, x0, tv))
+            sums = ti.Vector([0.0 for _ in ti.static(range(1 + RV))])  # sum m, sum m P_v
+            tiles.each_pixel(tf, F0, y, sum_slices_and_maps, sums)
+            for k in ti.static(range(1 + RV)):
+                f.part_map[y, k] = sums[k]
+            tiles.each_stale_segment(tf, 0, y, clear_segment, f.tmp)  # in the previous Rx, not in this one
+            tiles.each_segment(tf, RX, y, blur_x_votes, load_taps(f.taps))
         # --- 4. rows: Rxy (and Rs); blur along y over Rxy, the objective's terms; the votes cleared --------
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             tiles.build_y(tf, y)
             keep = keep_image(grad)
-            if keep:
-                for j in range(NW):
-                    w = tiles.stale(tf, 1, y, j)  # img: in the previous kept image's Rxy, not in this one's
-                    while w != ti.u32(0):
-                        clear_segment(f.img, y, _t.first_pixel(j, w))
-                        w = _t.drop_lowest(w)
+            if keep:  # img: in the previous kept image's Rxy, not in this one's
+                tiles.each_stale_segment(tf, 1, y, clear_segment, f.img)
             rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-            tv = load_taps(f.taps)
-            for j in range(NW):
-                w = masks[RXY, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for c in ti.static(range(C)):
-                        v = blur_y_segment(f.tmp, c, y, x0, tv)
-                        if keep:
-                            store_segment(f.img, c, y, x0, v)
-                        if ti.static(not sobel):
-                            for p in ti.static(range(SEG)):
-                                if in_image(x0 + p):
-                                    terms = pixel_fn(v[p], 0.0, 0.0)
-                                    for k in ti.static(range(SL)):
-                                        rsum[SL * c + k] += terms[k]
-                # the votes, read by stage 3's blur: the IWE channels now, the maps after the backward
-                w = masks[F0, y, j]
-                while w != ti.u32(0):
-                    x0 = _t.first_pixel(j, w)
-                    w = _t.drop_lowest(w)
-                    for p in ti.static(range(SEG)):
-                        x = x0 + p
-                        if in_image(x):
-                            if ti.static(R > 0):  # noqa: SIM102 - compile-time if
-                                if grad & 1 == 0:  # else the backward reads the maps and clears them
-                                    for k in ti.static(range(i_cnt, K)):
-                                        f.acc[0, y, x, k] = 0.0
-                            for c in ti.static(range(C)):
-                                if ti.static(shared_count and c == i_cnt):
-                                    if grad & 1 == 0:
-                                        f.acc[0, y, x, c] = 0.0
-                                else:
-                                    f.acc[0, y, x, c] = 0.0
+            tiles.each_segment(tf, RXY, y, blur_y_and_terms, (load_taps(f.taps), keep, rsum))
+            tiles.each_pixel(tf, F0, y, clear_votes, grad)
             if ti.static(not sobel):
                 for k in ti.static(range(SL * C)):
                     f.part_obj[y, k] = rsum[k]
         if ti.static(sobel):
-            # Sobel images (kept for the backward) and the pixel terms that read them, over Rs
+            # --- 5. rows: Sobel images (kept for the backward) and the pixel terms that read them, over Rs
             ti.loop_config(block_dim=row_block)
             for y in range(H):
                 rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-                for j in range(NW):
-                    w = masks[R_OBJ, y, j]
-                    while w != ti.u32(0):
-                        x0 = _t.first_pixel(j, w)
-                        w = _t.drop_lowest(w)
-                        for p in ti.static(range(SEG)):
-                            x = x0 + p
-                            if in_image(x):
-                                for c in ti.static(range(C)):
-                                    gx, gy = sobel_fn(f.img, c, y, x)
-                                    f.sobel[y, x, 2 * c] = gx
-                                    f.sobel[y, x, 2 * c + 1] = gy
-                                    terms = pixel_fn(f.img[y, x, c], gx, gy)
-                                    for k in ti.static(range(SL)):
-                                        rsum[SL * c + k] += terms[k]
+                tiles.each_pixel(tf, R_OBJ, y, sobel_and_terms, rsum)
                 for k in ti.static(range(SL * C)):
                     f.part_obj[y, k] = rsum[k]
         # --- 6. serial: the row sums in row order, the untouched pixels in closed form, J -------------------
@@ -676,15 +617,7 @@ def make_fused_kernels(
             ti.loop_config(block_dim=row_block)
             for y in range(H):
                 if grad & 1 != 0:
-                    for j in range(NW):
-                        w = masks[RXY, y, j]
-                        while w != ti.u32(0):
-                            x0 = _t.first_pixel(j, w)
-                            w = _t.drop_lowest(w)
-                            for p in ti.static(range(SEG)):
-                                if in_image(x0 + p):
-                                    for c in ti.static(range(C)):
-                                        f.ibar[y, x0 + p, c] = sobel_t(f.sobel, c, y, x0 + p)
+                    tiles.each_pixel(tf, RXY, y, transposed_sobel, f.ibar)
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             if grad & 1 != 0:
@@ -704,37 +637,13 @@ def make_fused_kernels(
                     c1[c] = scale / f.g0[None]
                     c0[c] = offset / f.g0[None] * tapsum
                 tv = load_taps(f.taps)
-                wide = twice_taps(y, tv)
-                for j in range(NW):
-                    w = masks[RX, y, j]
-                    while w != ti.u32(0):
-                        x0 = _t.first_pixel(j, w)
-                        w = _t.drop_lowest(w)
-                        for c in ti.static(range(C)):
-                            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-                            if ti.static(sobel):
-                                v = blur_y_segment(f.ibar, c, y, x0, tv)
-                            else:
-                                v = twice_blur_y_segment(wide, c, y, x0)
-                            store_segment(f.tmp2, c, y, x0, c1[c] * v + c0[c])
+                tiles.each_segment(tf, RX, y, blur_y_adjoint, (tv, twice_taps(y, tv), c1, c0))
         ti.loop_config(block_dim=row_block)
         for y in range(H):
             if grad & 1 != 0:
                 # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps
                 msum = red[i_m][None] if ti.static(R > 0) else 0.0
-                tv = load_taps(f.taps)
-                for j in range(NW):
-                    w = masks[F0, y, j]
-                    while w != ti.u32(0):
-                        x0 = _t.first_pixel(j, w)
-                        w = _t.drop_lowest(w)
-                        for c in ti.static(range(C)):
-                            store_segment(f.adj, c, y, x0, blur_x_segment(f.tmp2, False, c, y, x0, tv))
-                        if ti.static(R > 0):
-                            for p in ti.static(range(SEG)):
-                                x = x0 + p
-                                if in_image(x):
-                                    map_adjoints(y, x, msum)
+                tiles.each_segment(tf, F0, y, blur_x_adjoint, (load_taps(f.taps), msum))
         # --- 8. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):

@@ -113,6 +113,22 @@ def first_pixel(j, w):
     return (j * WORD + lowest_bit(w)) * SEG
 
 
+def make_in_image(width: int):
+    """``in_image(x)``: column ``x`` of a segment lies in the image of ``width`` px (only the last segment
+    of a row can stick out; always true when the width is a multiple of :data:`SEG`)."""
+    W = int(width)
+    partial = SEG * (-(-W // SEG)) - W  # columns of a row's last segment beyond the image
+
+    @ti.func
+    def in_image(x):
+        inside = True
+        if ti.static(partial > 0):
+            inside = x < W
+        return inside
+
+    return in_image
+
+
 def make_mark(width: int, height: int):
     """``mark(tf, ix, iy)``: mark the footprint with top-left corner ``(ix, iy)`` (px; ``-1 .. W - 1``,
     ``-1 .. H - 1``) in ``tf.marks``: the segments of mark row ``iy + 1`` holding columns ``ix`` and
@@ -261,13 +277,44 @@ class TileOps:
             tf.old[h, y, j] = new
             return w
 
+        in_image = make_in_image(W)
+
         @ti.func
-        def in_image(x):
-            """Column ``x`` of a segment is in the image (only the last segment of a row can stick out)."""
-            inside = True
-            if ti.static(partial > 0):
-                inside = x < W
-            return inside
+        def segments_of_word(j, w, y, body: ti.template(), state: ti.template()):
+            """``body(y, x0, state)`` for the segment of every set bit of word ``j``'s value ``w``."""
+            while w != ti.u32(0):
+                x0 = first_pixel(j, w)
+                w = drop_lowest(w)
+                body(y, x0, state)
+
+        @ti.func
+        def each_segment(tf: ti.template(), ri: ti.template(), y, body: ti.template(), state: ti.template()):
+            """``body(y, x0, state)`` for every segment of region ``ri`` in row ``y``, left to right (``x0``:
+            its first column). ``state`` reaches ``body`` by reference (a template): a local vector, a
+            field, or a tuple of them, indexed in ``body`` (unpacking a tuple copies its elements)."""
+            for j in range(NW):
+                segments_of_word(j, tf.masks[ri, y, j], y, body, state)
+
+        @ti.func
+        def pixels_of_segment(y, x0, body_state: ti.template()):
+            for p in ti.static(range(SEG)):
+                if in_image(x0 + p):
+                    body_state[0](y, x0 + p, body_state[1])
+
+        @ti.func
+        def each_pixel(tf: ti.template(), ri: ti.template(), y, body: ti.template(), state: ti.template()):
+            """``body(y, x, state)`` at every in-image pixel of region ``ri`` in row ``y``, left to right
+            (``state`` as in :meth:`each_segment`)."""
+            each_segment(tf, ri, y, pixels_of_segment, (body, state))
+
+        @ti.func
+        def each_stale_segment(
+            tf: ti.template(), h: ti.template(), y, body: ti.template(), state: ti.template()
+        ):
+            """``body(y, x0, state)`` for every segment of row ``y`` that :meth:`stale` returns for history
+            slot ``h`` (the previous call's region less the new one; the new one becomes the old)."""
+            for j in range(NW):
+                segments_of_word(j, stale(tf, h, y, j), y, body, state)
 
         self.mark, self.build_x, self.build_y, self.stale, self.in_image = (
             mark,
@@ -275,6 +322,11 @@ class TileOps:
             build_y,
             stale,
             in_image,
+        )
+        self.each_segment, self.each_pixel, self.each_stale_segment = (
+            each_segment,
+            each_pixel,
+            each_stale_segment,
         )
 
         if tf.lists is not None:
@@ -342,9 +394,8 @@ def make_clear_kernel(tf: TileFields, region: int, images=(), rows=(), scalars=(
     in), ``rows`` (pairs ``(field, list)``: per-entry ``(n, k)`` partial sums, the first
     ``count[list]`` rows) and ``scalars`` (0-D fields). Built per set of fields (they are closed
     over)."""
-    W = tf.width
-    entry = make_entry(W)
-    partial = SEG * tf.n_segments - W
+    entry = make_entry(tf.width)
+    in_image = make_in_image(tf.width)
 
     @ti.kernel
     def clear():
@@ -352,10 +403,7 @@ def make_clear_kernel(tf: TileFields, region: int, images=(), rows=(), scalars=(
             y, x0 = entry(tf, region, k)
             for p in ti.static(range(SEG)):
                 x = x0 + p
-                inside = True
-                if ti.static(partial > 0):
-                    inside = x < W
-                if inside:
+                if in_image(x):
                     for img in ti.static(images):
                         if ti.static(len(img.shape) == 2):
                             img[y, x] = 0.0
@@ -394,13 +442,7 @@ class SegmentPasses:
     def __init__(self, width: int, height: int, radius: int) -> None:
         W, H, r_ = int(width), int(height), int(radius)
         partial = SEG * (-(-W // SEG)) - W  # columns of a row's last segment beyond the image
-
-        @ti.func
-        def in_image(x):
-            inside = True
-            if ti.static(partial > 0):
-                inside = x < W
-            return inside
+        in_image = make_in_image(W)
 
         @ti.func
         def whole(x0):
@@ -503,7 +545,8 @@ class SegmentPasses:
             return v
 
         @ti.func
-        def clear(dst: ti.template(), y, x0):
+        def clear(y, x0, dst: ti.template()):
+            """``dst`` zeroed at the segment (the argument order of a :meth:`TileOps.each_segment` body)."""
             for p in ti.static(range(SEG)):
                 if in_image(x0 + p):
                     for c in ti.static(range(dst.shape[2])):

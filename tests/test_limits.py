@@ -17,7 +17,7 @@ from conftest import SENSOR, edge_events
 import cmax_taichi as cm
 from cmax_taichi.core import backend, limits
 from cmax_taichi.pipeline.clusters import MultiClusterCMax
-from cmax_taichi.pipeline.fused import n_slices
+from cmax_taichi.pipeline.footprint import n_slices
 from cmax_taichi.testing import reference
 
 THETA = [40.0, -25.0]  # translation2, px/s

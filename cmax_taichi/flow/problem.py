@@ -27,8 +27,9 @@ from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.flow.grid import FlowGrid
 from cmax_taichi.flow.smoothness import SMOOTHNESS
 from cmax_taichi.kernels import dense_flow as kdense
+from cmax_taichi.kernels import fused_common as kcommon
 from cmax_taichi.models.regularizers import REGULARIZERS
-from cmax_taichi.pipeline.footprint import KernelFootprint, kernels_key, n_slices
+from cmax_taichi.pipeline.footprint import image_layout, kernels_key
 from cmax_taichi.pipeline.setup import POLARITY_MODES, ProblemSetup, SetupOptions, check_regularizers
 
 __all__ = ["DenseEvaluation", "DenseFlowProblem", "MULTI_REFERENCE", "resolve_references"]
@@ -274,17 +275,17 @@ class DenseFlowProblem:
         self._atomic = backend.info().arch != "cpu"
         weighted = setup.vote_weights is not None
         split = setup.polarity == "split"
-        footprint = KernelFootprint(
+        layout = image_layout(
             width=W,
             height=H,
             n_channels=C,
             radius=setup.radius,
-            n_slices=n_slices(),
             shared_count=Q > 0 and not weighted and not split,
             objective_slots=self.objective.slots_per_channel,
             sobel=obj.sobel,
+            atomic=self._atomic,
         )
-        slices, shared = footprint.n_slices, footprint.shared_count
+        slices, shared = layout.n_slices, layout.shared_count
         self._weighted, self._split = weighted, split
         cap = _node_capacity(self.finest.n_nodes)
         itemsize = np.dtype(backend.numpy_real()).itemsize
@@ -300,13 +301,10 @@ class DenseFlowProblem:
             "the dense flow problem",
             f"sensor {W}x{H}, {R} reference(s), {Q} regularizer(s), {setup.n_events:,} events",
         )
-        real = backend.real()
-        key = ("dense_flow", backend.info().generation, footprint, R, Q, cap)
+        key = ("dense_flow", backend.info().generation, layout, R, Q, cap)
 
         def build(ws):
-            ws.fields = kdense.DenseFlowFields(
-                real, n_refs=R, n_regs=Q, max_nodes=cap, atomic=self._atomic, **footprint.fields_options()
-            )
+            ws.fields = kdense.DenseFlowFields(layout, n_refs=R, n_regs=Q, max_nodes=cap, atomic=self._atomic)
             ws.kernels = {}
 
         self._ws = workspace.acquire(key, build, f"a {W}x{H} dense flow problem")
@@ -314,17 +312,14 @@ class DenseFlowProblem:
         kkey = kernels_key(self.objective.name, obj, self.regularizers, weighted, split, self._atomic)
         if kkey not in self._ws.kernels:
             regs = self.regularizers
-            options = footprint.kernel_options(
-                obj, atomic=self._atomic, weighted=weighted, split=split, real=real
-            )
             self._ws.kernels[kkey] = kdense.make_dense_flow_kernels(
                 self.fields,
                 tuple(r.kind for r in regs),
                 tuple(r.penalty for r in regs),
                 tuple(r.penalty_grad for r in regs),
                 tuple(bool(r.one_sided) for r in regs),
-                n_refs=R,
-                **options,
+                objective=obj,
+                events=kcommon.EventLayout(weighted, split, self._atomic),
             )
         self._run_k = self._ws.kernels[kkey]
         self._out = np.zeros(2 + R + Q + Q * R)

@@ -1,15 +1,17 @@
-"""The footprint the one-pass kernels share: the fused pipeline (kernels/fused.py) and the dense flow
-(kernels/dense_flow.py) size their fields and compile their kernels by the same image, objective and
-accumulation choices; they are declared here once, for both, and passed as keywords.
+"""What the one-launch pipelines' callers share: the fused pipeline (``pipeline/fused.py``) and the dense
+flow (``flow/problem.py``) size their fields and compile their kernels by the same image, objective and
+accumulation choices. The shape itself is one declaration, ``kernels/fused_common.py``'s
+:class:`~cmax_taichi.kernels.fused_common.ImageLayout` (the fields and the kernels read it); here is how a
+caller fills it (:func:`image_layout`), how many thread slices the CPU gets (:func:`n_slices`) and the
+key of a compiled kernel set (:func:`kernels_key`).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import taichi as ti
 
 from cmax_taichi.core import backend
+from cmax_taichi.kernels.fused_common import ImageLayout
 
 
 def n_slices() -> int:
@@ -19,11 +21,22 @@ def n_slices() -> int:
     return max(1, int(ti.lang.impl.current_cfg().cpu_max_num_threads))
 
 
-@dataclass(frozen=True)
-class KernelFootprint:
-    """The image and objective a one-pass kernel set is built for (hashable: a part of workspace keys).
+def image_layout(
+    *,
+    width: int,
+    height: int,
+    n_channels: int,
+    radius: int,
+    shared_count: bool,
+    objective_slots: int,
+    sobel: bool,
+    atomic: bool,
+) -> ImageLayout:
+    """The :class:`ImageLayout` of a problem's kernels (hashable: a part of workspace keys) in the
+    backend's float type, with one slice per CPU thread, or one slice when the event passes add
+    atomically (``atomic``: a GPU arch, or a forced atomic path).
 
-    Attributes
+    Parameters
     ----------
     width, height : int
         The kernels' image, px (the sensor plus any padding).
@@ -31,53 +44,26 @@ class KernelFootprint:
         Images per reference (2 for split polarity).
     radius : int
         Gaussian blur radius, px (0 = no blur).
-    n_slices : int
-        Accumulation slices of the splat (:func:`n_slices`; 1 with atomics).
     shared_count : bool
         The regularizers' count image is the IWE itself (unweighted, unsplit votes).
     objective_slots : int
         Per-pixel partial sums the objective declares per channel.
     sobel : bool
         The objective reads the Sobel gradient of the IWE.
+    atomic : bool
+        Atomic scatter into one slice instead of per-thread slices.
     """
-
-    width: int
-    height: int
-    n_channels: int
-    radius: int
-    n_slices: int
-    shared_count: bool
-    objective_slots: int
-    sobel: bool
-
-    def fields_options(self) -> dict:
-        """The keywords of the fields' constructors (``FusedFields``, ``DenseFlowFields``)."""
-        return asdict(self)
-
-    def kernel_options(self, objective, *, atomic: bool, weighted: bool, split: bool, real) -> dict:
-        """The keywords of the kernel factories (``make_fused_kernels``, ``make_dense_flow_kernels``).
-
-        Parameters
-        ----------
-        objective : FusedObjective
-            The objective's fused declaration (``pixel``, ``finalize``, ``adjoint``).
-        atomic : bool
-            Atomic scatter (a GPU arch) instead of per-slice accumulation.
-        weighted, split : bool
-            Per-event vote weights; split polarity.
-        real
-            The Taichi float type.
-        """
-        return dict(
-            pixel_fn=objective.pixel,
-            finalize_fn=objective.finalize,
-            adjoint_fn=objective.adjoint,
-            atomic_scatter=atomic,
-            weighted=weighted,
-            split_polarity=split,
-            real=real,
-            **asdict(self),
-        )
+    return ImageLayout(
+        real=backend.real(),
+        width=width,
+        height=height,
+        n_channels=n_channels,
+        radius=radius,
+        n_slices=1 if atomic else n_slices(),
+        shared_count=shared_count,
+        objective_slots=objective_slots,
+        sobel=sobel,
+    )
 
 
 def kernels_key(objective_name: str, objective, regularizers, *flags) -> tuple:

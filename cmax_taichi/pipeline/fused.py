@@ -31,9 +31,10 @@ from taichi.lang import impl as ti_impl
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
+from cmax_taichi.kernels import fused_common as kcommon
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
-from cmax_taichi.pipeline.footprint import KernelFootprint, kernels_key, n_slices
+from cmax_taichi.pipeline.footprint import image_layout, kernels_key
 
 __all__ = ["ChainPathWarning", "FusedPipeline", "PathChoice"]
 
@@ -211,31 +212,28 @@ class FusedPipeline:
         weighted = vote_w is not None
         split = problem.polarity == "split"
         atomic = backend.info().arch != "cpu" or self.force_atomic
-        footprint = KernelFootprint(
+        layout = image_layout(
             width=problem.width,
             height=problem.height,
             n_channels=problem.n_channels,
             radius=problem.setup.radius,
-            n_slices=1 if atomic else n_slices(),
             shared_count=bool(regs) and not weighted and not split,
             objective_slots=problem.objective.slots_per_channel,
             sobel=objective.sobel,
+            atomic=atomic,
         )
-        real = backend.real()
         self.n_params = P
         # the declared capabilities (for_problem checked that they are there)
         kinds = tuple(r.kind for r in regs)
         constant = tuple(k in model.constant_quantities for k in kinds)
         n_voted = len(regs) - sum(constant)
-        key = ("fused", problem._backend.generation, footprint, len(regs), n_voted, P)
+        key = ("fused", problem._backend.generation, layout, len(regs), n_voted, P)
 
         def build(ws):
-            ws.fields = kfused.FusedFields(
-                real, n_regs=len(regs), n_voted=n_voted, n_params=P, **footprint.fields_options()
-            )
+            ws.fields = kfused.FusedFields(layout, n_regs=len(regs), n_voted=n_voted, n_params=P)
             ws.kernels = {}
 
-        W, H = footprint.width, footprint.height
+        W, H = layout.width, layout.height
         self._ws = workspace.acquire(key, build, f"a {W}x{H} problem (fused pipeline)")
         self.fields = self._ws.fields
         kkey = (
@@ -251,16 +249,14 @@ class FusedPipeline:
                 tuple(r.penalty for r in regs),
                 tuple(r.penalty_grad for r in regs),
                 tuple(bool(getattr(r, "one_sided", False)) for r in regs),
-                n_params=P,
+                objective=objective,
+                events=kcommon.EventLayout(weighted, split, atomic),
                 param_jac=model.param_jac,
                 quantity_kinds=kinds,
                 constant=constant,
                 det_fn=model.det,
                 warp_terms=model.warp_terms,
                 positive_det=model.positive_det,
-                **footprint.kernel_options(
-                    objective, atomic=atomic, weighted=weighted, split=split, real=real
-                ),
             )
         self._run_k = self._ws.kernels[kkey]
 

@@ -31,7 +31,8 @@ from cmax_taichi.kernels import whitening as kwhite
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer, penalty_value
 from cmax_taichi.models.warps import WarpModel, get_warp
 from cmax_taichi.pipeline.flow_field import dense_flow
-from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline, n_slices
+from cmax_taichi.pipeline.footprint import n_slices
+from cmax_taichi.pipeline.fused import ChainPathWarning, FusedPipeline
 from cmax_taichi.pipeline.parameters import all_finite as _all_finite
 from cmax_taichi.pipeline.parameters import check_theta as _check_theta
 from cmax_taichi.pipeline.parameters import float_limit as _float_limit
