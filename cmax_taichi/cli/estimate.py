@@ -504,6 +504,9 @@ def run(args: argparse.Namespace) -> int:
         with contextlib.ExitStack() as stack:
             for f in unique:
                 stack.enter_context(f)  # lock, checks, staging
+            # on the way out, the figure child stops before the folders remove their staging: a child
+            # still saving a PNG into it would leave the staging (and so OUT) behind
+            stack.callback(figures.abandon)
             folder, flow_folder = out_folders[0], (out_folders[-1] if args.flow_out is not None else None)
             written = _estimate_one(
                 args, regs, folder, flow_folder, process, area_scale, cm, CliError, figures
