@@ -36,3 +36,34 @@ def test_a_compile_error_keeps_its_source_excerpt(f64):
     message = str(err.value)
     assert "test_backend_frontend.py" in message and "undefined_name_in_kernel" in message
     assert "^" in message  # the caret under the node, as Taichi formats it
+
+
+def test_the_quicker_front_end_keeps_taichi_s_semantics(f64):
+    """The cached sources (``CACHED_FUNCTION_SOURCES``) and the class test read from ``linecache``
+    (``QUICK_CLASS_TEST``): a data-oriented class's kernel and method still bind to their instance, and
+    one ti.func called at several sites (its source read once) gives each call its own arguments."""
+    backend.ensure_initialized()
+    expected = ti.__version__ == (1, 7, 4)
+    assert backend.CACHED_FUNCTION_SOURCES is expected and backend.QUICK_CLASS_TEST is expected
+
+    @ti.func
+    def scaled(v, k):
+        return v * k
+
+    @ti.data_oriented
+    class Holder:
+        def __init__(self):
+            self.x = ti.field(ti.f64, shape=4)
+
+        @ti.func
+        def offset(self, i):
+            return i * 1.0
+
+        @ti.kernel
+        def fill(self, v: ti.f64):
+            for i in self.x:
+                self.x[i] = scaled(v, 2.0) + scaled(self.offset(i), 10.0)
+
+    holder = Holder()
+    holder.fill(1.5)
+    assert holder.x.to_numpy().tolist() == [3.0, 13.0, 23.0, 33.0]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ class BackendInfo:
 
 
 _state: BackendInfo | None = None
+_ended_generation = 0  # of the program that finish() ended (generations never repeat)
 _reset_hooks: list = []
 _options: dict = {}  # the keyword options of the last init(), kept by recover()
 
@@ -93,7 +95,7 @@ def init(
     BackendInfo
         The arch really used, the precision and the generation number.
     """
-    global _state
+    global _state, _ended_generation
     arch = (arch or os.environ.get(ARCH_ENV) or "cpu").strip().lower()
     if arch not in ARCHS:
         raise ValueError(f"unknown arch {arch!r}; valid archs are {', '.join(ARCHS)}")
@@ -109,7 +111,7 @@ def init(
         for hook in list(_reset_hooks):
             hook()
         ti.reset()
-    generation = 1 if _state is None else _state.generation + 1
+    generation = (_ended_generation if _state is None else _state.generation) + 1
     fp = ti.f64 if precision == "f64" else ti.f32
     # quiet: Taichi's compiler warnings (e.g. thousands of "Loading variable ... before anything is
     # stored" lines while differentiating rotation3's matrix code, offline-cache lock notices when two
@@ -176,6 +178,20 @@ def init_if_needed(arch: str | None = None, precision: str | None = None) -> Bac
     ):
         return current
     return init(arch=arch, precision=precision)
+
+
+def finish() -> None:
+    """End this process's Taichi program as the interpreter's normal exit does: the kernels compiled
+    in this process are written to the offline cache (Taichi writes it when its program is finalized,
+    not in an ``atexit`` function). For a process about to end without the interpreter's teardown
+    (:func:`cmax_taichi.cli.console_main`); nothing to do when the backend never started."""
+    global _state, _ended_generation
+    if _state is None:
+        return
+    for hook in list(_reset_hooks):  # as a re-initialisation does: nothing pooled outlives the program
+        hook()
+    ti.reset()
+    _ended_generation, _state = _state.generation, None
 
 
 def is_initialized() -> bool:
@@ -257,8 +273,9 @@ def _short_source_positions() -> bool:
 
     Taichi runs its Python front end on every kernel in every process, warm offline cache or not (the
     cache skips LLVM only), and it formats, for every node of the kernel's tree, the source line with
-    a caret under the node through ``textwrap`` (``ASTTransformerContext.get_pos_info``): a quarter of
-    the 0.7 s of CPU time that building a fused kernel takes. The excerpt only labels the IR's debug
+    a caret under the node through ``textwrap`` (``ASTTransformerContext.get_pos_info``, which the
+    builders also call for the debug information of every name and loop): a quarter of the 0.7 s of
+    CPU time that building a fused kernel takes. The excerpt only labels the IR's debug
     information (runtime messages in debug mode). A compile error still gets the full excerpt (the
     error path below calls ``get_pos_info`` as Taichi does); the offline cache keys do not change.
     Applied only to the Taichi version it was written for, and not with ``CMAX_TAICHI_FULL_SOURCE_INFO=1``.
@@ -298,14 +315,142 @@ def _short_source_positions() -> bool:
             ctx.raised = True
             e = handle_exception_from_cpp(e)
             if not isinstance(e, TaichiCompilationError):
-                msg = ctx.get_pos_info(node) + traceback.format_exc()
+                msg = full_pos_info(ctx, node) + traceback.format_exc()
                 raise TaichiCompilationError(msg) from None
-            msg = ctx.get_pos_info(node) + str(e)
+            msg = full_pos_info(ctx, node) + str(e)
             raise type(e)(msg) from None
+
+    full_pos_info = utils.ASTTransformerContext.get_pos_info
+
+    def short_pos_info(self, node):  # what the builders put into each name's and loop's debug info
+        return f'File "{self.file}", line {node.lineno + self.lineno_offset}, in {self.func.func.__name__}:\n'
 
     build_node._cmax_short_positions = True
     utils.Builder.__call__ = build_node
+    utils.ASTTransformerContext.get_pos_info = short_pos_info
     return True
 
 
 SHORT_SOURCE_POSITIONS = _short_source_positions()
+
+
+def _cached_function_sources() -> bool:
+    """Read the source of each ``ti.func`` / kernel once per process, not at every call site.
+
+    Taichi 1.7.4's front end inlines a ``ti.func`` at each of its calls, and for each call it looks the
+    function's source up again (``inspect.getsourcelines``: ``inspect.getmodule`` over ``sys.modules``
+    and a tokenizer pass over the module) and wraps every line through ``textwrap``
+    (``kernel_impl._get_tree_and_ctx``): the fused kernel calls ti.funcs some 450 times, and those
+    lookups were about half of the 1.2 s its front end takes in every process, warm offline cache or
+    not. Here the file, lines and dedented text are kept per code object (closures of one factory share
+    it, and so their source); the tree is still parsed afresh at each call (Taichi's builders write
+    into its nodes). What Taichi builds from it is unchanged (the offline cache keys included).
+    Applied only to the Taichi version it was written for, and not with ``CMAX_TAICHI_FULL_SOURCE_INFO=1``.
+    Returns whether it was applied.
+    """
+    if os.environ.get(FULL_SOURCE_INFO_ENV, "").strip() == "1" or ti.__version__ != (1, 7, 4):
+        return False
+    try:
+        import ast
+        import textwrap
+
+        from taichi.lang import kernel_impl
+    except ImportError:  # pragma: no cover - another layout than 1.7.4's
+        return False
+    if getattr(kernel_impl._get_tree_and_ctx, "_cmax_cached_sources", False):
+        return True
+    context_class = kernel_impl.ASTTransformerContext
+    sources: dict = {}
+
+    def source_of(func) -> tuple:
+        code = getattr(func, "__code__", None)
+        found = sources.get(code) if code is not None else None
+        if found is None:  # as Taichi 1.7.4 reads it
+            file = kernel_impl.getsourcefile(func)
+            src, start_lineno = kernel_impl.getsourcelines(func)
+            src = [textwrap.fill(line, tabsize=4, width=9999) for line in src]
+            found = (file, tuple(src), start_lineno, textwrap.dedent("\n".join(src)))
+            if code is not None:
+                sources[code] = found
+        return found
+
+    def get_tree_and_ctx(  # Taichi 1.7.4's _get_tree_and_ctx but for the source lookup
+        self,
+        excluded_parameters=(),
+        is_kernel=True,
+        arg_features=None,
+        args=None,
+        ast_builder=None,
+        is_real_function=False,
+    ):
+        file, src, start_lineno, text = source_of(self.func)
+        tree = ast.parse(text)
+        tree.body[0].decorator_list = []
+        global_vars = kernel_impl._get_global_vars(self.func)
+        if is_kernel or is_real_function:  # template parameters into the globals
+            for i in self.template_slot_locations:
+                global_vars[self.arguments[i].name] = args[i]
+        return tree, context_class(
+            excluded_parameters=excluded_parameters,
+            is_kernel=is_kernel,
+            func=self,
+            arg_features=arg_features,
+            global_vars=global_vars,
+            argument_data=args,
+            src=list(src),
+            start_lineno=start_lineno,
+            file=file,
+            ast_builder=ast_builder,
+            is_real_function=is_real_function,
+        )
+
+    get_tree_and_ctx._cmax_cached_sources = True
+    kernel_impl._get_tree_and_ctx = get_tree_and_ctx
+    return True
+
+
+CACHED_FUNCTION_SOURCES = _cached_function_sources()
+
+
+def _quick_class_test() -> bool:
+    """Taichi 1.7.4's test, at every ``@ti.func`` / ``@ti.kernel``, of whether it decorates a method
+    (``kernel_impl._inside_class``: the decorating frame's line matches ``class `` or
+    ``@data_oriented``), with the line read from ``linecache`` instead of ``inspect.getframeinfo``.
+
+    ``getframeinfo`` resolves the frame's module through ``inspect.getmodule``, a walk over
+    ``sys.modules``, each time: the kernel factories decorate some 260 functions per fused kernel, and
+    those walks took about 0.3 s of every process. Same frame, same line (the current instruction's,
+    as ``getframeinfo`` reads it), same patterns. Applied only to Taichi 1.7.4, and not with
+    ``CMAX_TAICHI_FULL_SOURCE_INFO=1``. Returns whether it was applied.
+    """
+    if os.environ.get(FULL_SOURCE_INFO_ENV, "").strip() == "1" or ti.__version__ != (1, 7, 4):
+        return False
+    try:
+        import inspect
+        import linecache
+
+        from taichi.lang import kernel_impl
+
+        patterns = kernel_impl._KERNEL_CLASS_STACKFRAME_STMT_RES
+        position = inspect._get_code_position
+    except (ImportError, AttributeError):  # pragma: no cover - another layout than 1.7.4's
+        return False
+    if getattr(kernel_impl._inside_class, "_cmax_quick", False):
+        return True
+
+    def inside_class(level_of_class_stackframe):
+        try:
+            # called where Taichi calls its own: the same frame depth
+            frame = sys._getframe(level_of_class_stackframe)
+            line = position(frame.f_code, frame.f_lasti)[0] or frame.f_lineno
+            first_statement = linecache.getline(frame.f_code.co_filename, line, frame.f_globals).strip()
+            return any(pattern.match(first_statement) for pattern in patterns)
+        except Exception:  # as Taichi's: anything unreadable is not a class
+            return False
+
+    inside_class._cmax_quick = True
+    kernel_impl._inside_class = inside_class
+    return True
+
+
+QUICK_CLASS_TEST = _quick_class_test()

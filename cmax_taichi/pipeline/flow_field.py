@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-import taichi as ti
 
-from cmax_taichi.core import backend, checks, limits, workspace
+from cmax_taichi.core import backend, checks, limits
 from cmax_taichi.core.events import Camera
 from cmax_taichi.kernels import warps as kwarps
 from cmax_taichi.models.warps import WarpModel, get_warp
@@ -64,29 +63,22 @@ def dense_flow(
         raise ValueError(f"warp {model.name!r} needs a camera (intrinsics): pass camera=")
     duration = checks.seconds("duration", duration, positive=True)
     dt = checks.seconds("dt", dt)
-    info = backend.info()
-
-    def build(ws):
-        real = backend.real()
-        ws.th = ti.Vector.field(model.n_params, real, shape=())
-        ws.ctx = ti.Vector.field(5, real, shape=())
-        ws.out = ti.field(real, shape=(3, H, W))  # x, y and "sent nowhere"
-
-    ws = workspace.acquire(
-        ("dense_flow", info.generation, model.n_params, W, H), build, f"the dense flow of a {W}x{H} sensor"
-    )
-    th, ctx, out = ws.th, ws.ctx, ws.out
-    th[None] = theta.tolist()
     if camera is not None:
-        ctx[None] = [camera.cx, camera.cy, camera.fx, camera.fy, duration]
+        ctx = [camera.cx, camera.cy, camera.fx, camera.fy, duration]
     else:
-        ctx[None] = [(W - 1) / 2.0, (H - 1) / 2.0, 1.0, 1.0, duration]
+        ctx = [(W - 1) / 2.0, (H - 1) / 2.0, 1.0, 1.0, duration]
+    real = backend.numpy_real()
+    params = np.array([*theta.tolist(), *ctx, dt], dtype=real)
+    try:
+        out = np.empty((3, H, W), dtype=real)  # x, y and "sent nowhere"
+    except MemoryError:
+        raise MemoryError(f"no memory for the dense flow of a {W}x{H} sensor ({3 * W * H} values)") from None
     kernel = cached_kernel(
         ("dense_flow", model.name, id(model), W, H),
-        lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H),
+        lambda: kwarps.make_dense_flow_kernel(model.flow, model.warp, W, H, model.n_params),
     )
-    kernel(th, ctx, dt, out)
-    planes = out.to_numpy().astype(np.float64)
+    kernel(params, out)
+    planes = out.astype(np.float64, copy=False)
     flow, nowhere = planes[:2], planes[2] > 0
     require_finite(model, theta, "the dense flow", flow[:, ~nowhere])
     flow[:, nowhere] = np.nan

@@ -294,24 +294,31 @@ def make_fd_div(flow_fn):
     return div
 
 
-def make_dense_flow_kernel(flow_fn, warp_fn, width: int, height: int):
-    """Kernel writing the flow on the pixel grid into ``out`` (shape (3, H, W)).
+def make_dense_flow_kernel(flow_fn, warp_fn, width: int, height: int, n_params: int):
+    """Kernel ``dense(params, out)`` writing the flow on the pixel grid into ``out``, an array of shape
+    ``(3, H, W)``, from ``params = (theta_0 .. theta_{P-1}, c_x, c_y, f_x, f_y, T, dt)``.
 
     ``dt == 0``: the instantaneous flow ``v(x)`` (px/s); ``dt != 0``: the displacement
     ``-(W(x, dt) - x)`` (px) of each pixel over ``dt`` seconds. ``out[2]`` is 1 where the warp sends
     the pixel nowhere (it returns ``(OUTSIDE, OUTSIDE)``: a ray rotated behind the camera), else 0.
+    Both are external arrays (NumPy on the host): no field, so the first call in a process does not
+    build a new field tree and its accessors (0.3-0.7 s of a one-window command's figure).
     """
+    P = int(n_params)
 
     @ti.kernel
-    def dense(th: ti.template(), ctx: ti.template(), dt: float, out: ti.template()):
+    def dense(params: ti.types.ndarray(ndim=1), out: ti.types.ndarray(ndim=3)):
         for y, x in ti.ndrange(height, width):
+            th = ti.Vector([params[j] for j in ti.static(range(P))])
+            ctx = ti.Vector([params[P + j] for j in ti.static(range(5))])
+            dt = params[P + 5]
             p = ti.Vector([ti.cast(x, float), ti.cast(y, float)])
             v = ti.Vector([0.0, 0.0])
             nowhere = 0.0
             if dt == 0.0:
-                v = flow_fn(p, th[None], ctx[None])
+                v = flow_fn(p, th, ctx)
             else:
-                moved = warp_fn(p, dt, th[None], ctx[None])
+                moved = warp_fn(p, dt, th, ctx)
                 if moved[0] == OUTSIDE and moved[1] == OUTSIDE:
                     nowhere = 1.0
                 v = p - moved
