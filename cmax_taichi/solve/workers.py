@@ -22,6 +22,7 @@ import ctypes.util
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -52,11 +53,32 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="cmax-taichi parent watch", daemon=True).start()
 
 
+class _Stopped(BaseException):
+    """SIGTERM in a worker (the driver's :meth:`_Worker.stop` of a busy worker)."""
+
+
+def _raise_stopped(signum, frame) -> None:
+    raise _Stopped()
+
+
 def _worker_main(conn: Connection, parent_pid: int, make: Callable[[], Any]) -> None:
     """A worker: ``make()`` builds its state once (Taichi, kernels); then ``(i, call, args, kwargs)``
-    tasks are run as ``call(state, *args, **kwargs)`` and answered ``(i, result)``."""
+    tasks are run as ``call(state, *args, **kwargs)`` and answered ``(i, result)``.
+
+    SIGTERM unwinds the worker instead of ending it where it stands: a checkpoint being written
+    (``outputs.atomic_path``) removes its temporary file, and the worker ends quietly with exit code
+    143. SIGTERM's default action left a ``.checkpoint.json.*.tmp`` in ``OUT`` when the driver's stop
+    hit a worker between creating it and renaming it (2 of 4 SIGTERMs of a two-worker batch here)."""
     die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _raise_stopped)
+    try:
+        _serve(conn, make)
+    except _Stopped:
+        sys.exit(128 + signal.SIGTERM)
+
+
+def _serve(conn: Connection, make: Callable[[], Any]) -> None:
     state = make()
     conn.send(("ready", os.getpid()))  # tasks come only after this: a death before is a start-up failure
     while True:
