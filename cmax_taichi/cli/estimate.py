@@ -324,6 +324,7 @@ class FigureWriter:
         from cmax_taichi.core import backend
 
         self._conn = self._process = None
+        self._sent = 0  # figures sent to the child
         self._errors: list[str] = []  # of the figures drawn in this process
         # fork only a process without Taichi's thread pool (a thread holding a lock at the fork would
         # leave it held in the child): the command forks before it starts the backend
@@ -342,6 +343,7 @@ class FigureWriter:
         if self._conn is not None:
             try:
                 self._conn.send((kind, path, data))
+                self._sent += 1
                 return
             except OSError:  # the child is gone: draw here from now on
                 self._conn = None
@@ -354,6 +356,8 @@ class FigureWriter:
         from cmax_taichi.cli import CliError
 
         errors, self._errors = self._errors, []
+        if self._conn is not None and not self._sent:  # nothing to draw: not waiting for its warm-up
+            self.abandon()
         if self._conn is not None:
             conn, self._conn = self._conn, None
             try:
@@ -367,7 +371,7 @@ class FigureWriter:
             raise CliError("figures: " + "; ".join(errors))
 
     def abandon(self) -> None:
-        """Stop the child without waiting for its figures (the run failed)."""
+        """Stop the child without waiting for its figures (the run failed, or it has nothing to draw)."""
         if self._process is not None and self._process.is_alive():
             self._process.terminate()
             self._process.join(timeout=5)
