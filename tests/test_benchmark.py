@@ -195,6 +195,28 @@ def test_call_overhead_times_every_part(tmp_path):
         assert "python work (value_and_grad - C++ launch)" in row
 
 
+def test_dispatch_cost_times_its_four_kernels():
+    """benchmarks/dispatch_cost.py (the thread pool's cost per parallel task, in the issue notes)."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "benchmarks/dispatch_cost.py", "--blocks", "2", "--threads", "2"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = dict(re.findall(r"^  (\w+) +([0-9.]+) us$", proc.stdout, flags=re.M))
+    names = {"one_parallel_loop", "ten_parallel_loops", "ten_serial_loops", "ten_loops_one_block_each"}
+    assert set(rows) == names, proc.stdout
+    assert all(float(v) > 0 for v in rows.values())
+
+
 def test_cli_refuses_a_gpu_arch_that_falls_back_to_the_cpu(tmp_path, capsys):
     """`cmax-taichi bench --arch cuda` without CUDA: one error, no CPU timing sold as a GPU one."""
     import cmax_taichi as cm
