@@ -108,9 +108,7 @@ def init(
         raise ValueError(f"arch {arch!r} has no f64 support; use precision='f32'")
 
     if _state is not None:
-        for hook in list(_reset_hooks):
-            hook()
-        ti.reset()
+        _end_program()
     generation = (_ended_generation if _state is None else _state.generation) + 1
     fp = ti.f64 if precision == "f64" else ti.f32
     # quiet: Taichi's compiler warnings (e.g. thousands of "Loading variable ... before anything is
@@ -180,6 +178,13 @@ def init_if_needed(arch: str | None = None, precision: str | None = None) -> Bac
     return init(arch=arch, precision=precision)
 
 
+def _end_program() -> None:
+    """The reset hooks (pooled workspaces, compiled kernels), then Taichi's reset."""
+    for hook in list(_reset_hooks):
+        hook()
+    ti.reset()
+
+
 def finish() -> None:
     """End this process's Taichi program as the interpreter's normal exit does: the kernels compiled
     in this process are written to the offline cache (Taichi writes it when its program is finalized,
@@ -188,9 +193,7 @@ def finish() -> None:
     global _state, _ended_generation
     if _state is None:
         return
-    for hook in list(_reset_hooks):  # as a re-initialisation does: nothing pooled outlives the program
-        hook()
-    ti.reset()
+    _end_program()  # as a re-initialisation does: nothing pooled outlives the program
     _ended_generation, _state = _state.generation, None
 
 
@@ -268,6 +271,12 @@ def per_thread_loops() -> Iterator[None]:
 FULL_SOURCE_INFO_ENV = "CMAX_TAICHI_FULL_SOURCE_INFO"
 
 
+def _front_end_patches_wanted() -> bool:
+    """Whether to patch Taichi's front end: only the version the patches were written for, and not with
+    ``CMAX_TAICHI_FULL_SOURCE_INFO=1``."""
+    return os.environ.get(FULL_SOURCE_INFO_ENV, "").strip() != "1" and ti.__version__ == (1, 7, 4)
+
+
 def _short_source_positions() -> bool:
     """Give Taichi 1.7.4's AST builder the short position of each node (``File "...", line N, in f:``).
 
@@ -281,7 +290,7 @@ def _short_source_positions() -> bool:
     Applied only to the Taichi version it was written for, and not with ``CMAX_TAICHI_FULL_SOURCE_INFO=1``.
     Returns whether it was applied.
     """
-    if os.environ.get(FULL_SOURCE_INFO_ENV, "").strip() == "1" or ti.__version__ != (1, 7, 4):
+    if not _front_end_patches_wanted():
         return False
     try:
         import ast
@@ -348,7 +357,7 @@ def _cached_function_sources() -> bool:
     Applied only to the Taichi version it was written for, and not with ``CMAX_TAICHI_FULL_SOURCE_INFO=1``.
     Returns whether it was applied.
     """
-    if os.environ.get(FULL_SOURCE_INFO_ENV, "").strip() == "1" or ti.__version__ != (1, 7, 4):
+    if not _front_end_patches_wanted():
         return False
     try:
         import ast
@@ -423,7 +432,7 @@ def _quick_class_test() -> bool:
     as ``getframeinfo`` reads it), same patterns. Applied only to Taichi 1.7.4, and not with
     ``CMAX_TAICHI_FULL_SOURCE_INFO=1``. Returns whether it was applied.
     """
-    if os.environ.get(FULL_SOURCE_INFO_ENV, "").strip() == "1" or ti.__version__ != (1, 7, 4):
+    if not _front_end_patches_wanted():
         return False
     try:
         import inspect
