@@ -199,7 +199,7 @@ def clusters_bytes(
 
 
 def dense_flow_bytes(width: int, height: int, itemsize: int) -> int:
-    """Bytes of a dense flow: a field of at most three (H, W) planes and their float64 copy on the host."""
+    """Bytes of a dense flow: the kernel's (3, H, W) NumPy output and its float64 copy (no Taichi field)."""
     return 3 * width * height * (itemsize + 8)
 
 
@@ -220,7 +220,7 @@ def check_bytes(estimate: int, what: str, parameters: str) -> None:
     limit = get_limits().max_bytes
     if estimate > limit:
         raise MemoryError(
-            f"{what} needs about {_gib(estimate)} of Taichi fields ({parameters}), above the limit "
+            f"{what} needs about {_gib(estimate)} of memory ({parameters}), above the limit "
             f"max_bytes = {_gib(limit)}; use a smaller sensor or fewer events/clusters, or raise the "
             f"limit with cmax_taichi.set_limits(max_bytes=...) or {ENV_VARS['max_bytes']}"
         )
