@@ -209,7 +209,7 @@ def _fail_next_materialize(monkeypatch):
         if calls or pending.finalized or (self.materialized and pending.empty):
             return original(self)
         calls.append(1)
-        ti.lang.impl._root_fb.finalized = True
+        pending.finalized = True
         raise RuntimeError("[host_memory_pool.cpp:allocate_raw_memory@62] Virtual memory allocation failed.")
 
     monkeypatch.setattr(runtime_type, "materialize", failing)
