@@ -7,9 +7,19 @@ from pathlib import Path
 
 import pytest
 
-import cmax_taichi as cm
-from cmax_taichi.testing import samples
-from cmax_taichi.testing.samples import edge_events  # noqa: F401 - the tests import it from here
+# The suite compiles a few hundred kernel variants (every model x objective x regularizer, both
+# precisions, the GPU path): with Taichi's advanced IR optimizations each fused variant takes about
+# 20 s, without them about 1.5 s, for the same values and gradients to rounding
+# (docs/performance.md, "Compile time"). The tests check what the kernels compute, so they compile
+# fast; the tests marked ``full_compile`` run the optimized compile that users get by default, on a
+# covering set (every model, both objectives, every regularizer, both kernel paths). Set
+# CMAX_TAICHI_COMPILE=full to run the whole suite on optimized kernels. Subprocesses inherit it.
+os.environ.setdefault("CMAX_TAICHI_COMPILE", "fast")
+
+import cmax_taichi as cm  # noqa: E402 - after the compile mode is chosen
+from cmax_taichi.core import backend  # noqa: E402
+from cmax_taichi.testing import samples  # noqa: E402
+from cmax_taichi.testing.samples import edge_events  # noqa: E402, F401 - the tests import it from here
 
 #: the real recordings beside the checkout (never copied into the repository)
 SHARED_DATA = Path(
@@ -42,6 +52,27 @@ def use_precision(precision: str) -> None:
     """Switch the backend to ``precision`` on the CPU if it is not already."""
     if cm.backend_info().precision != precision:
         cm.init(precision=precision)
+
+
+@pytest.fixture(autouse=True)
+def _compile_mode_of_the_test(request):
+    """A test marked ``full_compile`` runs on the optimized compile (the users' default); the others
+    on the compile mode of the suite (CMAX_TAICHI_COMPILE, "fast" unless set). No ``monkeypatch``
+    here: it would be set up before, and undone after, the modules' own autouse fixtures."""
+    full = request.node.get_closest_marker("full_compile") is not None
+    suite_mode = os.environ.get("CMAX_TAICHI_COMPILE", "fast")
+    wanted = "full" if full else suite_mode
+    if full:
+        os.environ["CMAX_TAICHI_COMPILE"] = "full"  # any re-initialisation inside keeps it
+    # a backend not started yet starts in the wanted mode from the environment; the GPU-path run keeps
+    # the backend its module fixture started
+    running = backend.is_initialized() and not os.environ.get("CMAX_TAICHI_ARCH")
+    if running and cm.backend_info().compile_mode != wanted:
+        cm.init(precision=cm.backend_info().precision, compile_mode=wanted)
+    try:
+        yield
+    finally:
+        os.environ["CMAX_TAICHI_COMPILE"] = suite_mode
 
 
 @pytest.fixture

@@ -9,6 +9,7 @@ import pytest
 from conftest import SENSOR, edge_events
 
 import cmax_taichi as cm
+from cmax_taichi.core import backend
 
 
 def _events(n=1000, duration=0.1):
@@ -91,6 +92,33 @@ def test_unknown_arch_and_precision():
         cm.init(arch="tpu")
     with pytest.raises(ValueError, match="unknown precision"):
         cm.init(precision="f16")
+    with pytest.raises(ValueError, match="unknown compile mode 'quick'; valid modes are full, fast"):
+        cm.init(compile_mode="quick")
+
+
+def test_compile_mode_from_the_argument_and_the_environment(monkeypatch):
+    """The mode reaches Taichi where the kernels with hand-written gradients compile (its advanced
+    optimizations off there in "fast" only, on everywhere else in both modes), the environment variable
+    sets the default, and a recovery keeps the mode."""
+    from taichi.lang import impl
+
+    def optimized_inside_and_outside() -> tuple[bool, bool]:
+        with backend.hand_written_gradient_kernels():
+            inside = impl.current_cfg().advanced_optimization
+        return inside, impl.current_cfg().advanced_optimization
+
+    try:
+        monkeypatch.setenv("CMAX_TAICHI_COMPILE", "full")
+        info = cm.init(precision="f64")
+        assert info.compile_mode == "full" and optimized_inside_and_outside() == (True, True)
+        info = cm.init(precision="f64", compile_mode="fast")
+        assert info.compile_mode == "fast" and optimized_inside_and_outside() == (False, True)
+        assert backend.recover().compile_mode == "fast"
+        monkeypatch.setenv("CMAX_TAICHI_COMPILE", "fast")
+        assert cm.init(precision="f64").compile_mode == "fast"
+    finally:
+        monkeypatch.undo()
+        cm.init(precision="f64")
 
 
 def test_env_variable_selects_arch(monkeypatch):

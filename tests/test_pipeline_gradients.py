@@ -146,3 +146,37 @@ def test_value_and_gradient_f32(warp, objective, regs):
     check_against_reference(
         "f32", dict(warp=warp, objective=objective, regularizers=REGS[regs], camera=CAMERA)
     )
+
+
+# The optimized compile users get by default (the suite compiles fast, tests/conftest.py): a covering
+# set on which Taichi's advanced IR optimizations must not change a value or a gradient. Every model,
+# every objective with every regularizer setting, the fused kernels and the generic chain.
+FULL_COMPILE_CASES = [
+    ("zoom1", "variance", "both", True),
+    ("translation2", "gradient_magnitude", "none", True),
+    ("rotation3", "variance", "div", True),
+    ("se2", "gradient_magnitude", "def", True),
+    ("sim2", "gradient_magnitude", "both", True),
+    ("mitrokhin4", "variance", "none", True),
+    ("mitrokhin4", "gradient_magnitude", "div", True),
+    ("zoom1", "variance", "def", True),
+    ("mitrokhin4", "variance", "both", False),
+]
+
+
+@pytest.mark.full_compile
+@pytest.mark.parametrize("warp,objective,regs,fused", FULL_COMPILE_CASES)
+def test_value_and_gradient_optimized_compile(warp, objective, regs, fused):
+    assert cm.backend_info().compile_mode == "full"
+    check_against_reference(
+        "f64",
+        dict(warp=warp, objective=objective, regularizers=REGS[regs], camera=CAMERA),
+        fused=fused,
+    )
+
+
+def test_full_compile_cases_cover_every_pair():
+    """Every model, and every objective with every regularizer setting, is in the covering set."""
+    assert {w for w, *_ in FULL_COMPILE_CASES} == set(WARPS)
+    assert {(o, r) for _, o, r, _ in FULL_COMPILE_CASES} == set(itertools.product(OBJECTIVES, REGS))
+    assert {f for *_, f in FULL_COMPILE_CASES} == {True, False}

@@ -19,8 +19,16 @@ import taichi as ti
 
 ARCH_ENV = "CMAX_TAICHI_ARCH"
 PRECISION_ENV = "CMAX_TAICHI_PRECISION"
+COMPILE_ENV = "CMAX_TAICHI_COMPILE"
 ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal")
 PRECISIONS = ("f32", "f64")
+# "full": Taichi's advanced IR optimizations on every kernel (the default: the fastest kernels); "fast":
+# off for the kernels with hand-written gradients (the fused kernels, the dense flow's), which then
+# compile about 14x faster (mitrokhin4 + both regularizers: 21 s -> 1.5 s) and run about 1.7x slower
+# (docs/performance.md, "Compile time"). The kernels that Taichi's autodiff differentiates always get
+# the optimizations: without them its reverse mode is wrong (hand_written_gradient_kernels). The
+# offline cache keeps the two apart (the option is part of Taichi's cache key).
+COMPILE_MODES = ("full", "fast")
 
 
 @dataclass(frozen=True)
@@ -37,12 +45,15 @@ class BackendInfo:
         ``"f32"`` or ``"f64"``.
     generation : int
         Incremented at every (re-)initialisation; problems remember the generation they were built in.
+    compile_mode : str
+        ``"full"`` (optimized kernels) or ``"fast"`` (quick compiles, slower kernels); see :func:`init`.
     """
 
     requested_arch: str
     arch: str
     precision: str
     generation: int
+    compile_mode: str = "full"
 
 
 _state: BackendInfo | None = None
@@ -73,6 +84,7 @@ def init(
     *,
     quiet: bool = True,
     kernel_profiler: bool = False,
+    compile_mode: str | None = None,
 ) -> BackendInfo:
     """Initialise (or re-initialise) Taichi for cmax-taichi.
 
@@ -89,6 +101,15 @@ def init(
         Show only Taichi's errors (not its info logs and compiler warnings).
     kernel_profiler : bool
         Time every task of every kernel launch (``ti.profiler``; used by ``benchmarks/profile_stages.py``).
+    compile_mode : {"full", "fast"}, optional
+        ``"full"`` (default; ``CMAX_TAICHI_COMPILE`` sets it when the argument is omitted) runs Taichi's
+        advanced IR optimizations on every kernel: the fastest kernels, and about 20 s to compile a fused
+        kernel with both regularizers on this project's 2-core reference machine (once: the offline
+        cache keeps it). ``"fast"`` skips them for the kernels with hand-written gradients (the fused
+        kernels and the dense flow's): those compile about 14x faster and run about 1.7x slower, with
+        the same values and gradients to rounding. Kernels that Taichi's autodiff differentiates (the
+        generic chain, clusters, whitening) are optimized in both modes. For short runs on a cold
+        cache, and the test suite.
 
     Returns
     -------
@@ -106,6 +127,9 @@ def init(
         raise ValueError(f"unknown precision {precision!r}; valid precisions are f32, f64")
     if arch in ("vulkan", "metal") and precision == "f64":
         raise ValueError(f"arch {arch!r} has no f64 support; use precision='f32'")
+    compile_mode = (compile_mode or os.environ.get(COMPILE_ENV) or "full").strip().lower()
+    if compile_mode not in COMPILE_MODES:
+        raise ValueError(f"unknown compile mode {compile_mode!r}; valid modes are full, fast")
 
     if _state is not None:
         _end_program()
@@ -132,8 +156,14 @@ def init(
             RuntimeWarning,
             stacklevel=2,
         )
-    _state = BackendInfo(requested_arch=arch, arch=used, precision=precision, generation=generation)
-    _options.update(quiet=quiet, kernel_profiler=kernel_profiler)
+    _state = BackendInfo(
+        requested_arch=arch,
+        arch=used,
+        precision=precision,
+        generation=generation,
+        compile_mode=compile_mode,
+    )
+    _options.update(quiet=quiet, kernel_profiler=kernel_profiler, compile_mode=compile_mode)
     return _state
 
 
@@ -264,6 +294,28 @@ def per_thread_loops() -> Iterator[None]:
         yield
     finally:
         cfg.make_cpu_multithreading_loop = previous
+
+
+@contextlib.contextmanager
+def hand_written_gradient_kernels() -> Iterator[None]:
+    """Compile the kernels launched inside (kernels whose gradient is written by hand, never
+    differentiated by Taichi's autodiff: the fused kernels, the dense flow's) as they need:
+    :func:`per_thread_loops`, and in compile mode ``"fast"`` without Taichi's advanced IR optimizations.
+
+    Only these kernels may skip the optimizations: Taichi 1.7.4's reverse mode depends on them. Without
+    them (or with ``cfg_optimization`` alone off) a local accumulated in a differentiated kernel
+    (``t = 0.0; t += 2 x``) got a zero adjoint in f32, and the whitening kernels got gradients of
+    1e+200 in f64 (taichi-dev/taichi#1384 is the same family). Read when a kernel compiles.
+    """
+    cfg = ti.lang.impl.current_cfg()
+    previous = cfg.advanced_optimization
+    if _state is not None and _state.compile_mode == "fast":
+        cfg.advanced_optimization = False
+    try:
+        with per_thread_loops():
+            yield
+    finally:
+        cfg.advanced_optimization = previous
 
 
 # --- Taichi's front end: the source position of every AST node ---------------------------------------

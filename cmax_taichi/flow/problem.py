@@ -458,7 +458,7 @@ class DenseFlowProblem:
     def _launch(self, U: np.ndarray, grad: int, maps: bool = True) -> np.ndarray:
         self._check_alive()
         self._load(U)
-        with backend.per_thread_loops():  # one slice per thread on the CPU
+        with backend.hand_written_gradient_kernels():  # one slice per thread; the compile mode
             self._run_k(
                 self.n_events,
                 self._event_buffer.array,

@@ -365,7 +365,7 @@ class FusedPipeline:
             return self._out.array
         events = self.events.array if isinstance(self.events, _HostArray) else self.events
         call = (self.n_events, events, params, grad, self._out.array)
-        with backend.per_thread_loops():  # one slice per thread on the CPU (read when it compiles)
+        with backend.hand_written_gradient_kernels():  # their compile settings (read when it compiles)
             self._run_k(*call)
             # the next calls launch the compiled kernel directly
             # (inside: Taichi's look-up of the compiled kernel is keyed by the configuration too)
