@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 
 # The suite compiles a few hundred kernel variants (every model x objective x regularizer, both
-# precisions, the GPU path): with Taichi's advanced IR optimizations each fused variant takes about
-# 20 s, without them about 1.5 s, for the same values and gradients to rounding
-# (docs/performance.md, "Compile time"). The tests check what the kernels compute, so they compile
-# fast; the tests marked ``full_compile`` run the optimized compile that users get by default, on a
-# covering set (every model, both objectives, every regularizer, both kernel paths). Set
+# precisions, the GPU path): with Taichi's advanced IR optimizations a fused variant takes 10-60 s,
+# without them 1-3 s, for the same values and gradients to rounding (docs/performance.md, "Compile
+# time"; the autodiff kernels are optimized in both modes). The tests check what the kernels compute,
+# so they compile fast; the tests marked ``full_compile`` run the optimized compile that users get by
+# default, on a covering set (every model, both objectives, every regularizer, both kernel paths). Set
 # CMAX_TAICHI_COMPILE=full to run the whole suite on optimized kernels. Subprocesses inherit it.
 os.environ.setdefault("CMAX_TAICHI_COMPILE", "fast")
 

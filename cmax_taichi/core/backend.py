@@ -24,8 +24,8 @@ ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal")
 PRECISIONS = ("f32", "f64")
 # "full": Taichi's advanced IR optimizations on every kernel (the default: the fastest kernels); "fast":
 # off for the kernels with hand-written gradients (the fused kernels, the dense flow's), which then
-# compile about 14x faster (mitrokhin4 + both regularizers: 21 s -> 1.5 s) and run about 1.7x slower
-# (docs/performance.md, "Compile time"). The kernels that Taichi's autodiff differentiates always get
+# compile 10-23x faster (mitrokhin4 + both regularizers, blur 1 px: 11.7 s -> 1.2 s) and run 1.4-3.7x
+# slower (docs/performance.md, "Compile time"). The kernels that Taichi's autodiff differentiates always get
 # the optimizations: without them its reverse mode is wrong (hand_written_gradient_kernels). The
 # offline cache keeps the two apart (the option is part of Taichi's cache key).
 COMPILE_MODES = ("full", "fast")
@@ -106,8 +106,8 @@ def init(
         advanced IR optimizations on every kernel: the fastest kernels, and about 20 s to compile a fused
         kernel with both regularizers on this project's 2-core reference machine (once: the offline
         cache keeps it). ``"fast"`` skips them for the kernels with hand-written gradients (the fused
-        kernels and the dense flow's): those compile about 14x faster and run about 1.7x slower, with
-        the same values and gradients to rounding. Kernels that Taichi's autodiff differentiates (the
+        kernels and the dense flow's): those compile 10-23x faster and run 1.4-3.7x slower, with the
+        same values and gradients to rounding. Kernels that Taichi's autodiff differentiates (the
         generic chain, clusters, whitening) are optimized in both modes. For short runs on a cold
         cache, and the test suite.
 
