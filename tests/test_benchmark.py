@@ -318,3 +318,28 @@ def test_full_plan_has_the_issue_20_grid():
                     assert (n, sensor, warp, regs, kind) in grid
     textured = [c for c in plan.configs if c.window == "textured"]
     assert all("torch" in c.impls and c.stream_events == max(bench.GRID_EVENTS) for c in textured)
+
+
+def test_compile_cost_compares_the_compile_modes():
+    """benchmarks/compile_cost.py runs a case per compile mode, each in a fresh process with an empty
+    offline cache, and reports the compile, the peak memory and the warm call."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.compile_cost", "--blur", "1", "--clusters", "--compile", "fast"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    line = re.search(
+        r"blur 1 \[fast\]: ([\d.]+) s, peak (\d+) MB, warm value_and_grad at 200k events ([\d.]+) ms",
+        proc.stdout,
+    )
+    assert line is not None, proc.stdout
+    assert float(line.group(1)) > 0 and float(line.group(3)) > 0
