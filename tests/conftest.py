@@ -64,11 +64,11 @@ def _compile_mode_of_the_test(request):
     wanted = "full" if full else suite_mode
     if full:
         os.environ["CMAX_TAICHI_COMPILE"] = "full"  # any re-initialisation inside keeps it
-    # a backend not started yet starts in the wanted mode from the environment; the GPU-path run keeps
-    # the backend its module fixture started
-    running = backend.is_initialized() and not os.environ.get("CMAX_TAICHI_ARCH")
-    if running and cm.backend_info().compile_mode != wanted:
-        cm.init(precision=cm.backend_info().precision, compile_mode=wanted)
+    # a backend not started yet starts in the wanted mode from the environment; a running one is
+    # re-initialised with its arch and precision (the GPU-path run keeps its GPU)
+    if backend.is_initialized() and cm.backend_info().compile_mode != wanted:
+        info = cm.backend_info()
+        cm.init(arch=info.requested_arch, precision=info.precision, compile_mode=wanted)
     try:
         yield
     finally:

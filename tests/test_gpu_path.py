@@ -23,7 +23,7 @@ import pytest
 import taichi as ti
 from conftest import CAMERA, THETAS
 from test_optimize import V_TRUE, moving_edges
-from test_pipeline_gradients import OBJECTIVES, REGS, check_against_reference
+from test_pipeline_gradients import FULL_COMPILE_CASES, OBJECTIVES, REGS, check_against_reference
 
 import cmax_taichi as cm
 from cmax_taichi.core import backend
@@ -127,6 +127,19 @@ def test_value_and_gradient_against_f64_reference(path, warp, objective, regs):
     assert (prob._fused is not None) == (path == "fused")
     if path == "fused":
         assert misaligned_fields(prob._fused.fields) == []
+
+
+# The suite compiles the fused kernels fast (tests/conftest.py); the optimized SPIR-V that users get by
+# default, on the covering set of tests/test_pipeline_gradients.py (the chain's autodiff kernels are
+# optimized in both modes, so its cases above already run optimized code)
+@pytest.mark.full_compile
+@pytest.mark.parametrize("warp,objective,regs", [(w, o, r) for w, o, r, fused in FULL_COMPILE_CASES if fused])
+def test_fused_value_and_gradient_optimized_compile(warp, objective, regs):
+    assert cm.backend_info().compile_mode == "full" and cm.backend_info().arch != "cpu"
+    prob = check_against_reference(
+        "f32", dict(warp=warp, objective=objective, regularizers=REGS[regs], camera=CAMERA)
+    )
+    assert prob._fused is not None and misaligned_fields(prob._fused.fields) == []
 
 
 @pytest.mark.parametrize("warp", list(THETAS))
