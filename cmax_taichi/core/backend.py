@@ -25,7 +25,7 @@ PRECISIONS = ("f32", "f64")
 # "full": Taichi's advanced IR optimizations on every kernel (the default: the fastest kernels); "fast":
 # off for the kernels with hand-written gradients (the fused kernels, the dense flow's), which then
 # compile 10-23x faster (mitrokhin4 + both regularizers, blur 1 px: 11.7 s -> 1.2 s) and run 1.4-3.7x
-# slower (docs/performance.md, "Compile time"). The kernels that Taichi's autodiff differentiates always get
+# slower (docs/performance.md, "Compile time"). The kernels that Taichi's autodiff differentiates keep
 # the optimizations: without them its reverse mode is wrong (hand_written_gradient_kernels). The
 # offline cache keeps the two apart (the option is part of Taichi's cache key).
 COMPILE_MODES = ("full", "fast")
@@ -103,13 +103,13 @@ def init(
         Time every task of every kernel launch (``ti.profiler``; used by ``benchmarks/profile_stages.py``).
     compile_mode : {"full", "fast"}, optional
         ``"full"`` (default; ``CMAX_TAICHI_COMPILE`` sets it when the argument is omitted) runs Taichi's
-        advanced IR optimizations on every kernel: the fastest kernels, and about 20 s to compile a fused
-        kernel with both regularizers on this project's 2-core reference machine (once: the offline
-        cache keeps it). ``"fast"`` skips them for the kernels with hand-written gradients (the fused
-        kernels and the dense flow's): those compile 10-23x faster and run 1.4-3.7x slower, with the
-        same values and gradients to rounding. Kernels that Taichi's autodiff differentiates (the
-        generic chain, clusters, whitening) are optimized in both modes. For short runs on a cold
-        cache, and the test suite.
+        advanced IR optimizations on every kernel: the fastest kernels, and 10-60 s to compile a fused
+        kernel with both regularizers on this project's 2-core reference machine (blur 1-3 px; once:
+        the offline cache keeps it). ``"fast"`` skips them for the kernels with hand-written
+        gradients (the fused kernels and the dense flow's): those compile 10-23x faster and run
+        1.4-3.7x slower, with the same values and gradients to rounding. Kernels that Taichi's
+        autodiff differentiates (the generic chain, clusters, whitening) are optimized in both modes.
+        For short runs on a cold cache, and the test suite.
 
     Returns
     -------
