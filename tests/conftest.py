@@ -7,19 +7,20 @@ from pathlib import Path
 
 import pytest
 
+import cmax_taichi as cm
+from cmax_taichi.core import backend
+from cmax_taichi.testing import samples
+from cmax_taichi.testing.samples import edge_events  # noqa: F401 - the tests import it from here
+
 # The suite compiles a few hundred kernel variants (every model x objective x regularizer, both
 # precisions, the GPU path): with Taichi's advanced IR optimizations a fused variant takes 10-60 s,
 # without them 1-3 s, for the same values and gradients to rounding (docs/performance.md, "Compile
 # time"; the autodiff kernels are optimized in both modes). The tests check what the kernels compute,
 # so they compile fast; the tests marked ``full_compile`` run the optimized compile that users get by
 # default, on a covering set (every model, both objectives, every regularizer, both kernel paths). Set
-# CMAX_TAICHI_COMPILE=full to run the whole suite on optimized kernels. Subprocesses inherit it.
-os.environ.setdefault("CMAX_TAICHI_COMPILE", "fast")
-
-import cmax_taichi as cm  # noqa: E402 - after the compile mode is chosen
-from cmax_taichi.core import backend  # noqa: E402
-from cmax_taichi.testing import samples  # noqa: E402
-from cmax_taichi.testing.samples import edge_events  # noqa: E402, F401 - the tests import it from here
+# CMAX_TAICHI_COMPILE=full to run the whole suite on optimized kernels. The backend reads it when it
+# starts (not at import); subprocesses inherit it.
+os.environ.setdefault(backend.COMPILE_ENV, "fast")
 
 #: the real recordings beside the checkout (never copied into the repository)
 SHARED_DATA = Path(
@@ -60,19 +61,20 @@ def _compile_mode_of_the_test(request):
     on the compile mode of the suite (CMAX_TAICHI_COMPILE, "fast" unless set). No ``monkeypatch``
     here: it would be set up before, and undone after, the modules' own autouse fixtures."""
     full = request.node.get_closest_marker("full_compile") is not None
-    suite_mode = os.environ.get("CMAX_TAICHI_COMPILE", "fast")
+    suite_mode = os.environ.get(backend.COMPILE_ENV, "fast")
     wanted = "full" if full else suite_mode
     if full:
-        os.environ["CMAX_TAICHI_COMPILE"] = "full"  # any re-initialisation inside keeps it
+        os.environ[backend.COMPILE_ENV] = "full"  # any re-initialisation inside keeps it
     # a backend not started yet starts in the wanted mode from the environment; a running one is
     # re-initialised with its arch and precision (the GPU-path run keeps its GPU)
-    if backend.is_initialized() and cm.backend_info().compile_mode != wanted:
+    if backend.is_initialized():
         info = cm.backend_info()
-        cm.init(arch=info.requested_arch, precision=info.precision, compile_mode=wanted)
+        if info.compile_mode != wanted:
+            cm.init(arch=info.requested_arch, precision=info.precision, compile_mode=wanted)
     try:
         yield
     finally:
-        os.environ["CMAX_TAICHI_COMPILE"] = suite_mode
+        os.environ[backend.COMPILE_ENV] = suite_mode
 
 
 @pytest.fixture

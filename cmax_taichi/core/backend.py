@@ -129,7 +129,7 @@ def init(
         raise ValueError(f"arch {arch!r} has no f64 support; use precision='f32'")
     compile_mode = (compile_mode or os.environ.get(COMPILE_ENV) or "full").strip().lower()
     if compile_mode not in COMPILE_MODES:
-        raise ValueError(f"unknown compile mode {compile_mode!r}; valid modes are full, fast")
+        raise ValueError(f"unknown compile mode {compile_mode!r}; valid modes are {', '.join(COMPILE_MODES)}")
 
     if _state is not None:
         _end_program()
