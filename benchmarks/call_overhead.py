@@ -11,7 +11,7 @@ same compiled kernel launched from its C++ launch context (no Python around it: 
 dispatch of its parallel tasks), the fastest block of each, and the median CPU time per call (all
 threads). ``python work`` is the public call minus the C++ launch. Runs on any version that has the
 fused pipeline (the kernel's signature before and after the window's constants went into one params
-array) (``prob._fused._run_k``): the launch context is built here, with
+array) (``prob._fused``'s kernel of the window's loop schedule): the launch context is built here, with
 the Taichi 1.7.4 internals that ``pipeline/fused.py`` uses.
 """
 
@@ -84,6 +84,12 @@ def _c_launch(kernel, args, c_args=None):
     return lambda: prog.launch_kernel(data, ctx)
 
 
+def _kernel(fused):
+    """The compiled kernel that ``fused`` launches for its window (its schedule's, where the version
+    has CPU loop schedules; ``_run_k`` before)."""
+    return fused._schedules.kernel(fused.serial) if hasattr(fused, "_schedules") else fused._run_k
+
+
 def _kernel_call(fused, theta):
     """``(args, c_args)`` of one gradient launch of ``fused``'s kernel: ``(n, events, params, grad, out)``
     since the window's constants went into one params array, ``(n, events, theta_0..theta_7, grad, out)``
@@ -119,10 +125,10 @@ def main(argv=None) -> int:
         # the kernel as the library compiles and launches it (the scheduling that per_thread_loops sets)
         with backend.per_thread_loops():
             row["kernel, ordinary call (Kernel.__call__)"] = _median_us(
-                lambda fused=fused, call=call: fused._run_k(*call), args.repeats
+                lambda fused=fused, call=call: _kernel(fused)(*call), args.repeats
             )
             row["kernel, C++ launch (no Python)"] = _median_us(
-                _c_launch(fused._run_k, call, c_call), args.repeats
+                _c_launch(_kernel(fused), call, c_call), args.repeats
             )
         row["python work (value_and_grad - C++ launch)"] = tuple(
             a - b for a, b in zip(row["value_and_grad"], row["kernel, C++ launch (no Python)"], strict=True)

@@ -32,6 +32,11 @@ STAGES = {
 }
 
 
+def impl_schedule(impl) -> bool:
+    """Whether the benchmark implementation's window runs its loops serially (``FusedPipeline.serial``)."""
+    return bool(impl.vg.__self__._fused.serial)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.profile_stages", description=__doc__.split("\n\n")[0]
@@ -41,12 +46,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sensor", default="346x260")
     parser.add_argument("--regs", default="div+def", choices=["none", "div+def"])
     parser.add_argument("--repeats", type=int, default=50)
+    parser.add_argument(
+        "--window",
+        default="edges",
+        choices=["edges", "textured", "uniform"],
+        help="the benchmark's synthetic edges, or the full sweep's textured / uniform windows",
+    )
+    parser.add_argument(
+        "--loops", default="auto", choices=["auto", "serial", "parallel"], help="FusedPipeline.loops"
+    )
     args = parser.parse_args(argv)
 
     import taichi as ti
 
     from cmax_taichi.core import backend
     from cmax_taichi.lab import bench_impls
+    from cmax_taichi.pipeline.fused import FusedPipeline
 
     if args.sensor not in bench_impls.SENSORS:
         parser.error(f"--sensor must be one of {', '.join(bench_impls.SENSORS)}")
@@ -56,8 +71,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--events and --repeats must be at least 1")
     backend.init(precision="f64", kernel_profiler=True)
     cfg = bench_impls.BenchConfig(args.events, args.sensor, args.warp, args.regs)
-    win = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+    if args.window == "edges":
+        win = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+    else:
+        from cmax_taichi.lab import bench_windows
+
+        win = bench_windows.window(args.window, cfg.n, cfg.sensor, seed=cfg.n % 9973, stream_events=1_000_000)
+    FusedPipeline.loops = args.loops
     impl = bench_impls.build_taichi(win, cfg)
+    schedule = "serial" if impl_schedule(impl) else "parallel"
     theta = np.asarray(bench_impls.THETAS[args.warp], dtype=np.float64)
     impl.vg(theta)  # compile
     walls = []
@@ -76,7 +98,10 @@ def main(argv: list[str] | None = None) -> int:
         m = re.match(r"run_c\d+_\d+_kernel_(\d+)_", rec.name)
         if m:
             per_task[int(m.group(1))].append(rec.kernel_time)
-    print(f"{args.events} events, {args.sensor}, {args.warp}, {args.regs}, f64, {args.repeats} calls")
+    print(
+        f"{args.events} events ({args.window}), {args.sensor}, {args.warp}, {args.regs}, f64, "
+        f"{args.repeats} calls, loops {schedule}"
+    )
     print("| task | stage | median ms |\n|---:|---|---:|")
     total = 0.0
     for task in sorted(per_task):

@@ -198,6 +198,7 @@ def make_fused_kernels(
     det_fn=None,
     warp_terms=None,
     positive_det: bool = True,
+    serial: bool = False,
 ):
     """The kernel ``run`` of the fused pipeline over ``fields`` (see the module docstring); the shape
     (sensor, channels, blur, slices, objective slots, Sobel) is ``fields.layout``'s.
@@ -524,7 +525,7 @@ def make_fused_kernels(
             for i in range(n):
                 splat_event(0, ev[i], theta_vec(), f.ctx[None])
         else:
-            ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
+            ti.loop_config(block_dim=1, serialize=serial)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
                 lo, hi = slice_events(s, n)
                 theta = theta_vec()
@@ -533,7 +534,7 @@ def make_fused_kernels(
                     splat_event(s, ev[i], theta, c)
         # --- 3. rows (each row by itself): F0 and its x-dilations; at the touched pixels the slice sums
         #        and the map reductions; tmp: what the previous call left outside Rx cleared, blur along x
-        ti.loop_config(block_dim=row_block)
+        ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(H):
             tiles.build_x(tf, y)
             sums = ti.Vector([0.0 for _ in ti.static(range(1 + RV))])  # sum m, sum m P_v
@@ -543,7 +544,7 @@ def make_fused_kernels(
             tiles.each_stale_segment(tf, 0, y, clear_segment, f.tmp)  # in the previous Rx, not in this one
             tiles.each_segment(tf, RX, y, blur_x_votes, load_taps(f.taps))
         # --- 4. rows: Rxy (and Rs); blur along y over Rxy, the objective's terms; the votes cleared --------
-        ti.loop_config(block_dim=row_block)
+        ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(H):
             tiles.build_y(tf, y)
             keep = keep_image(grad)
@@ -557,7 +558,7 @@ def make_fused_kernels(
                     f.part_obj[y, k] = rsum[k]
         if ti.static(sobel):
             # --- 5. rows: Sobel images (kept for the backward) and the pixel terms that read them, over Rs
-            ti.loop_config(block_dim=row_block)
+            ti.loop_config(block_dim=row_block, serialize=serial)
             for y in range(H):
                 rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
                 tiles.each_pixel(tf, R_OBJ, y, sobel_and_terms, rsum)
@@ -614,11 +615,11 @@ def make_fused_kernels(
         # --- 7. rows (grad): adjoint images ------------------------------------------------------------
         if ti.static(sobel):
             # L(I): transposed Sobel of the Sobel images, over Rxy (where the transposed blur reads it)
-            ti.loop_config(block_dim=row_block)
+            ti.loop_config(block_dim=row_block, serialize=serial)
             for y in range(H):
                 if grad & 1 != 0:
                     tiles.each_pixel(tf, RXY, y, transposed_sobel, f.ibar)
-        ti.loop_config(block_dim=row_block)
+        ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(H):
             if grad & 1 != 0:
                 # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp2 over Rx: by
@@ -638,7 +639,7 @@ def make_fused_kernels(
                     c0[c] = offset / f.g0[None] * tapsum
                 tv = load_taps(f.taps)
                 tiles.each_segment(tf, RX, y, blur_y_adjoint, (tv, twice_taps(y, tv), c1, c0))
-        ti.loop_config(block_dim=row_block)
+        ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(H):
             if grad & 1 != 0:
                 # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps
@@ -652,7 +653,7 @@ def make_fused_kernels(
                     for j in ti.static(range(P)):
                         gsum[j][None] += gev[j]
         else:
-            ti.loop_config(block_dim=1)  # one slice per thread (backend.per_thread_loops)
+            ti.loop_config(block_dim=1, serialize=serial)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
                 if grad & 1 != 0:
                     lo, hi = slice_events(s, n)

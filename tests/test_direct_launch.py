@@ -26,11 +26,11 @@ def _problem(n: int, warp: str, regs: dict, seed: int = 0) -> cm.ContrastMaximiz
 def _ordinary(prob, theta, grad: bool):
     """The same evaluation through Taichi's ordinary kernel call (the launcher switched off once)."""
     fused = prob._fused
-    launcher, fused._launcher = fused._launcher, None
+    launchers, fused._launchers = fused._launchers, {}
     try:
         return prob.value_and_grad(theta) if grad else prob.value(theta)
     finally:
-        fused._launcher = launcher
+        fused._launchers = launchers
 
 
 @pytest.mark.parametrize("warp,regs", CASES, ids=[c[0] for c in CASES])

@@ -20,10 +20,19 @@ The image fields are pooled per shape (``workspace.py``): problems of the same s
 regularizer count, parameter count and blur footprint share them and the compiled kernels; the events
 of each problem live in its own ndarray, whose length is not compiled in (a window of another size
 reuses the kernels).
+
+On the CPU each kernel comes in two schedules of the same code (:class:`_Schedules`): its loops on
+Taichi's thread pool, or all on the calling thread. Taichi 1.7.4 wakes the pool's workers for every
+parallel loop (six per value-and-gradient), 40-100 us each on the 2-core reference machine: more than a
+small window's whole work (a 1,000-event window's value-and-gradient: 0.07 ms on one thread, 0.4 ms on
+the pool; docs/performance.md). A window runs on one thread while its first call costs less than the
+pool would save; J and dJ/dtheta of the two differ by rounding only (the compiler's code for each
+schedule), and a window keeps one schedule for all its calls.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,6 +162,29 @@ class _HostArray:
         self.shape = array.shape[:-1] if vector else array.shape
 
 
+LOOP_SCHEDULES = ("auto", "serial", "parallel")
+
+
+class _Schedules:
+    """The fused kernel of one kernel key in its CPU schedules, each compiled when first used, and what
+    "auto" has learnt about where the calling thread alone is slower than the thread pool.
+
+    ``parallel_from``: the smallest event count whose window ran on the pool because its first call on
+    one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`); windows of that many events
+    or more go to the pool directly (no serial call, no second compile).
+    """
+
+    def __init__(self, build) -> None:
+        self._build = build
+        self._kernels: dict[bool, object] = {}
+        self.parallel_from = None
+
+    def kernel(self, serial: bool):
+        if serial not in self._kernels:
+            self._kernels[serial] = self._build(serial)
+        return self._kernels[serial]
+
+
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
     """The pixel row of each event as the smallest integer type (int16 sorts by radix), clipped into
     the image (events outside it keep their place among the rows at the border)."""
@@ -170,6 +202,15 @@ class FusedPipeline:
     #: kernel chain; ``force_atomic`` runs the atomic (GPU-style) splat on the CPU
     enabled = True
     force_atomic = False
+    #: CPU loop schedule of the kernels: "parallel" (Taichi's thread pool), "serial" (the calling
+    #: thread), or "auto": a window of at most ``serial_max_events`` events runs serially unless its
+    #: first call there takes more than ``serial_limit_s`` of thread time (half that for a call without
+    #: gradient), after which windows of that size and more run on the pool. A GPU has one schedule.
+    loops = "auto"
+    serial_max_events = 20_000
+    #: the calling thread's time of one value-and-gradient above which the pool is faster on the
+    #: 2-core reference machine (its six loops' dispatch: 0.4-0.7 ms; docs/performance.md)
+    serial_limit_s = 1.0e-3
 
     @classmethod
     def for_problem(cls, problem, vote_w: np.ndarray | None) -> PathChoice:
@@ -242,30 +283,37 @@ class FusedPipeline:
             *kernels_key(problem.objective.name, objective, regs, weighted, split, atomic, constant),
         )
         if kkey not in self._ws.kernels:
-            self._ws.kernels[kkey] = kfused.make_fused_kernels(
-                self.fields,
-                model.warp,
-                tuple(r.quantity_fn(model) for r in regs),
-                tuple(r.penalty for r in regs),
-                tuple(r.penalty_grad for r in regs),
-                tuple(bool(getattr(r, "one_sided", False)) for r in regs),
-                objective=objective,
-                events=kcommon.EventLayout(weighted, split, atomic),
-                param_jac=model.param_jac,
-                quantity_kinds=kinds,
-                constant=constant,
-                det_fn=model.det,
-                warp_terms=model.warp_terms,
-                positive_det=model.positive_det,
-            )
-        self._run_k = self._ws.kernels[kkey]
+
+            def build_kernel(serial: bool, fields=self.fields):
+                return kfused.make_fused_kernels(
+                    fields,
+                    model.warp,
+                    tuple(r.quantity_fn(model) for r in regs),
+                    tuple(r.penalty for r in regs),
+                    tuple(r.penalty_grad for r in regs),
+                    tuple(bool(getattr(r, "one_sided", False)) for r in regs),
+                    objective=objective,
+                    events=kcommon.EventLayout(weighted, split, atomic),
+                    param_jac=model.param_jac,
+                    quantity_kinds=kinds,
+                    constant=constant,
+                    det_fn=model.det,
+                    warp_terms=model.warp_terms,
+                    positive_det=model.positive_det,
+                    serial=serial,
+                )
+
+            self._ws.kernels[kkey] = _Schedules(build_kernel)
+        self._schedules = self._ws.kernels[kkey]
+        self._launchers: dict[bool, _DirectLaunch | None] = {}
+        self._serial = False  # the schedule of the current window (load_window)
+        self._probe = False  # the window's first call on one thread is still to be timed
 
         self._weighted, self._split, self._atomic = weighted, split, atomic
         self._sensor = (W, H)
         self._layout = kfused.params_layout(len(regs))
         self._params = _HostArray(np.zeros(self._layout["size"]))  # theta and the window's constants
         self._out = _HostArray(np.zeros(3 + P))  # J, G_raw, dJ/dtheta, J with G0 = G_raw
-        self._launcher: _DirectLaunch | None = None
         self._event_buffer = None  # GPU: the pooled device buffer of the events
         self._packed = None
         self._taps = None
@@ -302,6 +350,7 @@ class FusedPipeline:
             self._ws.release()
         self._taps = taps
         self.n_events = n = problem.n_events
+        self._choose_schedule(n)
 
         # the events as (x, y, dt[, w][, channel]) vectors
         ev = problem.events
@@ -334,6 +383,25 @@ class FusedPipeline:
             self.events = _HostArray(self._packed[:n], vector=True)
         self.event_bytes = self._packed.nbytes
 
+    def _choose_schedule(self, n: int) -> None:
+        """The loop schedule of a window of ``n`` events (class attribute :attr:`loops`)."""
+        loops = self.loops
+        if loops not in LOOP_SCHEDULES:
+            raise ValueError(f"FusedPipeline.loops must be one of {', '.join(LOOP_SCHEDULES)}, got {loops!r}")
+        if self._atomic:
+            self._serial = self._probe = False
+        elif loops == "auto":
+            learnt = self._schedules.parallel_from
+            self._serial = n <= self.serial_max_events and (learnt is None or n < learnt)
+            self._probe = self._serial
+        else:
+            self._serial, self._probe = loops == "serial", False
+
+    @property
+    def serial(self) -> bool:
+        """Whether the current window's kernel runs all its loops on the calling thread."""
+        return self._serial
+
     # --- state -----------------------------------------------------------------------------------
     def set_g0(self, g0: float) -> None:
         """Divide G by ``g0`` in J from now on."""
@@ -353,7 +421,29 @@ class FusedPipeline:
         self._load()
         params = self._params.array
         params[: theta.size] = theta  # the other parameter slots stay 0
-        launcher = self._launcher
+        if not self._probe:
+            return self._launch(grad)
+        # the window's first call on one thread: timed (thread time: what the other processes on the
+        # machine do does not count); above the limit the window moves to the pool, before any of its
+        # results is used, so that all its calls come from one schedule
+        self._probe = False
+        t0 = time.thread_time()
+        out = self._launch(grad)
+        if self._compiling:  # that call compiled the kernel (or loaded it): time the launch alone
+            t0 = time.thread_time()
+            out = self._launch(grad)
+        limit = self.serial_limit_s * (1.0 if grad & 1 else 0.5)
+        if time.thread_time() - t0 <= limit:
+            return out
+        learnt = self._schedules.parallel_from
+        self._schedules.parallel_from = self.n_events if learnt is None else min(learnt, self.n_events)
+        self._serial = False
+        return self._launch(grad)
+
+    def _launch(self, grad: int) -> np.ndarray:
+        serial = self._serial
+        launcher = self._launchers.get(serial)
+        self._compiling = False
         if launcher is not None and launcher.valid():
             ctx = launcher.ctx
             ctx.set_arg_int((0,), self.n_events)
@@ -363,20 +453,23 @@ class FusedPipeline:
             launcher.set_array(4, self._out)
             launcher.launch()
             return self._out.array
+        self._compiling = True  # (or loading from the offline cache: not a measure of the window)
+        kernel = self._schedules.kernel(serial)
         events = self.events.array if isinstance(self.events, _HostArray) else self.events
-        call = (self.n_events, events, params, grad, self._out.array)
+        call = (self.n_events, events, self._params.array, grad, self._out.array)
         with backend.hand_written_gradient_kernels():  # their compile settings (read when it compiles)
-            self._run_k(*call)
+            kernel(*call)
             # the next calls launch the compiled kernel directly
             # (inside: Taichi's look-up of the compiled kernel is keyed by the configuration too)
-            self._launcher = _DirectLaunch.make(self._run_k, call)
+            self._launchers[serial] = _DirectLaunch.make(kernel, call)
         return self._out.array
 
     # --- evaluation ------------------------------------------------------------------------------
     def launch_ready(self) -> bool:
         """Whether the next call launches the compiled kernel directly (compiled, and Taichi still runs
         the program it was compiled in)."""
-        return self._launcher is not None and self._launcher.valid()
+        launcher = self._launchers.get(self._serial)
+        return launcher is not None and launcher.valid()
 
     def value(self, theta: np.ndarray) -> float:
         """J at ``theta`` (float64 array of the model's length)."""
