@@ -15,21 +15,29 @@ top-level loops of a kernel one after the other, each in parallel):
    stores into its own slice ``s``; on a GPU one slice takes atomic adds. Without weights and
    per-polarity channels the IWE votes equal the count votes, and one channel serves both;
 3. rows: the touched segments ``F0`` of the row and their x-dilations; at the touched pixels, sum the
-   slices and reduce the maps (``sum m``, ``sum m P_r``) into the row's partial sums;
-4. rows: the regions of the row (``F0`` dilated by each pass's footprint); clear what the previous
-   call left in ``tmp`` / ``img`` outside the new regions; blur along x into ``tmp`` over ``Rx``
-   (``F0`` and ``r`` columns);
-5. rows: blur along y into ``img`` over ``Rxy`` (``Rx`` and ``r`` rows), the objective's per-pixel
-   terms into the row's partial sums (in a Sobel pass over ``Rs``, one more pixel around ``Rxy``, for an
-   objective that reads the Sobel responses);
+   slices and reduce the maps (``sum m``, ``sum m P_r``) into the row's partial sums; clear what the
+   previous call left in ``tmp`` outside the new ``Rx`` (``F0`` and ``r`` columns); blur along x into
+   ``tmp`` over ``Rx``;
+4. rows: the regions of the row with y-dilation; where the image is kept (a Sobel objective, or
+   ``FusedPipeline.image``) blur along y into ``img`` over ``Rxy`` (``Rx`` and ``r`` rows), after clearing
+   what the previous kept image left outside it. Without Sobel the objective's terms are quadratic in
+   the image (its adjoint is affine in it), so their sum over the image needs only ``sum I`` and ``sum
+   I^2`` of each channel: with ``u = tmp`` and ``I = B_y u``, ``sum I = sum u tapsum_y`` and ``sum I^2 =
+   ||B_y u||^2 = sum u w``, ``w = B_y^T B_y u`` (``4 r + 1`` taps at ``Rx``'s pixels, into ``tmp2``, where
+   the backward reads it): the row's moments into its partial sums, over ``Rx`` rather than ``Rxy``
+   (a third of the pixels of a sparse 1280x720 window). The touched votes cleared;
+5. rows (Sobel): the Sobel images over ``Rs`` (one more pixel around ``Rxy``), kept for the backward, and
+   the objective's per-pixel terms into the row's partial sums;
 6. serial: the partial sums in row order (a fixed order: the same input gives the same J to the last
-   bit), the untouched pixels' terms in closed form (``pixel(0, 0, 0)`` times their number: their
-   image and Sobel responses are 0), J;
+   bit); the terms of the pixels no pass visited in closed form (``pixel(0, 0, 0)`` times their number:
+   their image and Sobel responses are 0), or without Sobel every pixel's terms from the moments
+   (``N t(0) + c1 sum I + c2 sum I^2``, the quadratic's coefficients from ``pixel`` at 0, 1 and -1); J;
 7. rows (``grad``): the pixel adjoint dJ/dI (affine in the image or in its transposed Sobel, as the
    objective declares) and its transposed blurs (the Gaussian is symmetric, so its transpose with
-   zero padding is the same correlation): along y over ``Rx``, along x over ``F0``, with the map
-   adjoints dJ/dC, dJ/dN_r, into ``adj`` (same channel layout as ``acc``) at the touched pixels, the
-   only ones the gather reads (the adjoint's uniform ``offset`` term included);
+   zero padding is the same correlation): along y over ``Rx`` (without Sobel by linearity from stage 4's
+   ``w``: ``(scale w + offset tapsum_y) / G0``), along x over ``F0``, with the map adjoints dJ/dC,
+   dJ/dN_r, into ``adj`` (same channel layout as ``acc``) at the touched pixels, the only ones the
+   gather reads (the adjoint's uniform ``offset`` term included);
 8. events (``grad``): dJ/dtheta as a *gather*:
    ``dJ/dtheta = sum_k sum_corners d/dtheta [beta_k (b_k adj_ch + |b_k| adj_C + |b_k| sum_r q_rk adj_r)]``
    with ``adj`` held fixed, using the closed-form parameter Jacobians each model declares
@@ -40,9 +48,9 @@ top-level loops of a kernel one after the other, each in parallel):
 
 The image passes are row loops over the set bits of the row's region words: their work follows the
 pixels the events reach, not ``W x H``. ``acc`` is cleared by the passes that consume it at the touched
-pixels; ``tmp`` and ``img`` are zero outside the regions the last call wrote (stage 4 clears what the
-call before left outside the new regions), so that every read outside a region reads 0; ``sobel``,
-``ibar`` and ``adj`` are read only inside the regions written in the same call. No call launches a
+pixels; ``tmp`` and ``img`` are zero outside the regions the last call wrote (stages 3 and 4 clear what
+the call before left outside the new regions), so that every read outside a region reads 0; ``tmp2``,
+``sobel``, ``ibar`` and ``adj`` are read only inside the regions written in the same call. No call launches a
 fill, and nothing is allocated per call.
 
 Warps without closed-form parameter Jacobians (user models) take the generic chain of ``problem.py``:
@@ -133,6 +141,7 @@ class FusedFields:
         self.tiles = _t.TileFields(W, H, regions, history=(1, 2))
         # per-row partial sums (summed in row order: a fixed order whatever the threads do)
         self.part_obj = ti.field(real, shape=(H, objective_slots * C))
+        self.part_mom = ti.field(real, shape=(H, 2 * C))  # without Sobel: the row's sum I, sum I^2
         self.part_map = ti.field(real, shape=(H, 1 + n_voted))
         self.taps = ti.field(real, shape=2 * radius + 1)
         self.ctx = ti.Vector.field(5, real, shape=())
@@ -140,6 +149,7 @@ class FusedFields:
         self.g0 = ti.field(real, shape=())
         # 0-D scalars (Taichi accumulates them thread-locally): objective slots, sum m, sum m P_r
         self.red = [ti.field(real, shape=()) for _ in range(objective_slots * C + 1 + n_voted)]
+        self.mom = [ti.field(real, shape=()) for _ in range(2 * C)]  # sum I, sum I^2 of each channel
         # dJ/dtheta accumulators (f64 also in f32 runs) in a field tree of their own: Taichi 1.7.4's SPIR-V
         # backends (Vulkan, Metal) pack a tree's fields without alignment padding but address an f64 at
         # byte offset o as element o >> 3, so an f64 placed at 4 mod 8 among the f32 fields reads and
@@ -163,7 +173,7 @@ class FusedFields:
     def nbytes(self) -> int:
         """Bytes held by the image fields."""
         images = (self.acc, self.tmp, self.tmp2, self.img, self.adj, self.sobel, self.ibar)
-        return self.tiles.nbytes() + _c.field_bytes(images + (self.part_obj, self.part_map))
+        return self.tiles.nbytes() + _c.field_bytes(images + (self.part_obj, self.part_mom, self.part_map))
 
 
 def _composed_warp_terms(warp_fn, det_fn, param_jac):
@@ -405,19 +415,43 @@ def make_fused_kernels(
             store_segment(f.tmp, c, y, x0, blur_x_segment(f.acc, True, c, y, x0, tv))
 
     @ti.func
-    def blur_y_and_terms(y, x0, st: ti.template()):
-        """Stage 4 over Rxy, ``st = (taps, keep, objective sums)``: ``tmp`` blurred along y (into ``img``
-        where kept), the objective's terms (without Sobel) into the sums."""
+    def blur_y_image(y, x0, tv):
+        """Stage 4 over Rxy where the image is kept: ``tmp`` blurred along y into ``img``."""
         for c in ti.static(range(C)):
-            v = blur_y_segment(f.tmp, c, y, x0, st[0])
-            if st[1]:
-                store_segment(f.img, c, y, x0, v)
-            if ti.static(not sobel):
-                for p in ti.static(range(SEG)):
-                    if in_image(x0 + p):
-                        terms = pixel_fn(v[p], 0.0, 0.0)
-                        for k in ti.static(range(SL)):
-                            st[2][SL * c + k] += terms[k]
+            store_segment(f.img, c, y, x0, blur_y_segment(f.tmp, c, y, x0, tv))
+
+    @ti.func
+    def image_moments(y, x0, st: ti.template()):
+        """Stage 4 over Rx without Sobel, ``st = (B_y^T B_y taps, in-image y taps, moments)``: ``w = B_y^T
+        B_y u`` of the blur-x output ``u = tmp`` into ``tmp2`` (the adjoint's image), and the row's ``sum
+        I = sum u tapsum_y`` and ``sum I^2 = ||B_y u||^2 = sum u w`` of each channel into the moments."""
+        for c in ti.static(range(C)):
+            w = seg.twice_blur_y(f.tmp, st[0], c, y, x0)
+            store_segment(f.tmp2, c, y, x0, w)
+            for p in ti.static(range(SEG)):
+                if in_image(x0 + p):
+                    u = f.tmp[y, x0 + p, c]
+                    st[2][2 * c] += u * st[1]
+                    st[2][2 * c + 1] += u * w[p]
+
+    @ti.func
+    def x_tap_sums(x0, tv):
+        """``B_x^T 1`` at the segment's pixels: the sum of the x taps that fall inside the image."""
+        s = ti.Vector([0.0 for _ in ti.static(range(SEG))])
+        for k in ti.static(range(-r_, r_ + 1)):
+            for p in ti.static(range(SEG)):
+                if 0 <= x0 + p + k < W:
+                    s[p] += tv[k + r_]
+        return s
+
+    @ti.func
+    def y_tap_sum(y):
+        """``B_y^T 1`` at row ``y``: the sum of the y taps that fall inside the image."""
+        tapsum = 0.0
+        for k in ti.static(range(-r_, r_ + 1)):
+            if 0 <= y + k < H:
+                tapsum += f.taps[k + r_] if ti.static(r_ > 0) else 1.0
+        return tapsum
 
     @ti.func
     def clear_votes(y, x, grad):
@@ -453,15 +487,11 @@ def make_fused_kernels(
 
     @ti.func
     def blur_y_adjoint(y, x0, st: ti.template()):
-        """Stage 7 over Rx, ``st = (taps, B_y^T B_y taps, scale / G0, offset tap sum / G0)`` per channel:
-        the transposed blur along y of dJ/dI into ``tmp2``."""
+        """Stage 7 over Rx with Sobel, ``st = (taps, scale / G0, offset tap sum / G0)`` per channel: the
+        transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into ``tmp2``."""
         for c in ti.static(range(C)):
-            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-            if ti.static(sobel):
-                v = blur_y_segment(f.ibar, c, y, x0, st[0])
-            else:
-                v = seg.twice_blur_y(f.tmp, st[1], c, y, x0)
-            store_segment(f.tmp2, c, y, x0, st[2][c] * v + st[3][c])
+            v = blur_y_segment(f.ibar, c, y, x0, st[0])
+            store_segment(f.tmp2, c, y, x0, st[1][c] * v + st[2][c])
 
     @ti.func
     def map_adjoints(y, x, msum):
@@ -491,10 +521,14 @@ def make_fused_kernels(
 
     @ti.func
     def blur_x_adjoint(y, x0, st: ti.template()):
-        """Stage 7 over F0, ``st = (taps, sum m)``: the transposed blur along x of ``tmp2`` into ``adj``,
-        the map adjoints (and the maps cleared)."""
+        """Stage 7 over F0, ``st = (taps, sum m, scale / G0, offset tap sum / G0)``: the transposed blur
+        along x into ``adj`` of ``tmp2`` (with Sobel: the blur-y adjoint; without: ``w = B_y^T B_y u``,
+        of which dJ/du = scale w + offset tapsum_y), the map adjoints (and the maps cleared)."""
         for c in ti.static(range(C)):
-            store_segment(f.adj, c, y, x0, blur_x_segment(f.tmp2, False, c, y, x0, st[0]))
+            v = blur_x_segment(f.tmp2, False, c, y, x0, st[0])
+            if ti.static(not sobel):
+                v = st[2][c] * v + st[3][c] * x_tap_sums(x0, st[0])
+            store_segment(f.adj, c, y, x0, v)
         if ti.static(R > 0):
             for p in ti.static(range(SEG)):
                 if in_image(x0 + p):
@@ -519,6 +553,8 @@ def make_fused_kernels(
         f.g0[None] = ti.cast(params[p_g0], real)
         for j in ti.static(range(len(red))):
             red[j][None] = 0.0
+        for j in ti.static(range(2 * C)):
+            f.mom[j][None] = 0.0
         tf.pixels[R_OBJ] = 0
         # --- 2. splat ----------------------------------------------------------------------------
         if ti.static(atomic_scatter):
@@ -543,19 +579,24 @@ def make_fused_kernels(
                 f.part_map[y, k] = sums[k]
             tiles.each_stale_segment(tf, 0, y, clear_segment, f.tmp)  # in the previous Rx, not in this one
             tiles.each_segment(tf, RX, y, blur_x_votes, load_taps(f.taps))
-        # --- 4. rows: Rxy (and Rs); blur along y over Rxy, the objective's terms; the votes cleared --------
+        # --- 4. rows: Rxy (and Rs); the kept image over Rxy; without Sobel the image's moments; votes cleared
         ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(H):
             tiles.build_y(tf, y)
             keep = keep_image(grad)
             if keep:  # img: in the previous kept image's Rxy, not in this one's
                 tiles.each_stale_segment(tf, 1, y, clear_segment, f.img)
-            rsum = ti.Vector([0.0 for _ in ti.static(range(SL * C))])
-            tiles.each_segment(tf, RXY, y, blur_y_and_terms, (load_taps(f.taps), keep, rsum))
-            tiles.each_pixel(tf, F0, y, clear_votes, grad)
+            tv = load_taps(f.taps)
+            if keep:  # (always with Sobel: its pass reads the image)
+                tiles.each_segment(tf, RXY, y, blur_y_image, tv)
             if ti.static(not sobel):
-                for k in ti.static(range(SL * C)):
-                    f.part_obj[y, k] = rsum[k]
+                # the objective's terms are quadratic in I (its adjoint is affine in I): from the
+                # image's moments, over Rx (B_y^T B_y on u: 4 r + 1 taps) rather than the image over Rxy
+                mom = ti.Vector([0.0 for _ in ti.static(range(2 * C))])
+                tiles.each_segment(tf, RX, y, image_moments, (twice_taps(y, tv), y_tap_sum(y), mom))
+                for k in ti.static(range(2 * C)):
+                    f.part_mom[y, k] = mom[k]
+            tiles.each_pixel(tf, F0, y, clear_votes, grad)
         if ti.static(sobel):
             # --- 5. rows: Sobel images (kept for the backward) and the pixel terms that read them, over Rs
             ti.loop_config(block_dim=row_block, serialize=serial)
@@ -567,16 +608,33 @@ def make_fused_kernels(
         # --- 6. serial: the row sums in row order, the untouched pixels in closed form, J -------------------
         ti.loop_config(serialize=True)
         for y in range(H):
-            for k in ti.static(range(SL * C)):
-                red[k][None] += f.part_obj[y, k]
+            if ti.static(sobel):
+                for k in ti.static(range(SL * C)):
+                    red[k][None] += f.part_obj[y, k]
+                tf.pixels[R_OBJ] += tf.rowpx[R_OBJ, y]
+            else:
+                for k in ti.static(range(2 * C)):
+                    f.mom[k][None] += f.part_mom[y, k]
             if ti.static(R > 0):
                 for k in ti.static(range(1 + RV)):
                     red[i_m + k][None] += f.part_map[y, k]
-            tf.pixels[R_OBJ] += tf.rowpx[R_OBJ, y]
-        untouched = n_pix - ti.cast(tf.pixels[R_OBJ], real)
         terms0 = pixel_fn(0.0, 0.0, 0.0)  # an untouched pixel: I = 0, zero Sobel responses
-        for k in ti.static(range(SL * C)):
-            red[k][None] += untouched * terms0[k % SL]
+        if ti.static(sobel):
+            untouched = n_pix - ti.cast(tf.pixels[R_OBJ], real)
+            for k in ti.static(range(SL * C)):
+                red[k][None] += untouched * terms0[k % SL]
+        else:
+            # terms(v) = t0 + c1 v + c2 v^2 (exact for a quadratic: from its values at 0, 1, -1), summed
+            # over every pixel: N t0 + c1 sum I + c2 sum I^2
+            terms1 = pixel_fn(1.0, 0.0, 0.0)
+            terms_1 = pixel_fn(-1.0, 0.0, 0.0)
+            for c in ti.static(range(C)):
+                for k in ti.static(range(SL)):
+                    c1 = 0.5 * (terms1[k] - terms_1[k])
+                    c2 = 0.5 * (terms1[k] + terms_1[k]) - terms0[k]
+                    red[SL * c + k][None] = (
+                        n_pix * terms0[k] + c1 * f.mom[2 * c][None] + c2 * f.mom[2 * c + 1][None]
+                    )
         slots = objective_slots_vec()
         g = 0.0
         for c in ti.static(range(C)):
@@ -619,32 +677,37 @@ def make_fused_kernels(
             for y in range(H):
                 if grad & 1 != 0:
                     tiles.each_pixel(tf, RXY, y, transposed_sobel, f.ibar)
+        if ti.static(sobel):
+            ti.loop_config(block_dim=row_block, serialize=serial)
+            for y in range(H):
+                if grad & 1 != 0:
+                    # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp2 over Rx
+                    tapsum = y_tap_sum(y)
+                    slots = objective_slots_vec()
+                    c1 = ti.Vector([0.0 for _ in ti.static(range(C))])
+                    c0 = ti.Vector([0.0 for _ in ti.static(range(C))])
+                    for c in ti.static(range(C)):
+                        scale, offset = adjoint_fn(slots, c, n_pix)
+                        c1[c] = scale / f.g0[None]
+                        c0[c] = offset / f.g0[None] * tapsum
+                    tiles.each_segment(tf, RX, y, blur_y_adjoint, (load_taps(f.taps), c1, c0))
         ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(H):
             if grad & 1 != 0:
-                # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp2 over Rx: by
-                # linearity, (scale B_y^T L(I) + offset * sum of the in-image taps) / G0; without Sobel
-                # L(I) = I = B_y tmp, and B_y^T B_y is one filter of 4 r + 1 taps on tmp (its taps at the
-                # image's top and bottom rows from the zero padding of both blurs)
-                tapsum = 0.0
-                for k in ti.static(range(-r_, r_ + 1)):
-                    if 0 <= y + k < H:
-                        tapsum += f.taps[k + r_] if ti.static(r_ > 0) else 1.0
-                slots = objective_slots_vec()
+                # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps.
+                # Without Sobel, dJ/dI = (scale I + offset) / G0 and tmp2 = B_y^T B_y u (stage 4): the
+                # transposed blur along y of dJ/dI is (scale tmp2 + offset tapsum_y) / G0, by linearity
+                msum = red[i_m][None] if ti.static(R > 0) else 0.0
                 c1 = ti.Vector([0.0 for _ in ti.static(range(C))])
                 c0 = ti.Vector([0.0 for _ in ti.static(range(C))])
-                for c in ti.static(range(C)):
-                    scale, offset = adjoint_fn(slots, c, n_pix)
-                    c1[c] = scale / f.g0[None]
-                    c0[c] = offset / f.g0[None] * tapsum
-                tv = load_taps(f.taps)
-                tiles.each_segment(tf, RX, y, blur_y_adjoint, (tv, twice_taps(y, tv), c1, c0))
-        ti.loop_config(block_dim=row_block, serialize=serial)
-        for y in range(H):
-            if grad & 1 != 0:
-                # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps
-                msum = red[i_m][None] if ti.static(R > 0) else 0.0
-                tiles.each_segment(tf, F0, y, blur_x_adjoint, (load_taps(f.taps), msum))
+                if ti.static(not sobel):
+                    tapsum = y_tap_sum(y)
+                    slots = objective_slots_vec()
+                    for c in ti.static(range(C)):
+                        scale, offset = adjoint_fn(slots, c, n_pix)
+                        c1[c] = scale / f.g0[None]
+                        c0[c] = offset / f.g0[None] * tapsum
+                tiles.each_segment(tf, F0, y, blur_x_adjoint, (load_taps(f.taps), msum, c1, c0))
         # --- 8. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):

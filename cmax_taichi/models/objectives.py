@@ -42,7 +42,11 @@ class FusedObjective:
         ``adjoint(acc_vector, channel, n_pixels) -> (scale, offset)`` such that the pixel adjoint is
         ``dG_c/dI(x) = scale * L(I_c)(x) + offset``, where ``L`` is the identity, or with ``sobel``
         ``Sobel_x^T Sobel_x + Sobel_y^T Sobel_y``. An objective whose adjoint is not of this form
-        declares no fused path and takes the generic chain (Taichi autodiff).
+        declares no fused path and takes the generic chain (Taichi autodiff). Without ``sobel`` this
+        makes each pixel term a polynomial of degree at most 2 in ``v``, which the fused kernel uses:
+        it sums the terms over the image from ``sum I`` and ``sum I^2`` (``pixel`` evaluated at 0, 1
+        and -1 gives the polynomial), never pixel by pixel; a term of higher degree would be summed
+        wrongly, which ``cm.check_objective`` reports as a value that differs from the reference.
     sobel : bool
         The pixel terms read the Sobel responses (the fused kernel then keeps the Sobel images).
     """
