@@ -1,13 +1,13 @@
 """Where one fused value-and-gradient evaluation spends its time, stage by stage.
 
-``python -m benchmarks.profile_stages [--events N] [--warp W] [--sensor WxH] [--regs none|div+def]``
+``python -m benchmarks.profile_stages [--events N] [--warp W] [--sensor WxH] [--regs none|div+def]
+[--window edges|textured|uniform] [--loops auto|serial|parallel]``
 
 Runs Taichi's kernel profiler over repeated ``value_and_grad`` calls of the fused pipeline
-(``kernels/fused.py``) on the benchmark's synthetic window and prints the median time of each task of
-the kernel: 1 splat (events), 2 slice sums + blur along x + map reductions (rows), 3 blur along y +
-objective (rows), 5 adjoint images (rows), 6 gradient gather (events); 0, 4 and 7 are serial steps.
-The wall-clock median of the whole call is printed too (it includes launching the kernel and the
-thread-pool dispatch of each task).
+(``kernels/fused.py``, the variance objective) on a benchmark window and prints the median time of
+each task of the kernel (:data:`STAGES`). On the serial loop schedule (``--loops serial``, what "auto"
+gives a small window) the whole kernel is one task. The wall-clock median of the whole call is printed
+too (it includes launching the kernel and the thread-pool dispatch of each task).
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ import numpy as np
 STAGES = {
     0: "serial: theta, clear reductions",
     1: "events: warp + splat",
-    2: "rows: slice sums, blur x, map reductions",
-    3: "rows: blur y, objective",
+    2: "rows: F0, slice sums, map reductions, blur x",
+    3: "rows: y regions, the image's moments (the kept image), votes cleared",
     4: "serial: J",
-    5: "rows: adjoint images",
+    5: "rows: adjoint along x, map adjoints",
     6: "events: gradient gather",
     7: "serial: results",
 }
