@@ -1,13 +1,14 @@
 """Where one fused value-and-gradient evaluation spends its time, stage by stage.
 
 ``python -m benchmarks.profile_stages [--events N] [--warp W] [--sensor WxH] [--regs none|div+def]
-[--window edges|textured|uniform] [--loops auto|serial|parallel]``
+[--window edges|textured|uniform] [--loops parallel|serial|auto]``
 
 Runs Taichi's kernel profiler over repeated ``value_and_grad`` calls of the fused pipeline
 (``kernels/fused.py``, the variance objective) on a benchmark window and prints the median time of
-each task of the kernel (:data:`STAGES`). On the serial loop schedule (``--loops serial``, what "auto"
-gives a small window) the whole kernel is one task. The wall-clock median of the whole call is printed
-too (it includes launching the kernel and the thread-pool dispatch of each task).
+each task of the kernel (:data:`STAGES`), on the thread pool's schedule by default; on the serial one
+(``--loops serial``, what "auto" gives a small window) the whole kernel is one task. The wall-clock
+median of the whole call is printed too (it includes launching the kernel and the thread-pool dispatch
+of each task).
 """
 
 from __future__ import annotations
@@ -53,7 +54,10 @@ def main(argv: list[str] | None = None) -> int:
         help="the benchmark's synthetic edges, or the full sweep's textured / uniform windows",
     )
     parser.add_argument(
-        "--loops", default="auto", choices=["auto", "serial", "parallel"], help="FusedPipeline.loops"
+        "--loops",
+        default="parallel",
+        choices=["auto", "serial", "parallel"],
+        help="FusedPipeline.loops (default parallel: one profiler task per stage; serial is one task)",
     )
     args = parser.parse_args(argv)
 
