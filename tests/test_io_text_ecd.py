@@ -206,9 +206,13 @@ def test_cache_second_read_faster_identical_and_invalidated(tmp_path):
     t0 = time.perf_counter()
     first = open_recording(path, cache_dir=cache)
     parse_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    second = open_recording(path, cache_dir=cache)
-    mapped_s = time.perf_counter() - t0
+    # the fastest of three cached opens: one open under a loaded machine (the suite's two workers) can be
+    # slowed by a few ms, the parse is tens of ms
+    mapped_s = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        second = open_recording(path, cache_dir=cache)
+        mapped_s = min(mapped_s, time.perf_counter() - t0)
     assert mapped_s < parse_s / 5, (parse_s, mapped_s)
     a, b = first.read(), second.read()
     for name in ("x", "y", "t", "p"):
