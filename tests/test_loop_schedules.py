@@ -127,9 +127,10 @@ def test_auto_moves_a_slow_window_to_the_pool_and_remembers_it():
 def test_a_window_keeps_one_schedule():
     """J at the identity, known from the window's set-up, is what a launch there gives, bit for bit,
     after the window moved to the pool as well."""
-    for limit in (1e9, 0.0):
+    # (the second window is larger: a size that passed once is not timed again)
+    for n, limit in ((900, 1e9), (950, 0.0)):
         with pipeline_settings(loops="auto", serial_max_events=10**9, serial_limit_s=limit):
-            prob = _problem(900, seed=7, warp="translation2", **LEARNING_BLUR)
+            prob = _problem(n, seed=7, warp="translation2", **LEARNING_BLUR)
             zero = np.zeros(prob.model.n_params)
             memo = prob.value(zero)
             known, prob._identity_value = prob._identity_value, None
@@ -152,3 +153,14 @@ def test_unknown_schedule_is_a_clear_error():
         pytest.raises(ValueError, match="FusedPipeline.loops must be one of"),
     ):
         _problem(500, seed=9)
+
+
+def test_a_size_that_passed_is_not_timed_again():
+    """Windows up to the largest one whose first serial call passed stay serial without a timed call,
+    even under a limit that would move them (a stream of similar windows does not switch late)."""
+    with pipeline_settings(loops="auto", serial_max_events=10**9, serial_limit_s=1e9):
+        first = _problem(700, seed=10, warp="se2", **LEARNING_BLUR)
+        assert first._fused.serial and first._fused._schedules.serial_upto >= 700
+    with pipeline_settings(loops="auto", serial_max_events=10**9, serial_limit_s=0.0):
+        assert _problem(650, seed=11, warp="se2", **LEARNING_BLUR)._fused.serial
+        assert not _problem(750, seed=12, warp="se2", **LEARNING_BLUR)._fused.serial

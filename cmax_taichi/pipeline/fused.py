@@ -171,13 +171,15 @@ class _Schedules:
 
     ``parallel_from``: the smallest event count whose window ran on the pool because its first call on
     one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`); windows of that many events
-    or more go to the pool directly (no serial call, no second compile).
+    or more go to the pool directly (no serial call, no second compile). ``serial_upto``: the largest
+    window whose first serial call was under the limit; windows up to it are not timed again.
     """
 
     def __init__(self, build) -> None:
         self._build = build
         self._kernels: dict[bool, object] = {}
         self.parallel_from = None
+        self.serial_upto = 0  # the largest window whose first serial call was under the limit
 
     def kernel(self, serial: bool):
         if serial not in self._kernels:
@@ -393,7 +395,9 @@ class FusedPipeline:
         elif loops == "auto":
             learnt = self._schedules.parallel_from
             self._serial = n <= self.serial_max_events and (learnt is None or n < learnt)
-            self._probe = self._serial
+            # probed only above the largest window that passed: a stream of similar windows is timed
+            # once, and does not switch (and load the pool's kernel) late on a slow call
+            self._probe = self._serial and n > self._schedules.serial_upto
         else:
             self._serial, self._probe = loops == "serial", False
 
@@ -434,6 +438,7 @@ class FusedPipeline:
             out = self._launch(grad)
         limit = self.serial_limit_s * (1.0 if grad & 1 else 0.5)
         if time.thread_time() - t0 <= limit:
+            self._schedules.serial_upto = max(self._schedules.serial_upto, self.n_events)
             return out
         learnt = self._schedules.parallel_from
         self._schedules.parallel_from = self.n_events if learnt is None else min(learnt, self.n_events)
