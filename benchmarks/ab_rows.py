@@ -1,12 +1,14 @@
 """Median ``value_and_grad`` of a few benchmark rows through the library's benchmark implementation:
-``python benchmarks/ab_rows.py [--small | --issue20] [--repeats-scale S]``. Run it with each version's
-environment, alternating, to compare two versions on one machine (docs/performance.md).
+``python benchmarks/ab_rows.py [--small | --issue20 | --rotation] [--repeats-scale S]``. Run it with each
+version's environment, alternating, to compare two versions on one machine (docs/performance.md).
 
 Row sets: by default six windows, small and large (100 calls each, 15 at 1M events); ``--small``: the
 eight small rows that one pair of full runs showed slower after issue 16 (60 calls each); ``--issue20``:
 rows of issue 20's grid (the full sweep's textured and uniform windows of ``cmax_taichi/lab/
 bench_windows.py``, which this script loads from its own checkout, so that an older version runs the
-same windows; the textured streams come from the shared cache, simulated once). Each row prints the
+same windows; the textured streams come from the shared cache, simulated once); ``--rotation``: issue 20's
+rotation3 / translation2 pair at 300,000 edge events on 240x180 (20 calls each, three alternating rounds,
+and their events-per-second ratio from the medians). Each row prints the
 wall median and the CPU time per call (all threads, ``getrusage``: on a shared machine the wall time
 mostly measures the other processes).
 """
@@ -74,6 +76,13 @@ ISSUE20_ROWS = _rows(
     1000000 346x260 translation2 none edges
     """
 )
+#: issue 20's rotation3 / translation2 pair (events per second of rotation3 at least half translation2's)
+ROTATION_ROWS = _rows(
+    """
+    300000 240x180 translation2 none edges
+    300000 240x180 rotation3 none edges
+    """
+)
 STREAM_EVENTS = 1_000_000  # the full sweep's textured stream length (its prefixes are the windows)
 
 
@@ -118,11 +127,31 @@ def median_ms(n: int, sensor: str, warp: str, regs: str, repeats: int) -> float:
     return time_row(n, sensor, warp, regs, repeats)[0]
 
 
+def _rotation_ratio(repeats: int, rounds: int = 3) -> int:
+    """The rotation rows in alternating rounds; rotation3's events per second over translation2's, from
+    the medians over the rounds of the wall and of the CPU time per call."""
+    walls: dict[str, list[float]] = {}
+    cpus: dict[str, list[float]] = {}
+    for r in range(rounds):
+        for n, sensor, warp, regs, kind in ROTATION_ROWS:
+            wall, cpu = time_row(n, sensor, warp, regs, repeats, kind)
+            walls.setdefault(warp, []).append(wall)
+            cpus.setdefault(warp, []).append(cpu)
+            line = f"round {r} {n:8d} {sensor:9s} {kind:9s} {warp:13s} {wall:8.3f} ms  cpu {cpu:8.3f} ms"
+            print(line, flush=True)
+    t_wall, r_wall = (float(np.median(walls[w])) for w in ("translation2", "rotation3"))
+    t_cpu, r_cpu = (float(np.median(cpus[w])) for w in ("translation2", "rotation3"))
+    print(f"rotation3 / translation2 events per second: wall {t_wall / r_wall:.2f}, cpu {t_cpu / r_cpu:.2f}")
+    return 0
+
+
 def main(argv: list[str]) -> int:
     backend.init(precision="f64")
     scale = 1.0
     if "--repeats-scale" in argv:
         scale = float(argv[argv.index("--repeats-scale") + 1])
+    if "--rotation" in argv:
+        return _rotation_ratio(max(5, int(scale * 20)))
     if "--issue20" in argv:
         rows = ISSUE20_ROWS
         repeats = [max(5, int(scale * (15 if n >= 300_000 else 100))) for n, *_ in rows]

@@ -454,6 +454,20 @@ def make_fused_kernels(
         return tapsum
 
     @ti.func
+    def adjoint_coefficients(y):
+        """Per channel, ``(scale / G0, offset / G0 * B_y^T 1 at row y)`` of dJ/dI = (scale L + offset) / G0
+        (``adjoint_fn``): the two terms of the transposed blur along y of the adjoint at row ``y``."""
+        tapsum = y_tap_sum(y)
+        slots = objective_slots_vec()
+        c1 = ti.Vector([0.0 for _ in ti.static(range(C))])
+        c0 = ti.Vector([0.0 for _ in ti.static(range(C))])
+        for c in ti.static(range(C)):
+            scale, offset = adjoint_fn(slots, c, n_pix)
+            c1[c] = scale / f.g0[None]
+            c0[c] = offset / f.g0[None] * tapsum
+        return c1, c0
+
+    @ti.func
     def clear_votes(y, x, grad):
         """Stage 4 at a touched pixel: the votes stage 3's blur read, cleared: the IWE channels now, the
         maps (and a shared count) after the backward where it runs (it reads them and clears them)."""
@@ -682,14 +696,7 @@ def make_fused_kernels(
             for y in range(H):
                 if grad & 1 != 0:
                     # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp2 over Rx
-                    tapsum = y_tap_sum(y)
-                    slots = objective_slots_vec()
-                    c1 = ti.Vector([0.0 for _ in ti.static(range(C))])
-                    c0 = ti.Vector([0.0 for _ in ti.static(range(C))])
-                    for c in ti.static(range(C)):
-                        scale, offset = adjoint_fn(slots, c, n_pix)
-                        c1[c] = scale / f.g0[None]
-                        c0[c] = offset / f.g0[None] * tapsum
+                    c1, c0 = adjoint_coefficients(y)
                     tiles.each_segment(tf, RX, y, blur_y_adjoint, (load_taps(f.taps), c1, c0))
         ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(H):
@@ -701,12 +708,7 @@ def make_fused_kernels(
                 c1 = ti.Vector([0.0 for _ in ti.static(range(C))])
                 c0 = ti.Vector([0.0 for _ in ti.static(range(C))])
                 if ti.static(not sobel):
-                    tapsum = y_tap_sum(y)
-                    slots = objective_slots_vec()
-                    for c in ti.static(range(C)):
-                        scale, offset = adjoint_fn(slots, c, n_pix)
-                        c1[c] = scale / f.g0[None]
-                        c0[c] = offset / f.g0[None] * tapsum
+                    c1, c0 = adjoint_coefficients(y)
                 tiles.each_segment(tf, F0, y, blur_x_adjoint, (load_taps(f.taps), msum, c1, c0))
         # --- 8. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
         if ti.static(atomic_scatter):

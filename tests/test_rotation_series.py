@@ -12,7 +12,12 @@ import numpy as np
 import pytest
 import taichi as ti
 from cmax_taichi.kernels.warps import common, rotation3, se2
-from cmax_taichi.kernels.warps.common import SIN_OVER_PHI, float_epsilon, taylor_error
+from cmax_taichi.kernels.warps.common import (
+    ONE_MINUS_COS_OVER_R2,
+    SIN_TAIL_OVER_R3,
+    float_epsilon,
+    taylor_error,
+)
 
 import cmax_taichi as cm
 from cmax_taichi.solve.optimize import search_bounds
@@ -119,12 +124,17 @@ def test_huge_angles_stay_finite(precision):
 
 
 def test_series_truncation_is_below_the_precision():
-    """The truncation bound of ``common.taylor_terms`` (first omitted term) is under an eighth of the
-    machine epsilon on the whole series range, in f64 (the precision of the tests' other backend)."""
+    """The truncation bound of ``common.taylor_terms`` (first omitted term) of both series is under an
+    eighth of the machine epsilon on the whole series range, relative to the series' smallest value
+    there, in f64 (the precision of the tests' other backend)."""
     use_precision("f64")
-    terms = common.sinc_terms()
     v_max = common.HALF_ANGLE_MAX**2
-    assert taylor_error(SIN_OVER_PHI, len(terms), v_max) <= float_epsilon() / 8
+    h = common.HALF_ANGLE_MAX
+    for series, terms, floor in (
+        (SIN_TAIL_OVER_R3, common.tail_terms(), (h - math.sin(h)) / h**3),
+        (ONE_MINUS_COS_OVER_R2, common.versine_terms(), (1 - math.cos(h)) / h**2),
+    ):
+        assert taylor_error(series, len(terms), v_max) <= float_epsilon() / 8 * floor
 
 
 def test_slopes_are_the_derivatives_of_the_coefficients():

@@ -63,37 +63,32 @@ def polynomial(coefficients: ti.template(), v):
     return out
 
 
-def polynomial_derivative(coefficients: tuple[float, ...]) -> tuple[float, ...]:
-    """The coefficients of ``d/du sum_k c_k u^k`` (at least one)."""
-    return tuple(k * c for k, c in enumerate(coefficients) if k > 0) or (0.0,)
-
-
 def _factorial_series(offset: int):
-    """``c_k = (-1)^k / (2k + offset)!``: ``offset = 1`` gives ``sin(phi) / phi``, ``offset = 2``
-    ``(1 - cos(phi)) / phi^2`` as series in ``u = phi^2``."""
+    """``c_k = (-1)^k / (2k + offset)!``: ``offset = 2`` gives ``(1 - cos(r)) / r^2``, ``offset = 3``
+    ``(r - sin(r)) / r^3`` as series in ``v = r^2``."""
     return lambda k: (-1.0) ** k / math.factorial(2 * k + offset)
 
 
-SIN_OVER_PHI = _factorial_series(1)
-ONE_MINUS_COS_OVER_PHI2 = _factorial_series(2)
+ONE_MINUS_COS_OVER_R2 = _factorial_series(2)
+SIN_TAIL_OVER_R3 = _factorial_series(3)
 
 #: the half angle ``h = phi / 2`` enters the series up to ``HALF_ANGLE_MAX`` (``phi <= pi / 2``); beyond
 #: it is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]``
 HALF_ANGLE_MAX = math.pi / 4
-#: lower bounds of ``sin(r) / r`` and ``(1 - cos r) / r^2`` on ``|r| <= pi / 4``: the truncation error of
-#: their series is bounded relative to them
-_SINC_FLOOR = math.sin(HALF_ANGLE_MAX) / HALF_ANGLE_MAX
+#: lower bounds of ``(1 - cos r) / r^2`` and ``(r - sin r) / r^3`` on ``|r| <= pi / 4`` (both decrease
+#: in ``|r|``): the truncation error of their series is bounded relative to them
 _VERSINE_FLOOR = (1.0 - math.cos(HALF_ANGLE_MAX)) / HALF_ANGLE_MAX**2
-
-
-def sinc_terms() -> tuple[float, ...]:
-    """Taylor coefficients (in ``v = r^2``) of ``sin(r) / r`` for the precision in use."""
-    return taylor_terms(SIN_OVER_PHI, HALF_ANGLE_MAX**2, _SINC_FLOOR)
+_TAIL_FLOOR = (HALF_ANGLE_MAX - math.sin(HALF_ANGLE_MAX)) / HALF_ANGLE_MAX**3
 
 
 def versine_terms() -> tuple[float, ...]:
     """Taylor coefficients (in ``v = r^2``) of ``(1 - cos r) / r^2`` for the precision in use."""
-    return taylor_terms(ONE_MINUS_COS_OVER_PHI2, HALF_ANGLE_MAX**2, _VERSINE_FLOOR)
+    return taylor_terms(ONE_MINUS_COS_OVER_R2, HALF_ANGLE_MAX**2, _VERSINE_FLOOR)
+
+
+def tail_terms() -> tuple[float, ...]:
+    """Taylor coefficients (in ``v = r^2``) of ``(r - sin r) / r^3`` for the precision in use."""
+    return taylor_terms(SIN_TAIL_OVER_R3, HALF_ANGLE_MAX**2, _TAIL_FLOOR)
 
 
 @ti.func
@@ -113,19 +108,23 @@ def rodrigues(u, rot):
     ``u = phi^2 = |rot|^2`` (``rot``: the rotation vector, ``dt w``; ``u`` computed by the caller as a
     smooth function of theta, since reverse mode differentiates it), from the half angle ``h = phi / 2``.
 
-    ``h <= pi / 4``: ``s1 = S(v) (1 - v C(v))``, ``s2 = S(v)^2 / 2`` with ``v = h^2 = u / 4`` and the
-    Taylor polynomials ``S`` of ``sin(h) / h`` and ``C`` of ``(1 - cos h) / h^2`` (no square root, no
-    division). Beyond (a branch: a square root, a ``floor``, a division): ``h = k pi / 2 + r`` with
-    ``|r| <= pi / 4``, ``sin(r) = r S(r^2)``, ``cos(r) = 1 - r^2 C(r^2)``, and
-    ``sin(h) cos(h) = (-1)^k sin(r) cos(r)``, ``sin(h)^2 = sin(r)^2`` (k even) or ``cos(r)^2`` (k odd).
-    The slopes are the derivatives of exactly these expressions (``dr/du = dh/du = 1 / (8 h)``; k is
-    piecewise constant, and ``floor`` has a zero adjoint in Taichi's reverse mode). The branch takes
-    ``h`` as the scaled norm of ``rot`` (``u`` overflows f32 from ``phi ~ 1.8e19``) and clamps ``r``
-    into ``[-pi/4, pi/4]`` (beyond ``phi ~ 1e7`` in f32, ``1e15`` in f64, the rounding of ``phi`` exceeds
-    pi and the reduction keeps no digit: the values stay finite, as bounded as sin and cos). No call into
-    the maths library, so that LLVM can if-convert the branch and vectorize the gradient gather. Shared by
-    ``rotation3`` (the rotation of a ray by ``phi = |w| dt``) and ``se2`` (the planar rotation
-    ``e^{i theta}`` and ``(e^{i theta} - 1) / (i theta)`` of its exponential).
+    ``h <= pi / 4``: two Taylor polynomials in ``v = h^2 = u / 4``, ``T`` of ``(h - sin h) / h^3`` and
+    ``C`` of ``(1 - cos h) / h^2`` (no square root, no division), give ``S = sin(h) / h = 1 - v T`` and
+    ``cos(h) = 1 - v C``; then ``s1 = S cos(h)``, ``s2 = S^2 / 2``, and the slopes in closed form from
+    the same two polynomials, ``ds1/du = (s3 - s2) / 2`` with ``s3 = (phi - sin phi) / phi^3 = (T + S C)
+    / 4`` and ``ds2/du = S (cos h - S) / (8 h^2) = S (T - C) / 8`` (no difference of nearly equal
+    terms: both are about -1/6 and -1/24 at 0). Beyond (a branch: a square root, a ``floor``, a
+    division): ``h = k pi / 2 + r`` with ``|r| <= pi / 4``, ``sin(r) = r S(r^2)``, ``cos(r) = 1 - r^2
+    C(r^2)``, ``sin(h) cos(h) = (-1)^k sin(r) cos(r)``, ``sin(h)^2 = sin(r)^2`` (k even) or
+    ``cos(r)^2`` (k odd); there ``s3 = (1 - s1) / u`` (``u >= (pi / 2)^2``: no cancellation). The
+    branch takes ``h`` as the scaled norm of ``rot`` (``u`` overflows f32 from ``phi ~ 1.8e19``) and
+    clamps ``r`` into ``[-pi/4, pi/4]`` (beyond ``phi ~ 1e7`` in f32, ``1e15`` in f64, the rounding of
+    ``phi`` exceeds pi and the reduction keeps no digit: the values stay finite, as bounded as sin and
+    cos). Two polynomials rather than one per coefficient and slope (four): the event loops that call
+    this are bound by its arithmetic. No call into the maths library, so that LLVM can if-convert the
+    branch and vectorize where it can. Shared by ``rotation3`` (the rotation of a ray by ``phi = |w|
+    dt``) and ``se2`` (the planar rotation ``e^{i theta}`` and ``(e^{i theta} - 1) / (i theta)`` of its
+    exponential).
     """
     v = 0.25 * u
     big = v > HALF_ANGLE_MAX * HALF_ANGLE_MAX
@@ -138,28 +137,26 @@ def rodrigues(u, rot):
         r = ti.min(ti.max(h - k * (0.5 * math.pi), -HALF_ANGLE_MAX), HALF_ANGLE_MAX)
         ih = 1.0 / h
         v = r * r
-    S = polynomial(ti.static(sinc_terms()), v)
+    T = polynomial(ti.static(tail_terms()), v)
     C = polynomial(ti.static(versine_terms()), v)
-    dS = polynomial(ti.static(polynomial_derivative(sinc_terms())), v)
-    dC = polynomial(ti.static(polynomial_derivative(versine_terms())), v)
+    S = 1.0 - v * T  # sin(r) / r
     cr = 1.0 - v * C  # cos(r)
-    dcr_dv = -(C + v * dC)
-    # a = +-sin(h) / h and b = +-cos(h) (one sign), and their u-derivatives
-    a = S
-    b = cr
-    da = 0.25 * dS
-    db = 0.25 * dcr_dv
+    s1 = S * cr
+    s2 = 0.5 * S * S
+    d1 = 0.125 * (T + S * C) - 0.5 * s2
+    d2 = 0.125 * S * (T - C)
     if big:
-        dr = 0.125 * ih  # dr/du = dh/du
+        # a = +-sin(h) / h and b = +-cos(h) (one sign)
         sr = r * S
-        dsr = (S + 2.0 * v * dS) * dr
-        dcr = 2.0 * r * dcr_dv * dr
         odd = k - 2.0 * ti.floor(0.5 * k) > 0.5  # sin(h) = +-cos(r), cos(h) = -+sin(r)
         a = ti.select(odd, cr, sr) * ih
         b = ti.select(odd, -sr, cr)
-        da = ti.select(odd, dcr, dsr) * ih - a * ih * dr
-        db = ti.select(odd, -dsr, dcr)
-    return a * b, 0.5 * a * a, da * b + a * db, a * da
+        ih2 = ih * ih
+        s1 = a * b
+        s2 = 0.5 * a * a
+        d1 = 0.5 * ((1.0 - s1) * (0.25 * ih2) - s2)
+        d2 = 0.125 * a * (b - a) * ih2
+    return s1, s2, d1, d2
 
 
 @ti.func

@@ -5,18 +5,21 @@ Uses the focal lengths ``ctx[2], ctx[3]`` (px).
 The rotation of an event's ray is Rodrigues' ``X' = X + dt s1(u) (w x X) + dt^2 s2(u) w x (w x X)``
 with ``u = phi^2 = dt^2 |w|^2``, ``s1 = sin(phi) / phi`` and ``s2 = (1 - cos(phi)) / phi^2``, written
 with the half angle ``h = phi / 2``: ``s1 = (sin(h) / h) cos(h)``, ``s2 = (sin(h) / h)^2 / 2``. Up to
-``phi = pi / 2`` (90 degrees between an event and the reference time) ``sin(h) / h`` and
+``phi = pi / 2`` (90 degrees between an event and the reference time) ``(h - sin h) / h^3`` and
 ``(1 - cos h) / h^2`` are their Taylor polynomials in ``v = h^2 = u / 4``, truncated where the first
 omitted term is below an eighth of the machine epsilon of the precision in use
-(``common.taylor_terms``: 9 and 8 terms in f64, 5 and 5 in f32), so they are exact to the rounding of
-that precision. Beyond, the half angle is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]`` first (in a
-branch: a square root, a ``floor``, a division; the same polynomials), with an error of about the
-rounding of ``phi`` itself. No event calls the maths library: a libm call in the event loop kept LLVM
-from vectorizing the gradient gather (rotation3 cost 8x translation2 per event). ``warp_terms``
-computes the warp, ``det`` and ``param_jac`` of an event from one evaluation (the fused kernels call
-it, so they rotate each ray once); ``warp``, ``det`` and ``param_jac`` are its parts, so they
-differentiate exactly the same expressions (the polynomials' own derivatives). The error bound:
-docs/FORMULAS.md ("rotation3"); ``tests/test_rotation_series.py`` holds it in f32 and f64.
+(``common.taylor_terms``: 8 and 8 terms in f64, 5 and 5 in f32), so they are exact to the rounding of
+that precision; ``s1``, ``s2`` and their slopes ``ds1/du``, ``ds2/du`` all come from these two
+(``common.rodrigues``). Beyond, the half angle is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]``
+first (in a branch: a square root, a ``floor``, a division; the same polynomials), with an error of
+about the rounding of ``phi`` itself. No event calls the maths library: a libm call in the event loop
+kept LLVM from vectorizing the gradient gather (rotation3 cost 8x translation2 per event).
+``warp_terms`` computes the warp, ``det`` and ``param_jac`` of an event from one evaluation (the fused
+kernels call it, so they rotate each ray once); ``warp``, ``det`` and ``param_jac`` are its parts. The
+parameter Jacobian is ``dX'/dw = -c1 [X]x + c2 w X^T + c2 (w . X) I + (g - 2 c2 X) w^T`` projected row
+by row (docs/FORMULAS.md): about a third fewer operations than its three columns one by one, in the
+event loops whose arithmetic sets rotation3's cost. The error bound: docs/FORMULAS.md ("rotation3");
+``tests/test_rotation_series.py`` holds it in f32 and f64.
 """
 
 import taichi as ti
@@ -55,19 +58,6 @@ def _omega(th):
 
 
 @ti.func
-def _cross_basis(j: ti.template(), v):
-    """``e_j x v`` for the unit vector ``e_j``."""
-    out = ti.Vector([0.0 * v[0], 0.0 * v[0], 0.0 * v[0]])
-    if ti.static(j == 0):
-        out = ti.Vector([0.0 * v[0], -v[2], v[1]])
-    elif ti.static(j == 1):
-        out = ti.Vector([v[2], 0.0 * v[0], -v[0]])
-    else:
-        out = ti.Vector([-v[1], v[0], 0.0 * v[0]])
-    return out
-
-
-@ti.func
 def warp_terms(p, dt, th, ctx):
     """``(warp, det, jx, ddet, ddiv)`` of one event from one evaluation of the rotation (the fused
     kernels call this; the parts a kernel does not use are dead code there)."""
@@ -90,17 +80,33 @@ def warp_terms(p, dt, th, ctx):
         py = Xr[1] * iz
         out = ti.Vector([ctx[0] + ctx[2] * px, ctx[1] + ctx[3] * py])
         # X' = X + c1 w x X + c2 w x (w x X), c1 = dt s1(u), c2 = dt^2 s2(u), u = dt^2 |w|^2:
-        # dX'/dw_j = c1 e_j x X + c2 (e_j (w . X) + X_j w - 2 w_j X) + w_j g,
-        # g = 2 dt^2 (dt d1 wX + dt^2 d2 wwX); x' = c + f X'_{x,y} / z: dx'/dw_j = f (D_{x,y} j - p D_zj) / z
-        wdX = w.dot(X)
+        # dX'/dw = -c1 [X]x + c2 w X^T + c2 (w . X) I + h w^T, h = g - 2 c2 X,
+        # g = 2 dt^2 (dt d1 w x X + dt^2 d2 w x (w x X)); x' = c + f X'_{x,y} / z: each row of dx'/dw is
+        # f / z times a row of N dX'/dw, N = [[1, 0, -px], [0, 1, -py]] (a^T [X]x = (a x X)^T, X_z = 1)
         g = 2.0 * dt2 * ((dt * d1) * wX + (dt2 * d2) * wwX)
+        h = g - 2.0 * c2 * X
+        k = c2 * w.dot(X)
+        row_f = ti.Vector([ctx[2] * iz, ctx[3] * iz])
+        row_p = ti.Vector([px, py])
+        cross_rows = ti.Matrix([[px * X[1], -px * X[0] - 1.0, X[1]], [1.0 + py * X[1], -py * X[0], -X[0]]])
+        for i in ti.static(range(2)):
+            m = c2 * (w[i] - row_p[i] * w[2])  # c2 (N w)_i
+            n = h[i] - row_p[i] * h[2]  # (N h)_i
+            for j in ti.static(range(3)):
+                d = m * X[j] + n * w[j] - c1 * cross_rows[i, j]
+                if ti.static(j == i):
+                    d += k
+                elif ti.static(j == 2):
+                    d -= k * row_p[i]
+                jx[i, j] = row_f[i] * d
+        # det = 1 / z^3: d det / dw_j = -3 z^-4 (dX'/dw)_{z, j}, whose row is (e_z x X)^T = (-X_y, X_x, 0)
         iz4 = -3.0 * det_value * iz
+        ez_cross = ti.Vector([-X[1], X[0], 0.0])
         for j in ti.static(range(3)):
-            col = c1 * _cross_basis(j, X) + c2 * (X[j] * w - 2.0 * w[j] * X) + w[j] * g
-            col[j] += c2 * wdX
-            jx[0, j] = ctx[2] * ((col[0] - px * col[2]) * iz)
-            jx[1, j] = ctx[3] * ((col[1] - py * col[2]) * iz)
-            ddet[j] = iz4 * col[2]
+            d = c2 * w[2] * X[j] + h[2] * w[j] - c1 * ez_cross[j]
+            if ti.static(j == 2):
+                d += k
+            ddet[j] = iz4 * d
     ddiv = ti.Vector([3.0 * X[1], -3.0 * X[0], 0.0])
     return out, det_value, jx, ddet, ddiv
 
