@@ -169,10 +169,11 @@ class _Schedules:
     """The fused kernel of one kernel key in its CPU schedules, each compiled when first used, and what
     "auto" has learnt about where the calling thread alone is slower than the thread pool.
 
-    ``parallel_from``: the smallest event count whose window ran on the pool because its first call on
-    one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`); windows of that many events
+    ``parallel_from``: the smallest event count whose window ran on the pool because its timed calls
+    on one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`); windows of that many events
     or more go to the pool directly (no serial call, no second compile). ``serial_upto``: the largest
-    window whose first serial call was under the limit; windows up to it are not timed again.
+    window whose timed serial call was under the limit; windows up to ``serial_probe_growth`` times it
+    are not timed again.
     """
 
     def __init__(self, build) -> None:
@@ -206,13 +207,19 @@ class FusedPipeline:
     force_atomic = False
     #: CPU loop schedule of the kernels: "parallel" (Taichi's thread pool), "serial" (the calling
     #: thread), or "auto": a window of at most ``serial_max_events`` events runs serially unless its
-    #: first call there takes more than ``serial_limit_s`` of thread time (half that for a call without
-    #: gradient), after which windows of that size and more run on the pool. A GPU has one schedule.
+    #: first two calls there each take more than ``serial_limit_s`` of thread time (half that for a call
+    #: without gradient), after which windows of that size and more run on the pool. A GPU has one
+    #: schedule.
     loops = "auto"
     serial_max_events = 20_000
     #: the calling thread's time of one value-and-gradient above which the pool is faster on the
     #: 2-core reference machine (its six loops' dispatch: 0.4-0.7 ms; docs/performance.md)
     serial_limit_s = 1.0e-3
+    #: a window is timed only when it has more than this many times the events of the largest window
+    #: that passed: a stream of windows of about one size (undistortion drops a few events of each) is
+    #: timed once, and a timing blip on a later window cannot move the stream to the pool, whose kernel
+    #: a process then loads or compiles (0.8 s measured: a stalled window of a real-time stream)
+    serial_probe_growth = 1.25
 
     @classmethod
     def for_problem(cls, problem, vote_w: np.ndarray | None) -> PathChoice:
@@ -397,7 +404,7 @@ class FusedPipeline:
             self._serial = n <= self.serial_max_events and (learnt is None or n < learnt)
             # probed only above the largest window that passed: a stream of similar windows is timed
             # once, and does not switch (and load the pool's kernel) late on a slow call
-            self._probe = self._serial and n > self._schedules.serial_upto
+            self._probe = self._serial and n > self.serial_probe_growth * self._schedules.serial_upto
         else:
             self._serial, self._probe = loops == "serial", False
 
@@ -437,7 +444,14 @@ class FusedPipeline:
             t0 = time.thread_time()
             out = self._launch(grad)
         limit = self.serial_limit_s * (1.0 if grad & 1 else 0.5)
-        if time.thread_time() - t0 <= limit:
+        elapsed = time.thread_time() - t0
+        if elapsed > limit:
+            # a window's first launch also pays for what it touches first (its new events, image rows
+            # cold in the cache): a second launch decides, before the window moves (and loads a kernel)
+            t0 = time.thread_time()
+            out = self._launch(grad)
+            elapsed = time.thread_time() - t0
+        if elapsed <= limit:
             self._schedules.serial_upto = max(self._schedules.serial_upto, self.n_events)
             return out
         learnt = self._schedules.parallel_from
