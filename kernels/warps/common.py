@@ -121,10 +121,10 @@ def rodrigues(u, rot):
     clamps ``r`` into ``[-pi/4, pi/4]`` (beyond ``phi ~ 1e7`` in f32, ``1e15`` in f64, the rounding of
     ``phi`` exceeds pi and the reduction keeps no digit: the values stay finite, as bounded as sin and
     cos). Two polynomials rather than one per coefficient and slope (four): the event loops that call
-    this are bound by its arithmetic. No call into the maths library, so that LLVM can if-convert the
-    branch and vectorize where it can. Shared by ``rotation3`` (the rotation of a ray by ``phi = |w|
-    dt``) and ``se2`` (the planar rotation ``e^{i theta}`` and ``(e^{i theta} - 1) / (i theta)`` of its
-    exponential).
+    this are bound by its arithmetic. No call into the maths library (an opaque call per event), so
+    that LLVM can if-convert the branch and vectorize where it can. Shared by ``rotation3`` (the
+    rotation of a ray by ``phi = |w| dt``) and ``se2`` (the planar rotation ``e^{i theta}`` and
+    ``(e^{i theta} - 1) / (i theta)`` of its exponential).
     """
     v = 0.25 * u
     big = v > HALF_ANGLE_MAX * HALF_ANGLE_MAX

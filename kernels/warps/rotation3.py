@@ -12,8 +12,8 @@ omitted term is below an eighth of the machine epsilon of the precision in use
 that precision; ``s1``, ``s2`` and their slopes ``ds1/du``, ``ds2/du`` all come from these two
 (``common.rodrigues``). Beyond, the half angle is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]``
 first (in a branch: a square root, a ``floor``, a division; the same polynomials), with an error of
-about the rounding of ``phi`` itself. No event calls the maths library: a libm call in the event loop
-kept LLVM from vectorizing the gradient gather (rotation3 cost 8x translation2 per event).
+about the rounding of ``phi`` itself. No event calls the maths library: with libm calls in its event
+loops rotation3 cost 8x translation2 per event (docs/performance.md).
 ``warp_terms`` computes the warp, ``det`` and ``param_jac`` of an event from one evaluation (the fused
 kernels call it, so they rotate each ray once); ``warp``, ``det`` and ``param_jac`` are its parts. The
 parameter Jacobian is ``dX'/dw = -c1 [X]x + c2 w X^T + c2 (w . X) I + (g - 2 c2 X) w^T`` projected row

@@ -5,7 +5,7 @@ In complex notation ``x'~ = e^z x~ + E(z) u`` with ``z = i theta``, ``theta = -d
 v_y)`` and ``E(z) = (e^z - 1) / z``. On the imaginary axis ``e^{i theta} = (1 - theta^2 s2) + i theta s1``
 and ``E(i theta) = s1 + i theta s2`` with rotation3's Rodrigues coefficients ``s1 = sin(theta) /
 theta``, ``s2 = (1 - cos theta) / theta^2`` at ``theta^2`` (``common.rodrigues``: truncated series exact
-to the precision in use, no maths-library call per event, so the fused gather vectorizes), and
+to the precision in use, no maths-library call per event), and
 ``E'(i theta) = (s2 + 2 theta^2 ds2/du) - i 2 theta ds1/du`` (``E' = -i dE/dtheta``; beyond the
 series' range the equal ``(e^z - E) / z``, which does not overflow). ``sim2`` keeps the
 general complex exponential of ``common.py`` (its real part ``e^{-dt s}`` is an ``exp`` per event).
