@@ -66,13 +66,14 @@ def _self_cpu() -> float:
 def eventemin_folder(source: Path, folder: Path, width: int, height: int) -> Path:
     """``folder`` with ``source``'s events and its calibration in EventEMin's format.
 
-    The events are copied without the file's final newline: EventEMin's readers loop ``while
-    (!fin.eof())``, so after the last line they read once more from an exhausted stream, into an
-    uninitialised event whose pixel then indexes the undistortion map (``event/io.h``): a SIGSEGV or not,
-    by chance (its incremental example died so on the shared poster_rotation cut)."""
+    The events are copied without the file's trailing whitespace (its final newline, a ``\\r`` of a
+    Windows line end): EventEMin's readers loop ``while (!fin.eof())``, so after the last line they
+    read once more from an exhausted stream, into an uninitialised event whose pixel then indexes the
+    undistortion map (``event/io.h``): a SIGSEGV or not, by chance (its incremental example died so on
+    the shared poster_rotation cut)."""
     folder.mkdir(parents=True)
     text = (source / "events.txt").read_text()
-    (folder / "events.txt").write_text(text.rstrip("\n"))
+    (folder / "events.txt").write_text(text.rstrip())
     lines = [ln for ln in (source / "calib.txt").read_text().splitlines() if ln.strip()]
     if len(lines) == 1:
         lines.append(f"{width} {height}")
