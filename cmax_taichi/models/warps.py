@@ -84,6 +84,14 @@ class WarpModel:
         ``det dx'/dx > 0`` wherever an event can be warped, for every theta. The fused backward then
         differentiates ``|det|`` as ``det``; otherwise it multiplies ``d det/d theta`` by the sign of
         ``det`` (one more ``det`` per event when a deformation regularizer is used).
+    store_event_terms : bool
+        A performance declaration for a model whose ``warp_terms`` is costly per event (``rotation3``):
+        the fused CPU kernel evaluates it once per event and call, stores the position, quantities and
+        Jacobians (``2 + 2 P`` to ``4 + 4 P`` numbers per event, by the voted regularizers) and reads
+        them in the splat and in the gradient's gather, rather than evaluating it in both. Values and
+        gradients agree with the unstored kernel to rounding. Declare it only where it is measured
+        faster: for a cheap warp the stored terms' memory traffic costs more than the arithmetic they
+        save (docs/performance.md). GPUs (atomic adds) ignore it.
     scale_kinds : tuple of str, optional
         One of :data:`SCALE_KINDS` per parameter, for the optimizer's scaling and search box. Default:
         from ``units`` (px/s: "velocity"; 1/s, rad/s: "rate"); a model with any other unit gets its
@@ -107,6 +115,7 @@ class WarpModel:
     warp_terms: Callable | None = None
     constant_quantities: tuple[str, ...] = ()
     positive_det: bool = False
+    store_event_terms: bool = False
     scale_kinds: tuple[str, ...] | None = None
     needs_camera: bool = False
     collapse_enabled: bool = False
