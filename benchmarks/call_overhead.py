@@ -91,15 +91,23 @@ def _kernel(fused):
 
 
 def _kernel_call(fused, theta):
-    """``(args, c_args)`` of one gradient launch of ``fused``'s kernel: ``(n, events, params, grad, out)``
-    since the window's constants went into one params array, ``(n, events, theta_0..theta_7, grad, out)``
-    before (both are timed by this script)."""
+    """``(args, c_args)`` of one gradient launch of ``fused``'s kernel: ``(n, events, terms, params, grad,
+    out)`` since the kernel takes the stored event terms, ``(n, events, params, grad, out)`` since the
+    window's constants went into one params array, ``(n, events, theta_0..theta_7, grad, out)`` before
+    (all are timed by this script)."""
+
+    def host(array):  # a _HostArray's NumPy array, or a Taichi ndarray
+        return array.array if hasattr(array, "address") else array
+
     if hasattr(fused, "_params"):
         fused._params.array[: theta.size] = theta
         events = fused.events
-        host = events.array if hasattr(events, "address") else events
         out = np.zeros_like(fused._out.array)
-        args = (fused.n_events, host, fused._params.array, 1, out)
+        if hasattr(fused, "_terms"):
+            terms = fused._terms
+            args = (fused.n_events, host(events), host(terms), fused._params.array, 1, out)
+            return args, (fused.n_events, events, terms, fused._params.array, 1, out)
+        args = (fused.n_events, host(events), fused._params.array, 1, out)
         return args, (fused.n_events, events, fused._params.array, 1, out)
     args = (fused.n_events, fused.events, *[float(v) for v in theta], *[0.0] * 6, 1, np.zeros(4))
     return args, None

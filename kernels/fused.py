@@ -4,7 +4,7 @@ Why: the chain of small kernels of ``iwe.py`` / ``objectives.py`` / ``maps.py`` 
 Taichi's reverse mode spends its time in atomics (compare-and-swap loops for float adds on the CPU,
 ~15 ns each: every scatter, every transposed blur, every reduction into a 0-D *vector* field, which
 Taichi does not make thread-local) and in kernel launches (~10-40 us each from Python). Here one
-kernel ``run(n, ev, params, grad, out)`` holds every stage as its own task (Taichi runs the
+kernel ``run(n, ev, terms, params, grad, out)`` holds every stage as its own task (Taichi runs the
 top-level loops of a kernel one after the other, each in parallel):
 
 1. serial: theta and the window's constants (``params``, :func:`params_layout`) into 0-D fields,
@@ -13,7 +13,12 @@ top-level loops of a kernel one after the other, each in parallel):
    map numerators ``N_r`` of ``acc[s, y, x, k]``, and marks the segments it touches (``tiles.py``).
    On the CPU the events are split into one chunk per thread ``s``, each voting with plain loads and
    stores into its own slice ``s``; on a GPU one slice takes atomic adds. Without weights and
-   per-polarity channels the IWE votes equal the count votes, and one channel serves both;
+   per-polarity channels the IWE votes equal the count votes, and one channel serves both. Where the
+   model declares ``store_event_terms`` (CPU, ``make_fused_kernels(store_terms=True)``), a loop of its
+   own first writes each event's warped position, voted quantities and (when the gradient is asked)
+   parameter Jacobians into ``terms`` (:func:`terms_width` rows, one column per event: each row is read
+   and written contiguously), and the splat reads them: an event's costly warp is evaluated once per
+   call, not again in stage 8, and the loop that evaluates it carries no scattered votes;
 3. rows: the touched segments ``F0`` of the row and their x-dilations; at the touched pixels, sum the
    slices and reduce the maps (``sum m``, ``sum m P_r``) into the row's partial sums; clear what the
    previous call left in ``tmp`` outside the new ``Rx`` (``F0`` and ``r`` columns); blur along x into
@@ -41,8 +46,9 @@ top-level loops of a kernel one after the other, each in parallel):
 8. events (``grad``): dJ/dtheta as a *gather*:
    ``dJ/dtheta = sum_k sum_corners d/dtheta [beta_k (b_k adj_ch + |b_k| adj_C + |b_k| sum_r q_rk adj_r)]``
    with ``adj`` held fixed, using the closed-form parameter Jacobians each model declares
-   (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop); on the CPU
-   each slice's sum goes into its own field, added in slice order;
+   (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop), or the
+   stored ``terms`` of stage 2; on the CPU each slice's sum goes into its own field, added in slice
+   order;
 9. serial: ``out = (J, G_raw, dJ/dtheta, J with G0 = G_raw)`` (the last: at the identity, the
    normalised J of every later evaluation there).
 
@@ -71,6 +77,13 @@ from . import fused_common as _c
 from . import tiles as _t
 
 MAX_PARAMS = 8  # theta's slots in ``params``
+
+
+def terms_width(n_params: int, n_voted: int) -> int:
+    """Rows of the stored event terms (``store_terms``) per event: the warped position (2), the voted
+    quantities (``n_voted``), the parameter Jacobian of the position (``2 n_params``, row-major) and of
+    each voted quantity (``n_voted n_params``)."""
+    return 2 + n_voted + 2 * n_params + n_voted * n_params
 
 
 def params_layout(n_regs: int) -> dict:
@@ -209,6 +222,7 @@ def make_fused_kernels(
     warp_terms=None,
     positive_det: bool = True,
     serial: bool = False,
+    store_terms: bool = False,
 ):
     """The kernel ``run`` of the fused pipeline over ``fields`` (see the module docstring); the shape
     (sensor, channels, blur, slices, objective slots, Sobel) is ``fields.layout``'s.
@@ -231,7 +245,12 @@ def make_fused_kernels(
     (warp, det, jx, ddet, ddiv)`` is the model's optional joint evaluation (e.g.
     ``kernels/warps/rotation3.py``: one rotation of the ray serves all five); without it the kernels
     compose it from ``warp_fn``, ``det_fn`` and ``param_jac``. The event loops use only what they need
-    of it (the rest is dead code to the compiler).
+    of it (the rest is dead code to the compiler). ``store_terms`` (the model's ``store_event_terms``;
+    ignored with atomic adds) evaluates it once per event and call into the ``terms`` argument (a
+    ``(terms_width(P, n_voted), n)`` array of the kernel's float type; otherwise any ``(1, 1)`` one),
+    which the splat and the gather read: the same sums of the same terms, so value and gradient agree
+    with the unstored kernel to rounding (about 1e-14 relative in f64: the compiler contracts the
+    products differently when a loop stores them).
     """
     f, P = fields, fields.n_params
     real, W, H, C, r_, S, shared_count, SL, sobel = astuple(f.layout)
@@ -264,6 +283,12 @@ def make_fused_kernels(
     red, gsum = f.red, f.gsum
     i_m = SL * C  # red[i_m] = sum m, red[i_m + 1 + r] = sum m P_r
     ev_type, out_type = events.ndarray_type(real), _c.F64_ARRAY
+    # (a Taichi primitive type of its own: ``real`` may be the default float alias, which ndarray
+    # annotations do not take)
+    terms_type = ti.types.ndarray(dtype=ti.f64 if real == ti.f64 else ti.f32, ndim=2)
+    store = bool(store_terms) and not atomic_scatter
+    T_Q, T_V, T_J = 0, 2, 2 + RV  # rows of the stored terms: position, quantities, Jacobians
+    T_DQ = T_J + 2 * P
     slots_at = params_layout(R)
     p_theta, p_ctx, p_g0, p_lam = slots_at["theta"], slots_at["ctx"], slots_at["g0"], slots_at["lam"]
     n_lam = slots_at["n_lam"]
@@ -299,13 +324,25 @@ def make_fused_kernels(
         return vals
 
     @ti.func
-    def splat_event(s, e, theta, c):
-        p, dt, b, ch = event(e)
-        # everything that depends on theta only (trigonometry) must be computed unconditionally at
-        # the top of the event loop, or LLVM cannot hoist it out of the loop
-        terms = warp_terms(p, dt, theta, c)  # its Jacobians are dead code here
-        q = terms[0]
-        vals = quantities(p, dt, theta, c, terms[1])
+    def quantity_slopes(terms):
+        """d q_v / d theta of the voted quantities, a ``RV x P`` matrix, from ``warp_terms``' output (the
+        "absdet" rows signed where the model's det may be negative: d|det| = -d det where det < 0)."""
+        dq = ti.Matrix.zero(real, max(RV, 1), P)
+        ddet = terms[3]
+        if ti.static(not positive_det and "absdet" in quantity_kinds):  # noqa: SIM102 - compile-time if
+            if terms[1] < 0.0:
+                ddet = -ddet
+        for v in ti.static(range(RV)):
+            for j in ti.static(range(P)):
+                if ti.static(quantity_kinds[voted[v]] == "div"):
+                    dq[v, j] = terms[4][j]
+                else:
+                    dq[v, j] = ddet[j]
+        return dq
+
+    @ti.func
+    def splat_at(s, q, vals, b, ch):
+        """The bilinear votes of an event warped to ``q`` with voted quantities ``vals``."""
         if _b.in_window(q, W, H):
             ix, iy, ax, ay = _b.bilinear_footprint(q)
             tiles.mark(tf, ix, iy)
@@ -323,6 +360,55 @@ def make_fused_kernels(
                                 vote(s, iy + dy, ix + dx, i_num + v, ab * w * vals[v])
 
     @ti.func
+    def splat_event(s, e, theta, c):
+        p, dt, b, ch = event(e)
+        # everything that depends on theta only (trigonometry) must be computed unconditionally at
+        # the top of the event loop, or LLVM cannot hoist it out of the loop
+        terms = warp_terms(p, dt, theta, c)  # its Jacobians are dead code here
+        splat_at(s, terms[0], quantities(p, dt, theta, c, terms[1]), b, ch)
+
+    @ti.func
+    def put_terms(tm: ti.template(), i, e, theta, c, with_jacobians: ti.template()):
+        """Stage 2 with stored terms: event ``i``'s position, quantities (and Jacobians) into ``tm``."""
+        p, dt, b, ch = event(e)
+        terms = warp_terms(p, dt, theta, c)  # unconditionally: see splat_event
+        q = terms[0]
+        vals = quantities(p, dt, theta, c, terms[1])
+        tm[T_Q, i] = q[0]
+        tm[T_Q + 1, i] = q[1]
+        for v in ti.static(range(RV)):
+            tm[T_V + v, i] = vals[v]
+        if ti.static(with_jacobians):
+            jx = terms[2]
+            dq = quantity_slopes(terms)
+            for k in ti.static(range(2)):
+                for j in ti.static(range(P)):
+                    tm[T_J + P * k + j, i] = jx[k, j]
+            for v in ti.static(range(RV)):
+                for j in ti.static(range(P)):
+                    tm[T_DQ + P * v + j, i] = dq[v, j]
+
+    @ti.func
+    def stored_position(tm: ti.template(), i):
+        """Event ``i``'s stored position and voted quantities."""
+        vals = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
+        for v in ti.static(range(RV)):
+            vals[v] = tm[T_V + v, i]
+        return ti.Vector([tm[T_Q, i], tm[T_Q + 1, i]]), vals
+
+    @ti.func
+    def stored_jacobians(tm: ti.template(), i):
+        """Event ``i``'s stored Jacobians of the position (2 x P) and of the voted quantities (RV x P)."""
+        jx = ti.Matrix.zero(real, 2, P)
+        dq = ti.Matrix.zero(real, max(RV, 1), P)
+        for j in ti.static(range(P)):
+            for k in ti.static(range(2)):
+                jx[k, j] = tm[T_J + P * k + j, i]
+            for v in ti.static(range(RV)):
+                dq[v, j] = tm[T_DQ + P * v + j, i]
+        return jx, dq
+
+    @ti.func
     def corner_terms(iy, ix, ch, b, vals):
         """The adjoint gathered at one pixel: (b adj_ch + |b| adj_C + |b| sum_r q_r adj_r, adj_r)."""
         ab = ti.abs(b)
@@ -337,18 +423,9 @@ def make_fused_kernels(
         return a, nr
 
     @ti.func
-    def event_grad(e, theta, c):
-        """dJ/dtheta contribution of one event (hand-written, float64)."""
-        p, dt, b, ch = event(e)
-        terms = warp_terms(p, dt, theta, c)  # unconditionally: see splat_event
-        q = terms[0]
-        vals = quantities(p, dt, theta, c, terms[1])
-        jx = terms[2]
-        ddet = terms[3]
-        ddiv = terms[4]
-        if ti.static(not positive_det and "absdet" in quantity_kinds):  # noqa: SIM102 - compile-time if
-            if terms[1] < 0.0:  # d|det| = -d det where det < 0
-                ddet = -ddet
+    def grad_at(q, vals, jx, dq, b, ch):
+        """dJ/dtheta of an event warped to ``q`` (quantities ``vals``; Jacobians ``jx`` of the position,
+        ``dq`` of the quantities), hand-written, float64."""
         g = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
         if _b.in_window(q, W, H):
             ix, iy, ax, ay = _b.bilinear_footprint(q)
@@ -367,12 +444,25 @@ def make_fused_kernels(
             for j in ti.static(range(P)):
                 gj = ga * jx[0, j] + gb * jx[1, j]
                 for v in ti.static(range(RV)):
-                    if ti.static(quantity_kinds[voted[v]] == "div"):
-                        gj += gv[v] * ddiv[j]
-                    else:  # d|det|/dtheta (signed above where the model's det may be negative)
-                        gj += gv[v] * ddet[j]
+                    gj += gv[v] * dq[v, j]
                 g[j] = ti.cast(gj, ti.f64)
         return g
+
+    @ti.func
+    def event_grad(e, theta, c):
+        """dJ/dtheta contribution of one event, its terms evaluated here."""
+        p, dt, b, ch = event(e)
+        terms = warp_terms(p, dt, theta, c)  # unconditionally: see splat_event
+        vals = quantities(p, dt, theta, c, terms[1])
+        return grad_at(terms[0], vals, terms[2], quantity_slopes(terms), b, ch)
+
+    @ti.func
+    def stored_event_grad(tm: ti.template(), i, e):
+        """dJ/dtheta contribution of event ``i`` from its stored terms."""
+        p, dt, b, ch = event(e)
+        q, vals = stored_position(tm, i)
+        jx, dq = stored_jacobians(tm, i)
+        return grad_at(q, vals, jx, dq, b, ch)
 
     seg = _t.SegmentPasses(W, H, r_)  # blurs, stores and clears of one segment
     load_taps, blur_x_segment, blur_y_segment = seg.load_taps, seg.blur_x, seg.blur_y
@@ -552,6 +642,7 @@ def make_fused_kernels(
     def run(
         n: ti.i32,
         ev: ev_type,
+        terms: terms_type,
         params: out_type,
         grad: ti.i32,
         out: out_type,
@@ -580,8 +671,21 @@ def make_fused_kernels(
                 lo, hi = slice_events(s, n)
                 theta = theta_vec()
                 c = f.ctx[None]
-                for i in range(lo, hi):
-                    splat_event(s, ev[i], theta, c)
+                if ti.static(store):
+                    # the warps in a loop without scattered votes, then the votes from the stored terms
+                    if grad & 1 != 0:
+                        for i in range(lo, hi):
+                            put_terms(terms, i, ev[i], theta, c, True)
+                    else:
+                        for i in range(lo, hi):
+                            put_terms(terms, i, ev[i], theta, c, False)
+                    for i in range(lo, hi):
+                        _, _, b, ch = event(ev[i])
+                        q, vals = stored_position(terms, i)
+                        splat_at(s, q, vals, b, ch)
+                else:
+                    for i in range(lo, hi):
+                        splat_event(s, ev[i], theta, c)
         # --- 3. rows (each row by itself): F0 and its x-dilations; at the touched pixels the slice sums
         #        and the map reductions; tmp: what the previous call left outside Rx cleared, blur along x
         ti.loop_config(block_dim=row_block, serialize=serial)
@@ -725,8 +829,12 @@ def make_fused_kernels(
                     theta = theta_vec()
                     c = f.ctx[None]
                     gacc = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
-                    for i in range(lo, hi):
-                        gacc += event_grad(ev[i], theta, c)
+                    if ti.static(store):
+                        for i in range(lo, hi):
+                            gacc += stored_event_grad(terms, i, ev[i])
+                    else:
+                        for i in range(lo, hi):
+                            gacc += event_grad(ev[i], theta, c)
                     for j in ti.static(range(P)):
                         f.gpart[s, j] = gacc[j]
         # --- 9. serial: results (the slices' sums in slice order) ------------------------------------------

@@ -217,3 +217,45 @@ def test_cpu_events_packed_in_row_order_none_lost():
     (jf, gf), (jc, gc) = fused.value_and_grad(theta), chain.value_and_grad(theta)
     np.testing.assert_allclose(jf, jc, rtol=1e-10)
     np.testing.assert_allclose(gf, gc, rtol=1e-8, atol=1e-10 * np.max(np.abs(gc)))
+
+
+@pytest.mark.parametrize("loops", ["serial", "parallel"])
+def test_stored_event_terms_equal_the_unstored_kernel(monkeypatch, loops):
+    """rotation3 declares store_event_terms (its warp once per event and call, stored for the gather):
+    value and gradient equal the kernel that evaluates the warp in both event loops, to rounding, with
+    both regularizers, vote weights and split polarity, in both CPU schedules; a bigger window after a
+    small one reallocates the stored terms; the atomic (GPU-style) path ignores the declaration."""
+    from cmax_taichi.kernels.warps import rotation3
+
+    stored = cm.get_warp("rotation3")
+    assert stored.store_event_terms
+    unstored = cm.WarpModel.from_module(rotation3, store_event_terms=False)
+    monkeypatch.setattr(FusedPipeline, "loops", loops)
+    theta = np.asarray(THETAS["rotation3"])
+    cases = [dict(regularizers=BOTH), dict(regularizers=BOTH, polarity="split"),
+             dict(regularizers={"deformation": 1.0}, weights=np.linspace(0.2, 1.5, 400)), dict()]  # fmt: skip
+    for options in cases if loops == "parallel" else cases[:1]:  # (each case compiles its kernels)
+        a = _problem(stored, **options)
+        b = _problem(unstored, **options)
+        assert a._fused._terms_rows > 0 and b._fused._terms_rows == 0
+        for scale in (0.0, 1.0, -2.5):
+            v1, g1 = a.value_and_grad(theta * scale)
+            v2, g2 = b.value_and_grad(theta * scale)
+            assert v1 == pytest.approx(v2, rel=1e-12, abs=1e-14)
+            np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-12 * max(1.0, np.max(np.abs(g2))))
+            assert a.value(theta * scale) == pytest.approx(v2, rel=1e-12, abs=1e-14)
+    small = _problem(stored, n=100, regularizers=BOTH)
+    big = _problem(stored, n=3000, seed=2, regularizers=BOTH)
+    ref = _problem(unstored, n=3000, seed=2, regularizers=BOTH)
+    assert small._fused._terms.shape[1] < big._fused._terms.shape[1]
+    small.value_and_grad(theta)
+    v1, g1 = big.value_and_grad(theta)
+    v2, g2 = ref.value_and_grad(theta)
+    assert v1 == pytest.approx(v2, rel=1e-12)
+    np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-12 * np.max(np.abs(g2)))
+    atomic = _problem(stored, "atomic", regularizers=BOTH)
+    assert atomic._fused._terms_rows == 0
+    v3, g3 = atomic.value_and_grad(theta)
+    v4, g4 = _problem(unstored, regularizers=BOTH).value_and_grad(theta)
+    assert v3 == pytest.approx(v4, rel=1e-11)
+    np.testing.assert_allclose(g3, g4, rtol=1e-8, atol=1e-10 * np.max(np.abs(g4)))

@@ -36,6 +36,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import taichi as ti
 from taichi.lang import impl as ti_impl
 
 from cmax_taichi.core import backend, workspace
@@ -310,6 +311,7 @@ class FusedPipeline:
                     warp_terms=model.warp_terms,
                     positive_det=model.positive_det,
                     serial=serial,
+                    store_terms=model.store_event_terms,
                 )
 
             self._ws.kernels[kkey] = _Schedules(build_kernel)
@@ -325,6 +327,16 @@ class FusedPipeline:
         self._out = _HostArray(np.zeros(3 + P))  # J, G_raw, dJ/dtheta, J with G0 = G_raw
         self._event_buffer = None  # GPU: the pooled device buffer of the events
         self._packed = None
+        # the kernel's stored event terms (kernels/fused.py, stage 2): a (rows, capacity) host array
+        # where the model declares store_event_terms on the CPU; otherwise a (1, 1) placeholder
+        self._terms_rows = kfused.terms_width(P, n_voted) if model.store_event_terms and not atomic else 0
+        if atomic:  # an ndarray on a GPU (one per workspace: Taichi frees no ndarray it made)
+            if getattr(self._ws, "no_terms", None) is None:
+                self._ws.no_terms = ti.ndarray(backend.real(), shape=(1, 1))
+            self._no_terms = self._ws.no_terms
+        else:
+            self._no_terms = _HostArray(np.zeros((1, 1), dtype=backend.numpy_real()))
+        self._terms = self._no_terms
         self._taps = None
         self.load_window(problem, vote_w)
 
@@ -390,7 +402,10 @@ class FusedPipeline:
             self.events = self._event_buffer.array
         else:
             self.events = _HostArray(self._packed[:n], vector=True)
-        self.event_bytes = self._packed.nbytes
+            if self._terms_rows and self._terms.shape[1] != capacity:
+                rows = self._terms_rows
+                self._terms = _HostArray(np.zeros((rows, capacity), dtype=backend.numpy_real()))
+        self.event_bytes = self._packed.nbytes + (self._terms.nbytes if self._terms_rows else 0)
 
     def _choose_schedule(self, n: int) -> None:
         """The loop schedule of a window of ``n`` events (class attribute :attr:`loops`)."""
@@ -467,15 +482,17 @@ class FusedPipeline:
             ctx = launcher.ctx
             ctx.set_arg_int((0,), self.n_events)
             launcher.set_array(1, self.events)
-            launcher.set_array(2, self._params)
-            ctx.set_arg_int((3,), grad)
-            launcher.set_array(4, self._out)
+            launcher.set_array(2, self._terms)
+            launcher.set_array(3, self._params)
+            ctx.set_arg_int((4,), grad)
+            launcher.set_array(5, self._out)
             launcher.launch()
             return self._out.array
         self._compiling = True  # (or loading from the offline cache: not a measure of the window)
         kernel = self._schedules.kernel(serial)
         events = self.events.array if isinstance(self.events, _HostArray) else self.events
-        call = (self.n_events, events, self._params.array, grad, self._out.array)
+        terms = self._terms.array if isinstance(self._terms, _HostArray) else self._terms
+        call = (self.n_events, events, terms, self._params.array, grad, self._out.array)
         with backend.hand_written_gradient_kernels():  # their compile settings (read when it compiles)
             kernel(*call)
             # the next calls launch the compiled kernel directly
