@@ -35,6 +35,9 @@ MODEL = {
     "constant_quantities": (),
     "positive_det": True,  # det = 1 / z^3 with z clamped to MIN_RAY_Z > 0
     "needs_camera": True,
+    # its warp_terms is the costliest per event of the built-in models: evaluated once per event and
+    # call, stored for the gather (docs/performance.md, "stored event terms")
+    "store_event_terms": True,
     "description": "3-DOF camera rotation (SO(3), needs intrinsics)",
 }
 
