@@ -1,6 +1,7 @@
 """Median ``value_and_grad`` of a few benchmark rows through the library's benchmark implementation:
-``python benchmarks/ab_rows.py [--small | --issue20 | --rotation] [--repeats-scale S]``. Run it with each
-version's environment, alternating, to compare two versions on one machine (docs/performance.md).
+``python benchmarks/ab_rows.py [--small | --issue20 | --rotation] [--value] [--repeats-scale S]``. Run it
+with each version's environment, alternating, to compare two versions on one machine
+(docs/performance.md).
 
 Row sets: by default six windows, small and large (100 calls each, 15 at 1M events); ``--small``: the
 eight small rows that one pair of full runs showed slower after issue 16 (60 calls each); ``--issue20``:
@@ -8,7 +9,8 @@ rows of issue 20's grid (the full sweep's textured and uniform windows of ``cmax
 bench_windows.py``, which this script loads from its own checkout, so that an older version runs the
 same windows; the textured streams come from the shared cache, simulated once); ``--rotation``: issue 20's
 rotation3 / translation2 pair at 300,000 edge events on 240x180 (20 calls each, three alternating rounds,
-and their events-per-second ratio from the medians). Each row prints the
+and their events-per-second ratio from the medians). ``--value`` times the value-only call (``value``,
+what the global searches call) instead of ``value_and_grad``. Each row prints the
 wall median and the CPU time per call (all threads, ``getrusage``: on a shared machine the wall time
 mostly measures the other processes).
 """
@@ -101,8 +103,11 @@ def _cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def time_row(n: int, sensor: str, warp: str, regs: str, repeats: int, kind: str = "edges"):
-    """``(wall median ms, CPU ms per call)`` of one ``value_and_grad`` after three warm-up calls."""
+def time_row(
+    n: int, sensor: str, warp: str, regs: str, repeats: int, kind: str = "edges", *, value_only: bool = False
+):
+    """``(wall median ms, CPU ms per call)`` of one ``value_and_grad`` (``value_only``: one ``value``)
+    after three warm-up calls."""
     cfg = bench_impls.BenchConfig(n, sensor, warp, regs)
     if kind == "edges":
         win = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
@@ -110,13 +115,14 @@ def time_row(n: int, sensor: str, warp: str, regs: str, repeats: int, kind: str 
         win = _windows_module().window(kind, n, cfg.sensor, seed=n % 9973, stream_events=STREAM_EVENTS)
     impl = bench_impls.build_taichi(win, cfg)
     theta = np.asarray(bench_impls.THETAS[warp], dtype=np.float64)
+    call = impl.value if value_only else impl.vg
     for _ in range(3):
-        impl.vg(theta)
+        call(theta)
     times = []
     c0 = _cpu_seconds()
     for _ in range(repeats):
         t = time.perf_counter()
-        impl.vg(theta)
+        call(theta)
         times.append(time.perf_counter() - t)
     cpu = (_cpu_seconds() - c0) / repeats
     return float(np.median(times)) * 1e3, cpu * 1e3
@@ -127,14 +133,14 @@ def median_ms(n: int, sensor: str, warp: str, regs: str, repeats: int) -> float:
     return time_row(n, sensor, warp, regs, repeats)[0]
 
 
-def _rotation_ratio(repeats: int, rounds: int = 3) -> int:
+def _rotation_ratio(repeats: int, rounds: int = 3, *, value_only: bool = False) -> int:
     """The rotation rows in alternating rounds; rotation3's events per second over translation2's, from
     the medians over the rounds of the wall and of the CPU time per call."""
     walls: dict[str, list[float]] = {}
     cpus: dict[str, list[float]] = {}
     for r in range(rounds):
         for n, sensor, warp, regs, kind in ROTATION_ROWS:
-            wall, cpu = time_row(n, sensor, warp, regs, repeats, kind)
+            wall, cpu = time_row(n, sensor, warp, regs, repeats, kind, value_only=value_only)
             walls.setdefault(warp, []).append(wall)
             cpus.setdefault(warp, []).append(cpu)
             line = f"round {r} {n:8d} {sensor:9s} {kind:9s} {warp:13s} {wall:8.3f} ms  cpu {cpu:8.3f} ms"
@@ -150,8 +156,9 @@ def main(argv: list[str]) -> int:
     scale = 1.0
     if "--repeats-scale" in argv:
         scale = float(argv[argv.index("--repeats-scale") + 1])
+    value_only = "--value" in argv
     if "--rotation" in argv:
-        return _rotation_ratio(max(5, int(scale * 20)))
+        return _rotation_ratio(max(5, int(scale * 20)), value_only=value_only)
     if "--issue20" in argv:
         rows = ISSUE20_ROWS
         repeats = [max(5, int(scale * (15 if n >= 300_000 else 100))) for n, *_ in rows]
@@ -162,7 +169,7 @@ def main(argv: list[str]) -> int:
         rows = DEFAULT_ROWS
         repeats = [max(5, int(scale * (15 if n >= 1_000_000 else 100))) for n, *_ in rows]
     for (n, sensor, warp, regs, kind), reps in zip(rows, repeats, strict=True):
-        wall, cpu = time_row(n, sensor, warp, regs, reps, kind)
+        wall, cpu = time_row(n, sensor, warp, regs, reps, kind, value_only=value_only)
         line = f"{n:8d} {sensor:9s} {kind:9s} {warp:13s} {regs:8s} {wall:8.3f} ms  cpu {cpu:8.3f} ms"
         print(line, flush=True)
     return 0

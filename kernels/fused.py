@@ -18,7 +18,10 @@ top-level loops of a kernel one after the other, each in parallel):
    own first writes each event's warped position, voted quantities and (when the gradient is asked)
    parameter Jacobians into ``terms`` (:func:`terms_width` rows, one column per event: each row is read
    and written contiguously), and the splat reads them: an event's costly warp is evaluated once per
-   call, not again in stage 8, and the loop that evaluates it carries no scattered votes;
+   call, not again in stage 8, and the loop that evaluates it carries no scattered votes. A
+   value-only launch leaves the Jacobians out (dead code): fast math then compiles the position's
+   arithmetic differently, and its value may differ from that of ``value_and_grad`` in the last bits
+   (a few ulps; storing them there too cost value-only calls 50-90%, docs/performance.md);
 3. rows: the touched segments ``F0`` of the row and their x-dilations; at the touched pixels, sum the
    slices and reduce the maps (``sum m``, ``sum m P_r``) into the row's partial sums; clear what the
    previous call left in ``tmp`` outside the new ``Rx`` (``F0`` and ``r`` columns); blur along x into
@@ -673,6 +676,7 @@ def make_fused_kernels(
                 c = f.ctx[None]
                 if ti.static(store):
                     # the warps in a loop without scattered votes, then the votes from the stored terms
+                    # (value-only: no Jacobians, at the price of the last bits of the positions, see above)
                     if grad & 1 != 0:
                         for i in range(lo, hi):
                             put_terms(terms, i, ev[i], theta, c, True)

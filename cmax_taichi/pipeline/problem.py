@@ -496,7 +496,12 @@ class ContrastMaximization(SetupView):
     # check: it holds the Taichi program it was compiled in, and a reset or re-initialisation makes a new
     # one (then the full check below runs and raises).
     def value(self, theta) -> float:
-        """Augmented objective J at ``theta`` (physical units)."""
+        """Augmented objective J at ``theta`` (physical units).
+
+        The value of :meth:`value_and_grad` to the last bit, except for a warp that declares
+        ``store_event_terms`` (rotation3) on the CPU's fused kernel: there the two agree to a few ulps
+        (the value-only launch compiles the warped positions without their Jacobians).
+        """
         fused = self._fused
         if fused is None or not fused.launch_ready():
             self._check_alive()
