@@ -244,13 +244,32 @@ def test_gpu_plan_limits():
     assert {c.sensor_name for c in plan.configs} == {"346x260", "1280x720"}
 
 
+def test_realtime_quality_columns():
+    """The translation error of a run (median over its windows, relative to the speed) on hand-made
+    window results, and its cell in the Markdown table."""
+    from types import SimpleNamespace
+
+    from cmax_taichi.lab import realtime
+
+    windows = [SimpleNamespace(theta=np.array(t, float)) for t in ([80.0, -50.0], [0.0, 0.0], [88.0, -56.0])]
+    speed = np.hypot(80.0, -50.0)
+    assert realtime._translation_error(windows, (80.0, -50.0)) == pytest.approx(10.0 / speed)
+    assert np.isnan(realtime._translation_error(windows, None))
+    # mitrokhin4: only the translation (h_x, h_y) is scored
+    four = [SimpleNamespace(theta=np.array([80.0, -50.0, 0.3, -0.1]))]
+    assert realtime._translation_error(four, (80.0, -50.0)) == 0.0
+    assert realtime._percent(0.05) == "5.0" and realtime._percent(float("nan")) == ""
+
+
 def test_realtime_factor_report(tmp_path):
     """cmax-taichi bench --realtime (lab/realtime.py) on a short simulated stream and a missing recording:
     one measured row, one skipped row, both files written."""
     from cmax_taichi.lab import realtime
 
     cases = (
-        realtime.RealtimeCase("simulated stream", "simulated", "translation2", n_events=3000),
+        realtime.RealtimeCase(
+            "simulated stream", "simulated", "translation2", n_events=3000, truth=realtime.SIMULATED_MOTION
+        ),
         realtime.RealtimeCase("absent", "no_such_recording", "translation2"),
     )
     lines = []
@@ -264,6 +283,9 @@ def test_realtime_factor_report(tmp_path):
     assert 0 < measured["real_time_factor_with_first"] < measured["real_time_factor"]
     assert 0 < measured["first_window_evaluations"] <= 150 and measured["first_window_s"] > 0
     assert measured["events_per_second"] > 1e5
+    # the quality columns: windows at the identity counted, the translation scored against the truth
+    assert 0 <= measured["identity_windows"] <= measured["windows"]
+    assert np.isfinite(measured["translation_error_median"]) and measured["translation_error_median"] >= 0
     assert skipped["status"].startswith("skipped: no ")
     text = (tmp_path / "out" / "realtime.md").read_text()
     assert "| simulated stream | translation2 | none |" in text and "| absent | translation2 |" in text

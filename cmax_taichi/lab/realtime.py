@@ -13,8 +13,15 @@ docs/performance.md.
 Cases (:data:`CASES`): ECD slider_depth with translation2, the four ECD rotation cuts with rotation3,
 MVSEC indoor_flying1 with mitrokhin4 and both regularizers, all at 5,000-event windows; the simulated
 stream (a textured plane translating at (80, -50) px/s, 240x180, ``--sim-seconds`` long) with
-translation2 and with mitrokhin4 and both regularizers; and a simulated 1280x720 stream of about one
-million events per second (the plane at (50, -30) px/s, :data:`HD_SECONDS` long) with translation2.
+translation2 and with mitrokhin4 and both regularizers, in windows of :data:`SIM_WINDOW_EVENTS` events;
+and a simulated 1280x720 stream of about one million events per second (the plane at (50, -30) px/s,
+:data:`HD_SECONDS` long) with translation2, in windows of :data:`HD_WINDOW_EVENTS` events.
+
+Each row also says how good the estimates were, so that a fast run of a degenerate solve shows: the
+windows whose estimate is the identity warp exactly (the spike of events at their integer pixel
+coordinates, the sharpest image when a window holds about a pixel of motion or less), and on the
+simulated streams the median error of the estimated translation (the first two parameters) against
+the simulated motion, relative to its speed.
 """
 
 from __future__ import annotations
@@ -39,6 +46,14 @@ HD_SENSOR = (1280, 720)
 HD_MOTION = (50.0, -30.0)  # px/s
 #: seconds of the HD stream (about 500,000 events; simulating them takes a minute or two)
 HD_SECONDS = 0.5
+#: events per window of the HD stream: the textured plane gives about 19,000 events per px of motion
+#: there, so a 5,000-event window holds 0.3 px of it and every estimate was the identity (docs/
+#: performance.md, 2026-12-04); 50,000 events (about 45 ms, 2.5 px) is a window that can be estimated
+HD_WINDOW_EVENTS = 50_000
+#: events per window of the 240x180 simulated stream: about 4,500 events per px of motion there, so a
+#: 5,000-event window holds 1.1 px and every estimate was the identity, as on the HD stream; 20,000
+#: events (about 47 ms, 4.5 px) can be estimated
+SIM_WINDOW_EVENTS = 20_000
 
 
 @dataclass(frozen=True)
@@ -50,6 +65,8 @@ class RealtimeCase:
     warp: str
     regularizers: dict = field(default_factory=dict)
     n_events: int = 5000
+    #: the simulated translation (px/s) of a simulated stream, against which the estimates are scored
+    truth: tuple[float, float] | None = None
 
 
 CASES = (
@@ -59,9 +76,24 @@ CASES = (
         for cut in ("shapes_rotation", "boxes_rotation", "dynamic_rotation", "poster_rotation")
     ),
     RealtimeCase("MVSEC indoor_flying1", "mvsec_indoor_flying1", "mitrokhin4", BOTH_REGULARIZERS),
-    RealtimeCase("simulated stream", "simulated", "translation2"),
-    RealtimeCase("simulated stream", "simulated", "mitrokhin4", BOTH_REGULARIZERS),
-    RealtimeCase("simulated 1280x720 stream", "simulated-hd", "translation2"),
+    RealtimeCase(
+        "simulated stream", "simulated", "translation2", n_events=SIM_WINDOW_EVENTS, truth=SIMULATED_MOTION
+    ),
+    RealtimeCase(
+        "simulated stream",
+        "simulated",
+        "mitrokhin4",
+        BOTH_REGULARIZERS,
+        n_events=SIM_WINDOW_EVENTS,
+        truth=SIMULATED_MOTION,
+    ),
+    RealtimeCase(
+        "simulated 1280x720 stream",
+        "simulated-hd",
+        "translation2",
+        n_events=HD_WINDOW_EVENTS,
+        truth=HD_MOTION,
+    ),
 )
 
 
@@ -101,9 +133,20 @@ def _row(case: RealtimeCase, result, wall: float, event_rate: float) -> dict:
         "first_window_evaluations": first.evaluations if first else 0,
         "real_time_factor": result.real_time_factor(),
         "real_time_factor_with_first": result.real_time_factor(skip_first=False),
+        "identity_windows": sum(1 for w in result.windows if not np.any(w.theta)),
+        "translation_error_median": _translation_error(result.windows, case.truth),
         "wall_s": wall,
         "status": "ok",
     }
+
+
+def _translation_error(windows, truth) -> float:
+    """Median over ``windows`` of ``|theta[:2] - truth| / |truth|`` (NaN without a truth)."""
+    if truth is None or not windows:
+        return float("nan")
+    truth = np.asarray(truth, dtype=np.float64)
+    errors = [float(np.linalg.norm(np.asarray(w.theta[:2]) - truth)) for w in windows]
+    return statistics.median(errors) / float(np.linalg.norm(truth))
 
 
 def run_realtime(
@@ -183,7 +226,13 @@ def run_realtime(
             f"  {row['windows']} windows, real-time factor {row['real_time_factor_with_first']:.2f} with the "
             f"first window ({row['first_window_s']:.2f} s, {row['first_window_evaluations']} evaluations), "
             f"{row['real_time_factor']:.2f} without it; warm window {row['warm_window_ms_median']:.1f} ms / "
-            f"{row['warm_evaluations_median']:g} evaluations (median)"
+            f"{row['warm_evaluations_median']:g} evaluations (median); {row['identity_windows']} window(s) "
+            f"at the identity"
+            + (
+                f", translation error {100 * row['translation_error_median']:.1f}% (median)"
+                if case.truth is not None
+                else ""
+            )
         )
         rows.append(row)
     columns = list(next((r for r in rows if r["status"] == "ok"), rows[0]).keys()) if rows else []
@@ -202,12 +251,12 @@ def markdown(rows: list[dict]) -> str:
         "| recording | warp | regularizers | events/s (M) | windows | data per window (ms) | kernels "
         "loaded + first window (s) | first window (s / evaluations) | warm window (ms / evaluations, median) "
         "| global searches after the first | real-time factor, first window included | without the first "
-        "window |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "window | windows at the identity | translation error (median, % of the speed) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if r["status"] != "ok":
-            lines.append(f"| {r['recording']} | {r['warp']} | | | | | | | | | | {r['status']} |")
+            lines.append(f"| {r['recording']} | {r['warp']} | | | | | | | | | | | | {r['status']} |")
             continue
         lines.append(
             f"| {r['recording']} | {r['warp']} | {r['regularizers']} | {r['events_per_second'] / 1e6:.2f} | "
@@ -215,6 +264,11 @@ def markdown(rows: list[dict]) -> str:
             f"{r['first_window_s']:.3f} / "
             f"{r['first_window_evaluations']} | {r['warm_window_ms_median']:.1f} / "
             f"{r['warm_evaluations_median']:g} | {r['global_searches_after_first']} | "
-            f"{r['real_time_factor_with_first']:.2f} | {r['real_time_factor']:.2f} |"
+            f"{r['real_time_factor_with_first']:.2f} | {r['real_time_factor']:.2f} | "
+            f"{r['identity_windows']} | {_percent(r['translation_error_median'])} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _percent(fraction: float) -> str:
+    return "" if not np.isfinite(fraction) else f"{100 * fraction:.1f}"
