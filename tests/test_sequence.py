@@ -7,13 +7,14 @@ import csv
 import io
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
 
 import cmax_taichi as cm
 from cmax_taichi.core import workspace
-from cmax_taichi.core.checks import EventsDroppedWarning
+from cmax_taichi.core.checks import EventsDroppedWarning, IdentityEstimateWarning
 from cmax_taichi.solve import sequence
 
 pytestmark = pytest.mark.usefixtures("f64")
@@ -233,3 +234,27 @@ def test_keep_tail_estimates_the_partial_last_window(events):
     assert kept.events["estimated"] == len(events)
     short = sequence.process(events, "translation2", max_windows=1, keep_tail=True, **options)
     assert short.events["after_max_windows"] == len(events) - 500  # counted, not dropped silently
+
+
+def _on_pixels(ev: cm.Events) -> cm.Events:
+    """``ev`` with its coordinates rounded to whole pixels, as a camera records them."""
+    return cm.Events(np.round(ev.x), np.round(ev.y), ev.t, ev.p, SENSOR)
+
+
+def test_windows_at_the_identity_are_counted_in_one_warning(events):
+    """A still scene recorded on whole pixels is sharpest unwarped: every window comes out at the
+    identity exactly, counted (``identity_windows``) and named in one IdentityEstimateWarning that says
+    what to change; a moving one raises none."""
+    still = _on_pixels(translating_edges(v=(0.0, 0.0)))
+    with pytest.warns(IdentityEstimateWarning) as caught:
+        result = sequence.process(still, "translation2", n_events=1000)
+    identity = [w for w in caught if issubclass(w.category, IdentityEstimateWarning)]
+    assert len(identity) == 1
+    message = str(identity[0].message)
+    assert "3 of 3 estimated window(s) came out at the identity warp exactly" in message
+    assert "Use windows of more events" in message
+    assert result.identity_windows() == 3 and not np.any(result.theta)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IdentityEstimateWarning)
+        moving = sequence.process(_on_pixels(events), "translation2", n_events=1000)
+    assert moving.identity_windows() == 0

@@ -45,6 +45,11 @@ class EventsDroppedWarning(RuntimeWarning):
     """Events were dropped (outside the sensor, or lost by undistortion); the message gives the counts."""
 
 
+class IdentityEstimateWarning(RuntimeWarning):
+    """Windows of a sequence were estimated at the identity warp exactly: they may hold too little
+    motion to be estimated (the message gives the count and what to change)."""
+
+
 def _is_real_number(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 

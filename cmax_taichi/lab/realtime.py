@@ -133,7 +133,7 @@ def _row(case: RealtimeCase, result, wall: float, event_rate: float) -> dict:
         "first_window_evaluations": first.evaluations if first else 0,
         "real_time_factor": result.real_time_factor(),
         "real_time_factor_with_first": result.real_time_factor(skip_first=False),
-        "identity_windows": sum(1 for w in result.windows if not np.any(w.theta)),
+        "identity_windows": result.identity_windows(),
         "translation_error_median": _translation_error(result.windows, case.truth),
         "wall_s": wall,
         "status": "ok",

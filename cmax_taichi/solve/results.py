@@ -146,6 +146,15 @@ class SequenceResult:
         """``(K,)`` window middle times, s."""
         return np.array([0.5 * (w.t_start + w.t_end) for w in self.windows])
 
+    def identity_windows(self) -> int:
+        """How many estimated windows came out at the identity warp exactly (every parameter 0).
+
+        The signature of a window that holds too little motion: at about a pixel of motion or less the
+        image of the events on their integer pixels is sharper than any warp of them (docs/estimation.md),
+        and the search keeps the identity. A static camera gives it too.
+        """
+        return sum(1 for w in self.windows if not np.any(w.theta))
+
     def real_time_factor(self, skip_first: bool = True) -> float:
         """Seconds of data per wall second (above 1: faster than the camera records).
 

@@ -461,7 +461,9 @@ def process(
     :class:`~cmax_taichi.core.checks.EventsDroppedWarning` at the end gives the totals by reason
     (partial tail, outside the sensor, undistortion, windows too small or of zero duration, gaps
     between windows, after ``max_windows``). Undistortion also warns once for the first window that
-    loses events, with the details.
+    loses events, with the details. Windows estimated at the identity warp exactly (too little motion
+    in them, or a still camera: :meth:`SequenceResult.identity_windows`) are counted in one
+    :class:`~cmax_taichi.core.checks.IdentityEstimateWarning` at the end.
     """
     if duration is None:
         n_events = checks.whole_number("n_events", n_events, 2)
@@ -615,6 +617,18 @@ def process(
     ledger.finish(stopped_early)
     result.events = ledger.as_dict()
     ledger.warn(desc["source"], n_events if duration is None else None, max_windows, stacklevel=2)
+    at_identity = result.identity_windows()
+    if at_identity:
+        warnings.warn(
+            checks.IdentityEstimateWarning(
+                f"{desc['source']}: {at_identity} of {len(result)} estimated window(s) came out at the "
+                "identity warp exactly (every parameter 0). Unless the camera and the scene were still, "
+                "those windows hold too little motion: at about a pixel of it or less, the events on "
+                "their integer pixels make a sharper image than any warp of them. Use windows of more "
+                "events (n_events=, --window) or a longer duration."
+            ),
+            stacklevel=2,
+        )
     return result
 
 
