@@ -86,12 +86,13 @@ class WarpModel:
         ``det`` (one more ``det`` per event when a deformation regularizer is used).
     store_event_terms : bool
         A performance declaration for a model whose ``warp_terms`` is costly per event (``rotation3``):
-        the fused CPU kernel evaluates it once per event and call, stores the position, quantities and
-        Jacobians (``2 + 2 P`` to ``4 + 4 P`` numbers per event, by the voted regularizers) and reads
-        them in the splat and in the gradient's gather, rather than evaluating it in both. Values and
-        gradients agree with the unstored kernel to rounding. Declare it only where it is measured
-        faster: for a cheap warp the stored terms' memory traffic costs more than the arithmetic they
-        save (docs/performance.md). GPUs (atomic adds) ignore it.
+        the fused CPU kernel on the thread pool's schedule (not the serial one of small windows, where
+        the stored terms cost more than they save) evaluates it once per event and call, stores the
+        position, quantities and Jacobians (``2 + 2 P`` to ``4 + 4 P`` numbers per event, by the voted
+        regularizers) and reads them in the splat and in the gradient's gather, rather than evaluating
+        it in both. Values and gradients agree with the unstored kernel to rounding. Declare it only
+        where it is measured faster: for a cheap warp the stored terms' memory traffic costs more than
+        the arithmetic they save (docs/performance.md). GPUs (atomic adds) ignore it.
     scale_kinds : tuple of str, optional
         One of :data:`SCALE_KINDS` per parameter, for the optimizer's scaling and search box. Default:
         from ``units`` (px/s: "velocity"; 1/s, rad/s: "rate"); a model with any other unit gets its

@@ -311,7 +311,10 @@ class FusedPipeline:
                     warp_terms=model.warp_terms,
                     positive_det=model.positive_det,
                     serial=serial,
-                    store_terms=model.store_event_terms,
+                    # the pool's schedule only: on one thread (windows of at most serial_max_events) the
+                    # stored terms' second loop and traffic cost more than the second warp they save
+                    # (1,000 rotation3 events with both regularizers: +7%, docs/performance.md)
+                    store_terms=model.store_event_terms and not serial,
                 )
 
             self._ws.kernels[kkey] = _Schedules(build_kernel)
@@ -328,7 +331,8 @@ class FusedPipeline:
         self._event_buffer = None  # GPU: the pooled device buffer of the events
         self._packed = None
         # the kernel's stored event terms (kernels/fused.py, stage 2): a (rows, capacity) host array
-        # where the model declares store_event_terms on the CPU; otherwise a (1, 1) placeholder
+        # where the model declares store_event_terms on the CPU (the pool's schedule writes it, the
+        # serial one does not use it); otherwise a (1, 1) placeholder
         self._terms_rows = kfused.terms_width(P, n_voted) if model.store_event_terms and not atomic else 0
         if atomic:  # an ndarray on a GPU (one per workspace: Taichi frees no ndarray it made)
             if getattr(self._ws, "no_terms", None) is None:
