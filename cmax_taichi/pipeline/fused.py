@@ -432,6 +432,13 @@ class FusedPipeline:
         """Whether the current window's kernel runs all its loops on the calling thread."""
         return self._serial
 
+    @property
+    def stores_event_terms(self) -> bool:
+        """Whether the current window's kernel stores per-event terms (a model that declares
+        ``store_event_terms``, on the CPU's thread pool): then ``value`` agrees with the value of
+        ``value_and_grad`` to a few ulps rather than to the last bit."""
+        return bool(self._terms_rows) and not self._serial
+
     # --- state -----------------------------------------------------------------------------------
     def set_g0(self, g0: float) -> None:
         """Divide G by ``g0`` in J from now on."""
