@@ -72,10 +72,17 @@ def count_columns(path: Path) -> int:
     """Number of columns of the first data line of a text events file."""
     with open(check_regular(path), "rb") as f:
         head = f.read(1 << 16)
-    lines = _data_lines(head[: head.rfind(b"\n") + 1] if b"\n" in head else head)
-    if not lines:
-        raise ValueError(f"{path}: no event line in the first 64 KiB (empty file?)")
-    return len(lines[0][1].split())
+    complete = head[: head.rfind(b"\n") + 1] if b"\n" in head else head
+    # the first data line only: splitting all of the 64 KiB took 1.7 ms, read twice per opened file
+    start = 0
+    while start < len(complete):
+        end = complete.find(b"\n", start)
+        end = len(complete) if end < 0 else end
+        content = complete[start:end].split(b"#", 1)[0].strip()
+        if content:
+            return len(content.split())
+        start = end + 1
+    raise ValueError(f"{path}: no event line in the first 64 KiB (empty file?)")
 
 
 def resolve_columns(path: Path, columns) -> tuple[tuple[str, ...], int]:
