@@ -98,16 +98,26 @@ def test_auto_runs_small_windows_serially_and_large_ones_on_the_pool():
         assert not small._fused.serial
 
 
+def _clocks(monkeypatch, serial_s: float, pool_s: float) -> None:
+    """Fake clocks of the schedule's timing: every timed call on one thread takes ``serial_s`` of thread
+    time, every timed call on the pool ``pool_s`` of wall time."""
+    thread, wall = itertools.count(), itertools.count()
+    monkeypatch.setattr("cmax_taichi.pipeline.fused.time.thread_time", lambda: next(thread) * serial_s)
+    monkeypatch.setattr("cmax_taichi.pipeline.fused.time.perf_counter", lambda: next(wall) * pool_s)
+
+
 # what "auto" learns is kept per compiled kernel for the process: the tests that teach it use a blur of
 # their own (kernels no other test uses)
 LEARNING_BLUR = dict(blur_sigma=1.25)
 
 
-def test_auto_moves_a_slow_window_to_the_pool_and_remembers_it():
-    """A first serial call above the limit: the window runs on the pool from then on, and windows of
-    that many events or more start there (no serial call)."""
+def test_auto_moves_a_slow_window_to_the_pool_and_remembers_it(monkeypatch):
+    """A first serial call above the limit, and slower than the pool: the window runs on the pool from
+    then on, and windows of that many events or more start there (no serial call)."""
     with pipeline_settings(loops="auto", serial_max_events=10**9, serial_limit_s=0.0):
+        _clocks(monkeypatch, serial_s=1.0, pool_s=1e-3)
         prob = _problem(1200, seed=4, **LEARNING_BLUR)  # the set-up's identity call is the window's first
+        monkeypatch.undo()
         fused = prob._fused
         assert not fused.serial
         assert fused._schedules.parallel_from == 1200
@@ -124,14 +134,16 @@ def test_auto_moves_a_slow_window_to_the_pool_and_remembers_it():
         )._fused.serial  # fewer: serial; under this limit it stays
 
 
-def test_a_window_keeps_one_schedule():
+def test_a_window_keeps_one_schedule(monkeypatch):
     """J at the identity, known from the window's set-up, is what a launch there gives, bit for bit,
     after the window moved to the pool as well."""
     # (the second window is larger than serial_probe_growth times the first: a size that passed once is
     # not timed again)
     for n, limit in ((900, 1e9), (1200, 0.0)):
         with pipeline_settings(loops="auto", serial_max_events=10**9, serial_limit_s=limit):
+            _clocks(monkeypatch, serial_s=1.0, pool_s=1e-3)
             prob = _problem(n, seed=7, warp="translation2", **LEARNING_BLUR)
+            monkeypatch.undo()
             zero = np.zeros(prob.model.n_params)
             memo = prob.value(zero)
             known, prob._identity_value = prob._identity_value, None
@@ -156,7 +168,7 @@ def test_unknown_schedule_is_a_clear_error():
         _problem(500, seed=9)
 
 
-def test_a_size_that_passed_is_not_timed_again():
+def test_a_size_that_passed_is_not_timed_again(monkeypatch):
     """Windows up to ``serial_probe_growth`` times the largest one whose timed serial call passed stay
     serial without a timed call, even under a limit that would move them (a stream of similar windows
     does not switch late); a window beyond it is timed."""
@@ -165,6 +177,7 @@ def test_a_size_that_passed_is_not_timed_again():
         assert first._fused.serial and first._fused._schedules.serial_upto >= 700
     growth = FusedPipeline.serial_probe_growth
     with pipeline_settings(loops="auto", serial_max_events=10**9, serial_limit_s=0.0):
+        _clocks(monkeypatch, serial_s=1.0, pool_s=1e-3)  # any timed window would move
         assert _problem(650, seed=11, warp="se2", **LEARNING_BLUR)._fused.serial
         assert _problem(int(700 * growth) - 10, seed=12, warp="se2", **LEARNING_BLUR)._fused.serial
         assert not _problem(int(700 * growth) + 10, seed=13, warp="se2", **LEARNING_BLUR)._fused.serial
@@ -187,3 +200,24 @@ def test_a_slow_first_launch_is_timed_again(monkeypatch):
         prob.value_and_grad(np.zeros(prob.model.n_params))
     assert prob._fused is fused and fused.serial
     assert fused._schedules.serial_upto >= 1500 and fused._schedules.parallel_from is None
+
+
+def test_a_window_over_the_limit_stays_serial_where_the_pool_is_slower(monkeypatch):
+    """Over the limit on one thread, but slower still on the pool (its dispatch: 5,000 events on
+    1280x720 took 0.86 ms serially and 1.18 ms on the pool): the window stays serial, and its result is
+    the serial schedule's, bit for bit."""
+    theta = np.asarray(THETAS["translation2"], dtype=np.float64)
+    with pipeline_settings(loops="serial"):
+        reference = _problem(1000, seed=16, warp="translation2", blur_sigma=1.6)
+        ref_value, ref_grad = reference.value_and_grad(theta)
+        ref_g0 = reference.G0
+    with pipeline_settings(loops="auto", serial_max_events=10**9, serial_limit_s=1e-4):
+        _clocks(monkeypatch, serial_s=1e-3, pool_s=1.0)
+        prob = _problem(1000, seed=16, warp="translation2", blur_sigma=1.6)
+        monkeypatch.undo()
+        fused = prob._fused
+        assert fused.serial
+        assert fused._schedules.serial_upto >= 1000 and fused._schedules.parallel_from is None
+        assert ref_g0 == prob.G0  # the identity call's result came from the serial schedule
+        value, grad = prob.value_and_grad(theta)
+    assert value == ref_value and np.array_equal(grad, ref_grad)

@@ -32,6 +32,7 @@ schedule), and a window keeps one schedule for all its calls.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -171,9 +172,10 @@ class _Schedules:
     "auto" has learnt about where the calling thread alone is slower than the thread pool.
 
     ``parallel_from``: the smallest event count whose window ran on the pool because its timed calls
-    on one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`); windows of that many events
-    or more go to the pool directly (no serial call, no second compile). ``serial_upto``: the largest
-    window whose timed serial call was under the limit; windows up to ``serial_probe_growth`` times it
+    on one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`) and the same call on the pool
+    was faster; windows of that many events or more go to the pool directly (no serial call, no second
+    compile). ``serial_upto``: the largest window that stayed serial after its timed calls (under the
+    limit, or over it and still faster than the pool); windows up to ``serial_probe_growth`` times it
     are not timed again.
     """
 
@@ -209,12 +211,13 @@ class FusedPipeline:
     #: CPU loop schedule of the kernels: "parallel" (Taichi's thread pool), "serial" (the calling
     #: thread), or "auto": a window of at most ``serial_max_events`` events runs serially unless its
     #: first two calls there each take more than ``serial_limit_s`` of thread time (half that for a call
-    #: without gradient), after which windows of that size and more run on the pool. A GPU has one
-    #: schedule.
+    #: without gradient) and the same call on the pool is faster (wall time, best of two), after which
+    #: windows of that size and more run on the pool. A GPU has one schedule.
     loops = "auto"
     serial_max_events = 20_000
-    #: the calling thread's time of one value-and-gradient above which the pool is faster on the
-    #: 2-core reference machine (its six loops' dispatch: 0.4-0.7 ms; docs/performance.md)
+    #: the calling thread's time of one value-and-gradient above which the pool may be faster on the
+    #: 2-core reference machine (its six loops' dispatch: 0.4-0.7 ms; docs/performance.md): a window
+    #: over it is timed on the pool too
     serial_limit_s = 1.0e-3
     #: a window is timed only when it has more than this many times the events of the largest window
     #: that passed: a stream of windows of about one size (undistortion drops a few events of each) is
@@ -485,10 +488,25 @@ class FusedPipeline:
         if elapsed <= limit:
             self._schedules.serial_upto = max(self._schedules.serial_upto, self.n_events)
             return out
-        learnt = self._schedules.parallel_from
-        self._schedules.parallel_from = self.n_events if learnt is None else min(learnt, self.n_events)
+        # over the limit on one thread: time the pool on the same call (its kernel is needed from here on
+        # if it wins, and the limit alone misjudged windows near it: 5,000 events on 1280x720 moved to
+        # the pool at 1.18 ms a call against 0.86 ms serially) and keep the faster; wall time for the
+        # pool, whose calling thread sleeps while the workers run
+        out = out.copy()  # the next launches write the same output array
         self._serial = False
-        return self._launch(grad)
+        pool_out = self._launch(grad)
+        pool = math.inf
+        for _ in range(2):  # (the first may compile or load the kernel, or find the slices cold)
+            t0 = time.perf_counter()
+            pool_out = self._launch(grad)
+            pool = min(pool, time.perf_counter() - t0)
+        if pool < elapsed:
+            learnt = self._schedules.parallel_from
+            self._schedules.parallel_from = self.n_events if learnt is None else min(learnt, self.n_events)
+            return pool_out
+        self._serial = True
+        self._schedules.serial_upto = max(self._schedules.serial_upto, self.n_events)
+        return out
 
     def _launch(self, grad: int) -> np.ndarray:
         serial = self._serial
