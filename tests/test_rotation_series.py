@@ -43,9 +43,12 @@ def _box_phi_max() -> float:
 def _angles(phi_max: float) -> np.ndarray:
     """Angles (rad) from 0 through the series' range, its edge and the reduction, to ``phi_max``."""
     edge = 2.0 * common.HALF_ANGLE_MAX
+    short = 2.0 * common.SHORT_HALF_ANGLE  # the short tier's edge
     dense = np.linspace(0.0, phi_max, 4001)
+    dense_short = np.linspace(0.0, 1.5 * short, 2001)  # the short tier and past its edge
     special = [0, 1e-12, 1e-6, 1e-3, 0.1, edge * (1 - 1e-12), edge, edge * (1 + 1e-12), math.pi, 2 * math.pi]
-    return np.unique(np.concatenate([dense, np.array(special)]))
+    special += [short * (1 - 1e-12), short, short * (1 + 1e-12)]
+    return np.unique(np.concatenate([dense, dense_short, np.array(special)]))
 
 
 def _real():
@@ -123,18 +126,26 @@ def test_huge_angles_stay_finite(precision):
         use_precision("f64")
 
 
-def test_series_truncation_is_below_the_precision():
+@pytest.mark.parametrize("precision", ["f64", "f32"])
+def test_series_truncation_is_below_the_precision(precision):
     """The truncation bound of ``common.taylor_terms`` (first omitted term) of both series is under an
-    eighth of the machine epsilon on the whole series range, relative to the series' smallest value
-    there, in f64 (the precision of the tests' other backend)."""
-    use_precision("f64")
-    v_max = common.HALF_ANGLE_MAX**2
-    h = common.HALF_ANGLE_MAX
-    for series, terms, floor in (
-        (SIN_TAIL_OVER_R3, common.tail_terms(), (h - math.sin(h)) / h**3),
-        (ONE_MINUS_COS_OVER_R2, common.versine_terms(), (1 - math.cos(h)) / h**2),
-    ):
-        assert taylor_error(series, len(terms), v_max) <= float_epsilon() / 8 * floor
+    eighth of the machine epsilon on the whole series range and on the short tier's, relative to the
+    series' smallest value there; the short tier's polynomials are shorter (f64: 4 and 4 terms against
+    8 and 8), else the tier would buy nothing."""
+    use_precision(precision)
+    try:
+        for h in (common.HALF_ANGLE_MAX, common.SHORT_HALF_ANGLE):
+            for series, terms, floor in (
+                (SIN_TAIL_OVER_R3, common.tail_terms(h), (h - math.sin(h)) / h**3),
+                (ONE_MINUS_COS_OVER_R2, common.versine_terms(h), (1 - math.cos(h)) / h**2),
+            ):
+                assert taylor_error(series, len(terms), h * h) <= float_epsilon() / 8 * floor
+        assert len(common.tail_terms(common.SHORT_HALF_ANGLE)) < len(common.tail_terms())
+        assert len(common.versine_terms(common.SHORT_HALF_ANGLE)) < len(common.versine_terms())
+        if precision == "f64":
+            assert len(common.tail_terms(common.SHORT_HALF_ANGLE)) == 4 == len(common.versine_terms(0.045))
+    finally:
+        use_precision("f64")
 
 
 def test_slopes_are_the_derivatives_of_the_coefficients():

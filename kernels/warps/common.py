@@ -81,14 +81,23 @@ _VERSINE_FLOOR = (1.0 - math.cos(HALF_ANGLE_MAX)) / HALF_ANGLE_MAX**2
 _TAIL_FLOOR = (HALF_ANGLE_MAX - math.sin(HALF_ANGLE_MAX)) / HALF_ANGLE_MAX**3
 
 
-def versine_terms() -> tuple[float, ...]:
-    """Taylor coefficients (in ``v = r^2``) of ``(1 - cos r) / r^2`` for the precision in use."""
-    return taylor_terms(ONE_MINUS_COS_OVER_R2, HALF_ANGLE_MAX**2, _VERSINE_FLOOR)
+#: the short tier: half angles up to ``SHORT_HALF_ANGLE`` (``phi <= 0.09`` rad, 5.2 degrees: every event
+#: of a window of a few ms at a hand-held camera's rates, and of the benchmark's 50 ms rotation3 window)
+#: take polynomials truncated for that range, half as long in f64 (4 and 4 terms instead of 8 and 8);
+#: the same ``eps / 8`` truncation rule, so both tiers are exact to the rounding of the precision in use
+SHORT_HALF_ANGLE = 0.045
 
 
-def tail_terms() -> tuple[float, ...]:
-    """Taylor coefficients (in ``v = r^2``) of ``(r - sin r) / r^3`` for the precision in use."""
-    return taylor_terms(SIN_TAIL_OVER_R3, HALF_ANGLE_MAX**2, _TAIL_FLOOR)
+def versine_terms(half_angle_max: float = HALF_ANGLE_MAX) -> tuple[float, ...]:
+    """Taylor coefficients (in ``v = r^2``) of ``(1 - cos r) / r^2`` for the precision in use, on
+    ``|r| <= half_angle_max`` (at most :data:`HALF_ANGLE_MAX`)."""
+    return taylor_terms(ONE_MINUS_COS_OVER_R2, half_angle_max**2, _VERSINE_FLOOR)
+
+
+def tail_terms(half_angle_max: float = HALF_ANGLE_MAX) -> tuple[float, ...]:
+    """Taylor coefficients (in ``v = r^2``) of ``(r - sin r) / r^3`` for the precision in use, on
+    ``|r| <= half_angle_max`` (at most :data:`HALF_ANGLE_MAX`)."""
+    return taylor_terms(SIN_TAIL_OVER_R3, half_angle_max**2, _TAIL_FLOOR)
 
 
 @ti.func
@@ -109,7 +118,8 @@ def rodrigues(u, rot):
     smooth function of theta, since reverse mode differentiates it), from the half angle ``h = phi / 2``.
 
     ``h <= pi / 4``: two Taylor polynomials in ``v = h^2 = u / 4``, ``T`` of ``(h - sin h) / h^3`` and
-    ``C`` of ``(1 - cos h) / h^2`` (no square root, no division), give ``S = sin(h) / h = 1 - v T`` and
+    ``C`` of ``(1 - cos h) / h^2`` (no square root, no division; for ``h <= SHORT_HALF_ANGLE`` shorter
+    ones, truncated for that range by the same rule), give ``S = sin(h) / h = 1 - v T`` and
     ``cos(h) = 1 - v C``; then ``s1 = S cos(h)``, ``s2 = S^2 / 2``, and the slopes in closed form from
     the same two polynomials, ``ds1/du = (s3 - s2) / 2`` with ``s3 = (phi - sin phi) / phi^3 = (T + S C)
     / 4`` and ``ds2/du = S (cos h - S) / (8 h^2) = S (T - C) / 8`` (no difference of nearly equal
@@ -131,14 +141,22 @@ def rodrigues(u, rot):
     r = 0.0 * u
     k = 0.0 * u
     ih = 0.0 * u
-    if big:
-        h = 0.5 * _norm(rot)
-        k = ti.floor(h * (2.0 / math.pi) + 0.5)
-        r = ti.min(ti.max(h - k * (0.5 * math.pi), -HALF_ANGLE_MAX), HALF_ANGLE_MAX)
-        ih = 1.0 / h
-        v = r * r
-    T = polynomial(ti.static(tail_terms()), v)
-    C = polynomial(ti.static(versine_terms()), v)
+    T = 0.0 * u
+    C = 0.0 * u
+    if v <= SHORT_HALF_ANGLE * SHORT_HALF_ANGLE:
+        # the short tier (a branch that flips at most twice per time-sorted window: dt grows away from
+        # t_ref); the polynomials are the arithmetic that bounds rotation3's event loops
+        T = polynomial(ti.static(tail_terms(SHORT_HALF_ANGLE)), v)
+        C = polynomial(ti.static(versine_terms(SHORT_HALF_ANGLE)), v)
+    else:
+        if big:
+            h = 0.5 * _norm(rot)
+            k = ti.floor(h * (2.0 / math.pi) + 0.5)
+            r = ti.min(ti.max(h - k * (0.5 * math.pi), -HALF_ANGLE_MAX), HALF_ANGLE_MAX)
+            ih = 1.0 / h
+            v = r * r
+        T = polynomial(ti.static(tail_terms()), v)
+        C = polynomial(ti.static(versine_terms()), v)
     S = 1.0 - v * T  # sin(r) / r
     cr = 1.0 - v * C  # cos(r)
     s1 = S * cr

@@ -8,12 +8,14 @@ with the half angle ``h = phi / 2``: ``s1 = (sin(h) / h) cos(h)``, ``s2 = (sin(h
 ``phi = pi / 2`` (90 degrees between an event and the reference time) ``(h - sin h) / h^3`` and
 ``(1 - cos h) / h^2`` are their Taylor polynomials in ``v = h^2 = u / 4``, truncated where the first
 omitted term is below an eighth of the machine epsilon of the precision in use
-(``common.taylor_terms``: 8 and 8 terms in f64, 5 and 5 in f32), so they are exact to the rounding of
-that precision; ``s1``, ``s2`` and their slopes ``ds1/du``, ``ds2/du`` all come from these two
-(``common.rodrigues``). Beyond, the half angle is reduced modulo ``pi / 2`` into ``[-pi/4, pi/4]``
-first (in a branch: a square root, a ``floor``, a division; the same polynomials), with an error of
-about the rounding of ``phi`` itself. No event calls the maths library: with libm calls in its event
-loops rotation3 cost 8x translation2 per event (docs/performance.md).
+(``common.taylor_terms``: 8 and 8 terms in f64, 5 and 5 in f32; for ``phi <= 0.09`` rad, where a
+window of a few ms keeps all its events, the same rule on that range gives 4 and 4 in f64, 2 and 2 in
+f32), so they are exact to the rounding of that precision; ``s1``, ``s2`` and their slopes ``ds1/du``,
+``ds2/du`` all come from these two (``common.rodrigues``). Beyond, the half angle is reduced modulo
+``pi / 2`` into ``[-pi/4, pi/4]`` first (in a branch: a square root, a ``floor``, a division; the same
+polynomials), with an error of about the rounding of ``phi`` itself. No event calls the maths
+library: with libm calls in its event loops rotation3 cost 8x translation2 per event
+(docs/performance.md).
 ``warp_terms`` computes the warp, ``det`` and ``param_jac`` of an event from one evaluation (the fused
 kernels call it, so they rotate each ray once); ``warp``, ``det`` and ``param_jac`` are its parts. The
 parameter Jacobian is ``dX'/dw = -c1 [X]x + c2 w X^T + c2 (w . X) I + (g - 2 c2 X) w^T`` projected row
