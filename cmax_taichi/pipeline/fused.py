@@ -314,10 +314,11 @@ class FusedPipeline:
                     warp_terms=model.warp_terms,
                     positive_det=model.positive_det,
                     serial=serial,
-                    # the pool's schedule only: on one thread (windows of at most serial_max_events) the
-                    # stored terms' second loop and traffic cost more than the second warp they save
-                    # (1,000 rotation3 events with both regularizers: +7%, docs/performance.md)
-                    store_terms=model.store_event_terms and not serial,
+                    # both schedules: on one thread the second warp that the stored terms save is worth
+                    # more than their traffic from a few thousand events on (4,100 rotation3 events of
+                    # ECD boxes_rotation: -11% per value_and_grad; 1,000 with both regularizers: +4%,
+                    # docs/performance.md, 2026-12-05)
+                    store_terms=model.store_event_terms,
                 )
 
             self._ws.kernels[kkey] = _Schedules(build_kernel)
@@ -334,8 +335,8 @@ class FusedPipeline:
         self._event_buffer = None  # GPU: the pooled device buffer of the events
         self._packed = None
         # the kernel's stored event terms (kernels/fused.py, stage 2): a (rows, capacity) host array
-        # where the model declares store_event_terms on the CPU (the pool's schedule writes it, the
-        # serial one does not use it); otherwise a (1, 1) placeholder
+        # where the model declares store_event_terms on the CPU (both loop schedules write it);
+        # otherwise a (1, 1) placeholder
         self._terms_rows = kfused.terms_width(P, n_voted) if model.store_event_terms and not atomic else 0
         if atomic:  # an ndarray on a GPU (one per workspace: Taichi frees no ndarray it made)
             if getattr(self._ws, "no_terms", None) is None:
@@ -438,9 +439,9 @@ class FusedPipeline:
     @property
     def stores_event_terms(self) -> bool:
         """Whether the current window's kernel stores per-event terms (a model that declares
-        ``store_event_terms``, on the CPU's thread pool): then ``value`` agrees with the value of
-        ``value_and_grad`` to a few ulps rather than to the last bit."""
-        return bool(self._terms_rows) and not self._serial
+        ``store_event_terms``, on the CPU): then ``value`` agrees with the value of ``value_and_grad``
+        to a few ulps rather than to the last bit."""
+        return bool(self._terms_rows)
 
     # --- state -----------------------------------------------------------------------------------
     def set_g0(self, g0: float) -> None:

@@ -499,9 +499,8 @@ class ContrastMaximization(SetupView):
         """Augmented objective J at ``theta`` (physical units).
 
         The value of :meth:`value_and_grad` to the last bit, except for a warp that declares
-        ``store_event_terms`` (rotation3) on the CPU's fused kernel on the thread pool (windows too
-        large for the serial schedule): there the two agree to a few ulps (the value-only launch
-        compiles the warped positions without their Jacobians).
+        ``store_event_terms`` (rotation3) on the CPU's fused kernel: there the two agree to a few ulps
+        (the value-only launch compiles the warped positions without their Jacobians).
         """
         fused = self._fused
         if fused is None or not fused.launch_ready():
