@@ -222,10 +222,11 @@ def test_cpu_events_packed_in_row_order_none_lost():
 @pytest.mark.parametrize("loops", ["serial", "parallel"])
 def test_stored_event_terms_equal_the_unstored_kernel(monkeypatch, loops):
     """rotation3 declares store_event_terms (its warp once per event and call, stored for the gather):
-    on both loop schedules, value and gradient equal the kernel that evaluates the warp in both event
-    loops, to rounding, with both regularizers, vote weights and split polarity (the serial schedule:
-    the first case; each case compiles its kernels); a bigger window after a small one reallocates the
-    stored terms; the atomic (GPU-style) path ignores the declaration."""
+    on the pool's schedule, value and gradient equal the kernel that evaluates the warp in both event
+    loops, to rounding, with both regularizers, vote weights and split polarity; the serial schedule
+    stores them without voted quantities (equal to rounding) and not with them (both regularizers: the
+    same kernel as without the declaration, to the last bit; fused.stores_terms); a bigger window after
+    a small one reallocates the stored terms; the atomic (GPU-style) path ignores the declaration."""
     from cmax_taichi.kernels.warps import rotation3
 
     stored = cm.get_warp("rotation3")
@@ -235,13 +236,17 @@ def test_stored_event_terms_equal_the_unstored_kernel(monkeypatch, loops):
     theta = np.asarray(THETAS["rotation3"])
     cases = [dict(regularizers=BOTH), dict(regularizers=BOTH, polarity="split"),
              dict(regularizers={"deformation": 1.0}, weights=np.linspace(0.2, 1.5, 400)), dict()]  # fmt: skip
-    for options in cases if loops == "parallel" else cases[:1]:  # (each case compiles its kernels)
+    for options in cases if loops == "parallel" else cases[::3]:  # (each case compiles its kernels)
         a = _problem(stored, **options)
         b = _problem(unstored, **options)
         assert a._fused._terms_rows > 0 and b._fused._terms_rows == 0
+        votes = bool(options.get("regularizers"))
+        assert a._fused.stores_event_terms == (loops == "parallel" or not votes)
         for scale in (0.0, 1.0, -2.5):
             v1, g1 = a.value_and_grad(theta * scale)
             v2, g2 = b.value_and_grad(theta * scale)
+            if not a._fused.stores_event_terms:
+                assert v1 == v2 and np.array_equal(g1, g2) and a.value(theta * scale) == v2
             assert v1 == pytest.approx(v2, rel=1e-12, abs=1e-14)
             np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-12 * max(1.0, np.max(np.abs(g2))))
             assert a.value(theta * scale) == pytest.approx(v2, rel=1e-12, abs=1e-14)

@@ -167,6 +167,16 @@ class _HostArray:
 LOOP_SCHEDULES = ("auto", "serial", "parallel")
 
 
+def stores_terms(declared: bool, serial: bool, n_voted: int) -> bool:
+    """Whether the CPU kernel of a loop schedule stores a model's per-event terms: where the model
+    declares ``store_event_terms`` (``declared``), on the thread pool always, and on the calling thread
+    where no quantity is voted (``n_voted``). On one thread the stored position and its Jacobian (8
+    rows for rotation3) cost less than the second warp they save (-5% to -11% per value_and_grad at
+    1,000-10,000 rotation3 events, and on ECD boxes_rotation's windows), but with voted quantities (16
+    rows with both regularizers) their traffic costs more (+2% to +8%; docs/performance.md, 2026-12-05)."""
+    return bool(declared) and (not serial or n_voted == 0)
+
+
 class _Schedules:
     """The fused kernel of one kernel key in its CPU schedules, each compiled when first used, and what
     "auto" has learnt about where the calling thread alone is slower than the thread pool.
@@ -314,11 +324,7 @@ class FusedPipeline:
                     warp_terms=model.warp_terms,
                     positive_det=model.positive_det,
                     serial=serial,
-                    # both schedules: on one thread the second warp that the stored terms save is worth
-                    # more than their traffic from a few thousand events on (4,100 rotation3 events of
-                    # ECD boxes_rotation: -11% per value_and_grad; 1,000 with both regularizers: +4%,
-                    # docs/performance.md, 2026-12-05)
-                    store_terms=model.store_event_terms,
+                    store_terms=stores_terms(model.store_event_terms, serial, n_voted),
                 )
 
             self._ws.kernels[kkey] = _Schedules(build_kernel)
@@ -335,9 +341,10 @@ class FusedPipeline:
         self._event_buffer = None  # GPU: the pooled device buffer of the events
         self._packed = None
         # the kernel's stored event terms (kernels/fused.py, stage 2): a (rows, capacity) host array
-        # where the model declares store_event_terms on the CPU (both loop schedules write it);
-        # otherwise a (1, 1) placeholder
+        # where the model declares store_event_terms on the CPU (the kernels that store, stores_terms,
+        # write it); otherwise a (1, 1) placeholder
         self._terms_rows = kfused.terms_width(P, n_voted) if model.store_event_terms and not atomic else 0
+        self._n_voted = n_voted
         if atomic:  # an ndarray on a GPU (one per workspace: Taichi frees no ndarray it made)
             if getattr(self._ws, "no_terms", None) is None:
                 self._ws.no_terms = ti.ndarray(backend.real(), shape=(1, 1))
@@ -438,10 +445,10 @@ class FusedPipeline:
 
     @property
     def stores_event_terms(self) -> bool:
-        """Whether the current window's kernel stores per-event terms (a model that declares
-        ``store_event_terms``, on the CPU): then ``value`` agrees with the value of ``value_and_grad``
-        to a few ulps rather than to the last bit."""
-        return bool(self._terms_rows)
+        """Whether the current window's kernel stores per-event terms (:func:`stores_terms`): then
+        ``value`` agrees with the value of ``value_and_grad`` to a few ulps rather than to the last
+        bit."""
+        return stores_terms(bool(self._terms_rows), self._serial, self._n_voted)
 
     # --- state -----------------------------------------------------------------------------------
     def set_g0(self, g0: float) -> None:

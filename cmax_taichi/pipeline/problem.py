@@ -498,9 +498,10 @@ class ContrastMaximization(SetupView):
     def value(self, theta) -> float:
         """Augmented objective J at ``theta`` (physical units).
 
-        The value of :meth:`value_and_grad` to the last bit, except for a warp that declares
-        ``store_event_terms`` (rotation3) on the CPU's fused kernel: there the two agree to a few ulps
-        (the value-only launch compiles the warped positions without their Jacobians).
+        The value of :meth:`value_and_grad` to the last bit, except where the CPU's fused kernel stores
+        the per-event terms of a warp that declares ``store_event_terms`` (rotation3;
+        ``FusedPipeline.stores_event_terms``): there the two agree to a few ulps (the value-only launch
+        compiles the warped positions without their Jacobians).
         """
         fused = self._fused
         if fused is None or not fused.launch_ready():

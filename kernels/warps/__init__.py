@@ -22,7 +22,8 @@ and the declarations ``MODEL``, a dict of plain values (kernels import nothing f
 (``|det dx'/dx|``) do not depend on the event: their regularizer map is that one value on every pixel
 with votes, so the fused pipeline does not vote them), ``positive_det`` (``det > 0`` wherever an event
 is warped, for every theta), ``store_event_terms`` (a costly ``warp_terms``: the fused CPU kernel
-evaluates it once per event and stores it for the gradient), ``scale_kinds``,
+evaluates it once per event and stores it for the gradient; ``pipeline/fused.py``'s ``stores_terms``
+says on which loop schedule), ``scale_kinds``,
 ``needs_camera``, ``collapse_enabled``, ``description``:
 the fields of :class:`cmax_taichi.WarpModel`, which ``WarpModel.from_module`` builds from the module.
 
