@@ -1,7 +1,7 @@
 """Median ``value_and_grad`` of a few benchmark rows through the library's benchmark implementation:
-``python benchmarks/ab_rows.py [--small | --issue20 | --rotation] [--value] [--repeats-scale S]``. Run it
-with each version's environment, alternating, to compare two versions on one machine
-(docs/performance.md).
+``python benchmarks/ab_rows.py [--small | --issue20 | --rotation | --rotation-small | --stored-terms]
+[--value] [--repeats-scale S]``. Run it with each version's environment, alternating, to compare two
+versions on one machine (docs/performance.md).
 
 Row sets: by default six windows, small and large (100 calls each, 15 at 1M events); ``--small``: the
 eight small rows that one pair of full runs showed slower after issue 16 (60 calls each); ``--issue20``:
@@ -9,9 +9,12 @@ rows of issue 20's grid (the full sweep's textured and uniform windows of ``cmax
 bench_windows.py``, which this script loads from its own checkout, so that an older version runs the
 same windows; the textured streams come from the shared cache, simulated once); ``--rotation``: issue 20's
 rotation3 / translation2 pair at 300,000 edge events on 240x180 (20 calls each, three alternating rounds,
-and their events-per-second ratio from the medians). ``--value`` times the value-only call (``value``,
-what the global searches call) instead of ``value_and_grad``. Each row prints the
-wall median and the CPU time per call (all threads, ``getrusage``: on a shared machine the wall time
+and their events-per-second ratio from the medians); ``--rotation-small``: rotation3 windows of 1,000 to
+10,000 events with and without both regularizers (the serial schedule's sizes); ``--stored-terms``: those
+windows on the serial schedule with rotation3's stored event terms against the same model without the
+declaration, in alternating rounds (``pipeline/fused.py``'s ``stores_terms``). ``--value`` times the
+value-only call (``value``, what the global searches call) instead of ``value_and_grad``. Each row prints
+the wall median and the CPU time per call (all threads, ``getrusage``: on a shared machine the wall time
 mostly measures the other processes).
 """
 
@@ -85,6 +88,18 @@ ROTATION_ROWS = _rows(
     300000 240x180 rotation3 none edges
     """
 )
+#: rotation3 windows on the serial schedule (a few thousand events), with and without regularizers
+ROTATION_SMALL_ROWS = _rows(
+    """
+    1000 346x260 rotation3 none
+    1000 346x260 rotation3 div+def
+    1000 1280x720 rotation3 div+def
+    5000 240x180 rotation3 none
+    5000 240x180 rotation3 div+def
+    10000 346x260 rotation3 none
+    10000 346x260 rotation3 div+def
+    """
+)
 STREAM_EVENTS = 1_000_000  # the full sweep's textured stream length (its prefixes are the windows)
 
 
@@ -151,6 +166,47 @@ def _rotation_ratio(repeats: int, rounds: int = 3, *, value_only: bool = False) 
     return 0
 
 
+def _stored_terms(repeats: int, rounds: int = 3) -> int:
+    """The serial schedule with rotation3's stored event terms against the same model without the
+    declaration (``store_event_terms=False``: the warp evaluated again in the gather), on the
+    :data:`ROTATION_SMALL_ROWS` windows, alternating, ``rounds`` rounds; the medians and their ratio."""
+    from cmax_taichi.kernels.warps import rotation3
+
+    import cmax_taichi as cm
+    from cmax_taichi.pipeline.fused import FusedPipeline
+
+    FusedPipeline.loops = "serial"
+    unstored = cm.WarpModel.from_module(rotation3, store_event_terms=False)
+    models = {"stored": cm.get_warp("rotation3"), "unstored": unstored}
+    theta = np.asarray(bench_impls.THETAS["rotation3"], dtype=np.float64)
+    for n, sensor, _, regs, _ in ROTATION_SMALL_ROWS:
+        cfg = bench_impls.BenchConfig(n, sensor, "rotation3", regs)
+        x, y, t, p = bench_impls.make_window(cfg.n, cfg.sensor, seed=cfg.n % 9973)
+        events = cm.Events(x, y, t, p, cfg.sensor)
+        medians: dict[str, list[float]] = {}
+        for _ in range(rounds):
+            for name, model in models.items():
+                prob = cm.ContrastMaximization(
+                    events, warp=model, camera=bench_impls.camera_for(cfg.sensor),
+                    regularizers=bench_impls.REGS[regs] or None,
+                )  # fmt: skip
+                for _ in range(3):
+                    prob.value_and_grad(theta)
+                times = []
+                for _ in range(repeats):
+                    t0 = time.perf_counter()
+                    prob.value_and_grad(theta)
+                    times.append(time.perf_counter() - t0)
+                medians.setdefault(name, []).append(float(np.median(times)) * 1e3)
+        stored, unstored = (float(np.median(medians[k])) for k in ("stored", "unstored"))
+        print(
+            f"{n:8d} {sensor:9s} rotation3 {regs:8s} serial: unstored {unstored:.3f} ms, stored "
+            f"{stored:.3f} ms, ratio {stored / unstored:.3f}",
+            flush=True,
+        )
+    return 0
+
+
 def main(argv: list[str]) -> int:
     backend.init(precision="f64")
     scale = 1.0
@@ -159,11 +215,16 @@ def main(argv: list[str]) -> int:
     value_only = "--value" in argv
     if "--rotation" in argv:
         return _rotation_ratio(max(5, int(scale * 20)), value_only=value_only)
+    if "--stored-terms" in argv:
+        return _stored_terms(max(5, int(scale * 80)))
     if "--issue20" in argv:
         rows = ISSUE20_ROWS
         repeats = [max(5, int(scale * (15 if n >= 300_000 else 100))) for n, *_ in rows]
     elif "--small" in argv:
         rows = SMALL_ROWS
+        repeats = [max(5, int(scale * 60))] * len(rows)
+    elif "--rotation-small" in argv:
+        rows = ROTATION_SMALL_ROWS
         repeats = [max(5, int(scale * 60))] * len(rows)
     else:
         rows = DEFAULT_ROWS
