@@ -143,7 +143,8 @@ def test_series_truncation_is_below_the_precision(precision):
         assert len(common.tail_terms(common.SHORT_HALF_ANGLE)) < len(common.tail_terms())
         assert len(common.versine_terms(common.SHORT_HALF_ANGLE)) < len(common.versine_terms())
         if precision == "f64":
-            assert len(common.tail_terms(common.SHORT_HALF_ANGLE)) == 4 == len(common.versine_terms(0.045))
+            short = common.SHORT_HALF_ANGLE
+            assert len(common.tail_terms(short)) == 4 == len(common.versine_terms(short))
     finally:
         use_precision("f64")
 
