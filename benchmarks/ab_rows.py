@@ -131,13 +131,18 @@ def time_row(
     impl = bench_impls.build_taichi(win, cfg)
     theta = np.asarray(bench_impls.THETAS[warp], dtype=np.float64)
     call = impl.value if value_only else impl.vg
-    for _ in range(3):
-        call(theta)
+    return _timed(lambda: call(theta), repeats)
+
+
+def _timed(call, repeats: int, warmup: int = 3) -> tuple[float, float]:
+    """``(wall median ms, CPU ms per call)`` of ``repeats`` calls of ``call()`` after ``warmup`` calls."""
+    for _ in range(warmup):
+        call()
     times = []
     c0 = _cpu_seconds()
     for _ in range(repeats):
         t = time.perf_counter()
-        call(theta)
+        call()
         times.append(time.perf_counter() - t)
     cpu = (_cpu_seconds() - c0) / repeats
     return float(np.median(times)) * 1e3, cpu * 1e3
@@ -190,14 +195,8 @@ def _stored_terms(repeats: int, rounds: int = 3) -> int:
                     events, warp=model, camera=bench_impls.camera_for(cfg.sensor),
                     regularizers=bench_impls.REGS[regs] or None,
                 )  # fmt: skip
-                for _ in range(3):
-                    prob.value_and_grad(theta)
-                times = []
-                for _ in range(repeats):
-                    t0 = time.perf_counter()
-                    prob.value_and_grad(theta)
-                    times.append(time.perf_counter() - t0)
-                medians.setdefault(name, []).append(float(np.median(times)) * 1e3)
+                wall, _ = _timed(lambda prob=prob: prob.value_and_grad(theta), repeats)
+                medians.setdefault(name, []).append(wall)
         stored, unstored = (float(np.median(medians[k])) for k in ("stored", "unstored"))
         print(
             f"{n:8d} {sensor:9s} rotation3 {regs:8s} serial: unstored {unstored:.3f} ms, stored "
