@@ -173,7 +173,8 @@ def stores_terms(declared: bool, serial: bool, n_voted: int) -> bool:
     where no quantity is voted (``n_voted``). On one thread the stored position and its Jacobian (8
     rows for rotation3) cost less than the second warp they save (-5% to -11% per value_and_grad at
     1,000-10,000 rotation3 events, and on ECD boxes_rotation's windows), but with voted quantities (16
-    rows with both regularizers) their traffic costs more (+2% to +8%; docs/performance.md, 2026-12-05)."""
+    rows with both regularizers) their traffic costs more (+1% to +15%; ``benchmarks/ab_rows.py
+    --stored-terms``, docs/performance.md, 2026-12-05)."""
     return bool(declared) and (not serial or n_voted == 0)
 
 
