@@ -5,6 +5,7 @@ PyTorch twin when torch is installed), its refusal to time a disagreeing impleme
 from __future__ import annotations
 
 import importlib.util
+import time
 
 import numpy as np
 import pytest
@@ -374,3 +375,28 @@ def test_compile_cost_compares_the_compile_modes():
     )
     assert line is not None, proc.stdout
     assert float(line.group(1)) > 0 and float(line.group(3)) > 0
+
+
+def test_short_calls_are_timed_in_bursts_and_their_first_calls_apart():
+    calls = []
+
+    def fast(theta):
+        calls.append("fast")
+        time.sleep(0.001)
+
+    def slow(theta):
+        calls.append("slow")
+        time.sleep(bench.BURST_SECONDS * 1.5)
+
+    warm, first = bench._time_round_robin(
+        {"fast": fast, "slow": slow}, None, min_repeats=3, max_repeats=3, budget_s=0.0
+    )
+    sizes = bench._burst_sizes({"fast": fast}, None)
+    assert 2 <= sizes["fast"] <= bench.BURST_MAX_CALLS
+    # each round: a burst of consecutive fast calls, then one slow call (after the calibration calls)
+    rounds = calls[4:]
+    burst = rounds.index("slow")
+    assert burst >= 2 and rounds[: burst + 1] == ["fast"] * burst + ["slow"]
+    assert len(first["fast"]) == len(first["slow"]) == 3
+    assert len(warm["fast"]) == 3 * (burst - 1)  # every call of a burst but its first
+    assert warm["slow"] == first["slow"]  # a burst of one: its calls are both

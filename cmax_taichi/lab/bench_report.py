@@ -106,23 +106,28 @@ def markdown_report(
         f"({machine['torch_threads']} threads), NumPy {v['numpy']}, Python {v['python']}, "
         f"cmax-taichi {v['cmax-taichi']}; {wall_s / 60:.1f} min in all.",
         "",
-        "Times are medians over interleaved repeats after a warm-up, of one `value_and_grad` (NumPy: one "
-        "value); Mev/s = million events per second; `x torch` = PyTorch's median / this median. "
+        "Times are medians over interleaved rounds after a warm-up, of one `value_and_grad` (NumPy: one "
+        "value); a call shorter than 10 ms is timed in bursts of up to 8 consecutive calls per round, the "
+        "median over every call of a burst but the first (the call after a call of the same implementation, "
+        "as an optimizer's evaluations follow each other); `after others ms` is the median of each burst's "
+        "first call, made right after the other implementations' calls, in the caches they left (the same "
+        "calls as the median for a call of 10 ms or more); Mev/s = million events per second; "
+        "`x torch` = PyTorch's median / this median. "
         "Every implementation was first checked against the others on the same inputs "
         "(value to 1e-9 relative in f64, gradient to 1e-6 against PyTorch and to 1e-4 against central "
         "differences of the reference up to 1e4 events); a `DISAGREES` row has no time.",
         "",
-        "| N | sensor | window | warp | regularizers | impl | measured | median ms | Mev/s | x torch "
-        "| first call s | peak RSS MB | fields MB |",
-        "|---:|---|---|---|---|---|---|---:|---:|---:|---:|---:|---:|",
+        "| N | sensor | window | warp | regularizers | impl | measured | median ms | after others ms | Mev/s "
+        "| x torch | first call s | peak RSS MB | fields MB |",
+        "|---:|---|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         head = f"| {r.n} | {r.sensor} | {r.window} | {r.warp} | {r.regs} | {r.impl} |"
         if r.status != "ok":
-            lines.append(f"{head} {r.status} | | | | | | |")
+            lines.append(f"{head} {r.status} | | | | | | | |")
             continue
         lines.append(
-            f"{head} {r.measured} | {_fmt(r.median_ms)} | "
+            f"{head} {r.measured} | {_fmt(r.median_ms)} | {_fmt(r.first_of_burst_ms)} | "
             f"{_fmt(r.events_per_s / 1e6)} | {_fmt(r.vs_torch)} | {_fmt(r.first_call_s)} | "
             f"{_fmt(r.peak_rss_mb)} | {_fmt(r.field_mb)} |"
         )
