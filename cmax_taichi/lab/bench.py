@@ -12,7 +12,7 @@ every implementation, then
    time** in the report;
 2. **times** one ``value_and_grad`` (the reference: one value; its gradient by central differences
    would cost 2P values) after a warm-up, with the implementations interleaved round by round so that
-   they share the machine's load (a call under 10 ms in a burst of consecutive calls per round: the
+   they share the machine's load (a call under 100 ms in a burst of consecutive calls per round: the
    median is over the calls that follow a call of the same implementation, as an optimizer's
    evaluations do, and each burst's first call, in the caches the other implementations left, is
    reported beside it); it reports the median over the repeats, events per second, the
@@ -142,18 +142,20 @@ class Row:
     vs_torch: float = float("nan")  # torch median / this median (same measured quantity)
 
 
-#: a call shorter than this is timed in bursts of consecutive calls (at most :data:`BURST_MAX_CALLS`) that
-#: last about this long (s): each implementation's first call of a round runs in the caches that the other
-#: implementations' calls left (a 1280x720 call of 5,000 events took 2.0 ms there against 0.71 ms call
-#: after call, docs/performance.md), which is not what an optimizer's consecutive evaluations see
+#: each implementation's first call of a round runs in the caches that the other implementations' calls
+#: left (a 1280x720 call of 5,000 events took 2.0 ms there against 0.71 ms call after call, docs/
+#: performance.md), which is not what an optimizer's consecutive evaluations see: so a call shorter than
+#: :data:`BURST_LONGEST` s is timed in bursts of consecutive calls per round, as many as last about
+#: :data:`BURST_SECONDS` s, at least 2 and at most :data:`BURST_MAX_CALLS`
 BURST_SECONDS = 0.01
 BURST_MAX_CALLS = 8
+BURST_LONGEST = 0.1
 
 
 def _burst_sizes(fns: dict[str, Callable], theta) -> dict[str, int]:
-    """Calls per burst of each function: enough consecutive calls to last :data:`BURST_SECONDS` (from the
-    time of a call that follows another of the same function), at least 2 and at most
-    :data:`BURST_MAX_CALLS`; 1 for a call that lasts longer (its caches matter little against its work)."""
+    """Calls per burst of each function (see :data:`BURST_SECONDS`), from the time of a call that follows
+    another of the same function; 1 for a call of :data:`BURST_LONGEST` s or more (its caches matter
+    little against its own work)."""
     sizes = {}
     for name, fn in fns.items():
         fn(theta)  # the first in the others' caches: the second times a call
@@ -161,7 +163,7 @@ def _burst_sizes(fns: dict[str, Callable], theta) -> dict[str, int]:
         fn(theta)
         dt = time.perf_counter() - t0
         calls = min(BURST_MAX_CALLS, max(2, int(BURST_SECONDS / max(dt, 1e-9))))
-        sizes[name] = 1 if dt >= BURST_SECONDS else calls
+        sizes[name] = 1 if dt >= BURST_LONGEST else calls
     return sizes
 
 

@@ -107,11 +107,12 @@ def markdown_report(
         f"cmax-taichi {v['cmax-taichi']}; {wall_s / 60:.1f} min in all.",
         "",
         "Times are medians over interleaved rounds after a warm-up, of one `value_and_grad` (NumPy: one "
-        "value); a call shorter than 10 ms is timed in bursts of up to 8 consecutive calls per round, the "
+        "value); a call shorter than 100 ms is timed in bursts of 2-8 consecutive calls per round (about "
+        "10 ms of them), the "
         "median over every call of a burst but the first (the call after a call of the same implementation, "
         "as an optimizer's evaluations follow each other); `after others ms` is the median of each burst's "
         "first call, made right after the other implementations' calls, in the caches they left (the same "
-        "calls as the median for a call of 10 ms or more); Mev/s = million events per second; "
+        "calls as the median for a call of 100 ms or more); Mev/s = million events per second; "
         "`x torch` = PyTorch's median / this median. "
         "Every implementation was first checked against the others on the same inputs "
         "(value to 1e-9 relative in f64, gradient to 1e-6 against PyTorch and to 1e-4 against central "
