@@ -51,7 +51,9 @@ top-level loops of a kernel one after the other, each in parallel):
    with ``adj`` held fixed, using the closed-form parameter Jacobians each model declares
    (``kernels/warps/``; the trigonometry depends on theta only and leaves the event loop), or the
    stored ``terms`` of stage 2; on the CPU each slice's sum goes into its own field, added in slice
-   order;
+   order. The gather has no branch (clamped reads and selects, ``grad_at``), so that LLVM vectorizes
+   its loops, four events a step (the loops of the other stages store, and stay scalar: Taichi reloads
+   an array's base pointer after every store, ``benchmarks/vector_probe.py``);
 9. serial: ``out = (J, G_raw, dJ/dtheta, J with G0 = G_raw)`` (the last: at the identity, the
    normalised J of every later evaluation there).
 
@@ -428,27 +430,40 @@ def make_fused_kernels(
     @ti.func
     def grad_at(q, vals, jx, dq, b, ch):
         """dJ/dtheta of an event warped to ``q`` (quantities ``vals``; Jacobians ``jx`` of the position,
-        ``dq`` of the quantities), hand-written, float64."""
+        ``dq`` of the quantities), hand-written, float64.
+
+        Without branches, so that LLVM vectorizes the gather loops (a branch per corner kept them
+        scalar): every corner is read at an index clamped into the image and a corner outside it, or an
+        event outside the window, is dropped by a select (a select, not a product with 0: an adjoint
+        that overflowed to inf stays out as before). ``q`` outside the window (NaN included) is read at
+        the origin first, so that no index is computed from it."""
+        # bitwise, not ``and``: a short-circuit is a branch, and a load under it (LLVM sinks the event's
+        # y into it) keeps the loop scalar
+        inside = (q[0] > -1.0) & (q[0] < W) & (q[1] > -1.0) & (q[1] < H)
+        qs = ti.Vector([ti.select(inside, q[0], 0.0), ti.select(inside, q[1], 0.0)])
+        ix, iy, ax, ay = _b.bilinear_footprint(qs)
+        ga = 0.0  # dS/dax
+        gb = 0.0  # dS/day
+        gv = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])  # dS/dq_v
+        for dy in ti.static(range(2)):
+            for dx in ti.static(range(2)):
+                keep = (ix + dx >= 0) & (ix + dx < W) & (iy + dy >= 0) & (iy + dy < H)
+                cx = ti.min(ti.max(ix + dx, 0), W - 1)
+                cy = ti.min(ti.max(iy + dy, 0), H - 1)
+                a, nr = corner_terms(cy, cx, ch, b, vals)
+                a = ti.select(keep, a, 0.0)
+                wx, wy = _b.corner_weights(ax, ay, dx, dy)
+                ga += ti.static(1.0 if dx == 1 else -1.0) * wy * a
+                gb += ti.static(1.0 if dy == 1 else -1.0) * wx * a
+                if ti.static(RV > 0):
+                    for v in ti.static(range(RV)):
+                        gv[v] += ti.select(keep, wx * wy * nr[v], 0.0)
         g = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)
-        if _b.in_window(q, W, H):
-            ix, iy, ax, ay = _b.bilinear_footprint(q)
-            ga = 0.0  # dS/dax
-            gb = 0.0  # dS/day
-            gv = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])  # dS/dq_v
-            for dy in ti.static(range(2)):
-                for dx in ti.static(range(2)):
-                    if _b.corner_in_image(ix, iy, dx, dy, W, H):
-                        a, nr = corner_terms(iy + dy, ix + dx, ch, b, vals)
-                        wx, wy = _b.corner_weights(ax, ay, dx, dy)
-                        ga += ti.static(1.0 if dx == 1 else -1.0) * wy * a
-                        gb += ti.static(1.0 if dy == 1 else -1.0) * wx * a
-                        if ti.static(RV > 0):
-                            gv += wx * wy * nr
-            for j in ti.static(range(P)):
-                gj = ga * jx[0, j] + gb * jx[1, j]
-                for v in ti.static(range(RV)):
-                    gj += gv[v] * dq[v, j]
-                g[j] = ti.cast(gj, ti.f64)
+        for j in ti.static(range(P)):
+            gj = ga * jx[0, j] + gb * jx[1, j]
+            for v in ti.static(range(RV)):
+                gj += gv[v] * dq[v, j]
+            g[j] = ti.select(inside, ti.cast(gj, ti.f64), 0.0)
         return g
 
     @ti.func
