@@ -24,7 +24,6 @@ loads and sums does vectorize once it has no branch: the fused kernel's gather (
 ``grad_at``: clamped reads, selects, bitwise conditions) runs four events a step since ``1293e58``.
 """
 
-
 import argparse
 import glob
 import os
@@ -79,28 +78,24 @@ def main(argv: list[str] | None = None) -> int:
             for i in range(s * n // slices, (s + 1) * n // slices):
                 t[0, i] = e[0, i] * 2.0 + e[1, i]
 
-    @ti.kernel
-    def warp(n: ti.i32, e: arr, t: arr):
-        ti.loop_config(block_dim=1)
-        for s in range(slices):
-            th, c = theta[None], ctx[None]
-            for i in range(s * n // slices, (s + 1) * n // slices):
-                q = warp_terms(ti.Vector([e[0, i], e[1, i]]), e[2, i], th, c)[0]
-                t[0, i] = q[0]
-                t[1, i] = q[1]
+    def terms_kernel(with_jacobian: bool):
+        """The terms loop: rotation3's position (and its 2x3 Jacobian) of each event into rows of ``t``."""
 
-    @ti.kernel
-    def warp_jacobian(n: ti.i32, e: arr, t: arr):
-        ti.loop_config(block_dim=1)
-        for s in range(slices):
-            th, c = theta[None], ctx[None]
-            for i in range(s * n // slices, (s + 1) * n // slices):
-                terms = warp_terms(ti.Vector([e[0, i], e[1, i]]), e[2, i], th, c)
-                t[0, i] = terms[0][0]
-                t[1, i] = terms[0][1]
-                for k in ti.static(range(2)):
-                    for j in ti.static(range(3)):
-                        t[2 + 3 * k + j, i] = terms[2][k, j]
+        @ti.kernel
+        def terms(n: ti.i32, e: arr, t: arr):
+            ti.loop_config(block_dim=1)
+            for s in range(slices):
+                th, c = theta[None], ctx[None]
+                for i in range(s * n // slices, (s + 1) * n // slices):
+                    out = warp_terms(ti.Vector([e[0, i], e[1, i]]), e[2, i], th, c)
+                    t[0, i] = out[0][0]
+                    t[1, i] = out[0][1]
+                    if ti.static(with_jacobian):
+                        for k in ti.static(range(2)):
+                            for j in ti.static(range(3)):
+                                t[2 + 3 * k + j, i] = out[2][k, j]
+
+        return terms
 
     @ti.func
     def lane_positions(x0, x1, dt, w, c):
@@ -136,7 +131,12 @@ def main(argv: list[str] | None = None) -> int:
                     t[0, i + k] = qx[k]
                     t[1, i + k] = qy[k]
 
-    kernels = {"copy": copy, "warp": warp, "warp+jacobian": warp_jacobian, "lanes": lanes_kernel}
+    kernels = {
+        "copy": copy,
+        "warp": terms_kernel(False),
+        "warp+jacobian": terms_kernel(True),
+        "lanes": lanes_kernel,
+    }
     print(
         f"{'kernel':14s} {'ns/event':>9s} {'<2 x double>':>13s} {'<4 x double>':>13s} {'<8 x double>':>13s} "
         f"{'vector.body':>12s}"
