@@ -35,8 +35,10 @@ SOBEL_NORM = 64.0  # (Sobel / 8)^2 = Sobel^2 / 64
 @ti.func
 def in_window(q, width: ti.template(), height: ti.template()):
     """A warped position ``q`` (px) whose bilinear footprint touches the image: inside
-    ``(-1, W) x (-1, H)`` (False for NaN)."""
-    return q[0] > -1.0 and q[0] < width and q[1] > -1.0 and q[1] < height
+    ``(-1, W) x (-1, H)`` (False for NaN). Bitwise, not ``and``: a short-circuit is a branch, and a
+    load that LLVM sinks under it keeps a loop that only gathers from being vectorized (the fused
+    kernel's ``grad_at``)."""
+    return (q[0] > -1.0) & (q[0] < width) & (q[1] > -1.0) & (q[1] < height)
 
 
 @ti.func
@@ -51,8 +53,9 @@ def bilinear_footprint(q):
 def corner_in_image(
     ix, iy, dx: ti.template(), dy: ti.template(), width: ti.template(), height: ti.template()
 ):
-    """Corner ``(ix + dx, iy + dy)`` of a footprint is a pixel of the image."""
-    return 0 <= ix + dx < width and 0 <= iy + dy < height
+    """Corner ``(ix + dx, iy + dy)`` of a footprint is a pixel of the image (bitwise, as
+    :func:`in_window`)."""
+    return (ix + dx >= 0) & (ix + dx < width) & (iy + dy >= 0) & (iy + dy < height)
 
 
 @ti.func

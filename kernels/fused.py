@@ -435,11 +435,10 @@ def make_fused_kernels(
         Without branches, so that LLVM vectorizes the gather loops (a branch per corner kept them
         scalar): every corner is read at an index clamped into the image and a corner outside it, or an
         event outside the window, is dropped by a select (a select, not a product with 0: an adjoint
-        that overflowed to inf stays out as before). ``q`` outside the window (NaN included) is read at
-        the origin first, so that no index is computed from it."""
-        # bitwise, not ``and``: a short-circuit is a branch, and a load under it (LLVM sinks the event's
-        # y into it) keeps the loop scalar
-        inside = (q[0] > -1.0) & (q[0] < W) & (q[1] > -1.0) & (q[1] < H)
+        that overflowed to inf stays out as before); the conditions are bitwise (``blocks.in_window``).
+        ``q`` outside the window (NaN included) is read at the origin first, so that no index is computed
+        from it."""
+        inside = _b.in_window(q, W, H)  # (bitwise: no branch)
         qs = ti.Vector([ti.select(inside, q[0], 0.0), ti.select(inside, q[1], 0.0)])
         ix, iy, ax, ay = _b.bilinear_footprint(qs)
         ga = 0.0  # dS/dax
@@ -447,7 +446,7 @@ def make_fused_kernels(
         gv = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])  # dS/dq_v
         for dy in ti.static(range(2)):
             for dx in ti.static(range(2)):
-                keep = (ix + dx >= 0) & (ix + dx < W) & (iy + dy >= 0) & (iy + dy < H)
+                keep = _b.corner_in_image(ix, iy, dx, dy, W, H)
                 cx = ti.min(ti.max(ix + dx, 0), W - 1)
                 cy = ti.min(ti.max(iy + dy, 0), H - 1)
                 a, nr = corner_terms(cy, cx, ch, b, vals)
