@@ -157,6 +157,39 @@ def test_bad_inputs(events, tmp_path):
         sequence.read_results(bad)
 
 
+def test_warm_refinement_stops_at_warm_xtol_unless_the_caller_gives_one(events):
+    """The warm windows' local run stops at WARM_XTOL px (a step the windows' data do not resolve is not
+    chased); an ``xtol`` in ``optimize_options`` replaces it, and the first window's search keeps
+    ``maximize``'s own default."""
+
+    def run(**kwargs):
+        seen = []
+        result = sequence.process(
+            events,
+            "translation2",
+            n_events=1000,
+            progress=False,
+            on_window=lambda row, prob, res: seen.append(res.message),
+            **kwargs,
+        )
+        return result, seen
+
+    default, messages = run()
+    assert "xtol=0.01 px" not in " ".join(messages[1:])
+    assert any(f"xtol={sequence.WARM_XTOL:g} px" in m for m in messages[1:]), messages
+    tight, tight_messages = run(optimize_options={"xtol": 0.01})
+    assert not any(f"xtol={sequence.WARM_XTOL:g} px" in m for m in tight_messages), tight_messages
+    # the same first window (its search takes maximize's defaults either way); the warm windows of the
+    # tighter rule take at least as many evaluations in all, and each ends within about two of the
+    # looser rule's steps of it (2 px/s: 0.07 px over these 36 ms windows)
+    assert len(default) == len(tight) == 3
+    assert default.windows[0].evaluations == tight.windows[0].evaluations
+    assert np.array_equal(default.windows[0].theta, tight.windows[0].theta)
+    assert sum(w.evaluations for w in default.windows[1:]) <= sum(w.evaluations for w in tight.windows[1:])
+    for loose, fine in zip(default.windows[1:], tight.windows[1:], strict=True):
+        assert np.allclose(loose.theta, fine.theta, atol=2.0), (loose.theta, fine.theta)
+
+
 def test_lost_track_runs_the_global_search_again(events, monkeypatch):
     """When the tracking test says the track is lost, the global search runs after the refinement and
     the better of both is kept ("warm+global"). The warm refinement itself is robust to a reversal of
