@@ -74,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", default=None, metavar="DIR", help="output folder (default: the results folder)"
     )
-    add_backend_arguments(parser, precision=False)
+    add_backend_arguments(parser, precision=False, compile_mode=False)
     add_plugin_argument(parser)  # results of a user's model: its plugin names its flow
 
 

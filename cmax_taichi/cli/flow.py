@@ -326,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
     patterns = [f"flow/flow_*.{args.flow_format}", "flow_timestamps.txt", "results.csv", "summary.json"]
     patterns.append("figures/window_*.png")
     folder = OutputFolder(args.out, inputs=inputs, patterns=patterns, command="flow")
-    common.init_backend(args.arch, args.precision)
+    common.init_backend(args.arch, args.precision, args.compile)
     estimator = DenseFlowEstimator(
         tuple(args.grid),
         levels=args.levels,
