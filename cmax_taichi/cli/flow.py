@@ -25,6 +25,7 @@ import csv
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
@@ -407,6 +408,7 @@ def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: 
         total = args.max_windows if total is None else min(total, args.max_windows)
     bar = None if args.quiet else ProgressBar(total)
     windows, stamps = [], []
+    started = time.perf_counter()
     try:
         with folder.path("results.csv").open("w", newline="") as fcsv:
             writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
@@ -428,6 +430,8 @@ def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: 
                 if window.index < args.figures:
                     _window_figure(folder.path(f"figures/window_{window.index:04d}.png"), window, estimator)
                 writer.writerow(_row(window))
+                if not windows:  # the first result as soon as it is there
+                    _print_first_window(window, started)
                 window.events = None  # nothing of a window is kept but its summary
                 windows.append(window)
                 if bar is not None:
@@ -455,6 +459,22 @@ def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: 
     }
     folder.path("summary.json").write_text(json.dumps(info, indent=2) + "\n")
     return windows, info, truth
+
+
+def _print_first_window(window, started: float) -> None:
+    """The first window's flow in brief, as soon as it is done (above a progress bar, if one is drawn)."""
+    import numpy as np
+    from tqdm import tqdm
+
+    res = window.result
+    u, v = (float(np.median(c)) for c in window.displacement)
+    aee = f", AEE {window.metrics['AEE']:.3f} px" if window.metrics is not None else ""
+    tqdm.write(
+        f"first window ({res.t_start:.4f} s + {window.dt:.4f} s): median displacement ({u:.2f}, {v:.2f}) px"
+        f"{aee} ({time.perf_counter() - started:.1f} s)",
+        file=sys.stdout,
+    )
+    sys.stdout.flush()
 
 
 class _OneWindow:

@@ -322,17 +322,16 @@ class DenseFlowProblem:
             shape,
             *kernels_key(self.objective.name, obj, regs, weighted, split, self._atomic),
         )
-        self._run_k = workspace.compiled(
-            kkey,
-            lambda: kdense.make_dense_flow_kernels(
-                shape,
-                tuple(r.kind for r in regs),
-                tuple(r.penalty for r in regs),
-                tuple(r.penalty_grad for r in regs),
-                tuple(bool(r.one_sided) for r in regs),
-                objective=obj,
-                events=kcommon.EventLayout(weighted, split, self._atomic),
-            ),
+        # one Taichi kernel per tier (Taichi compiles a kernel object once, with the options of then)
+        self._kernels_key = kkey
+        self._build_kernel = lambda: kdense.make_dense_flow_kernels(
+            shape,
+            tuple(r.kind for r in regs),
+            tuple(r.penalty for r in regs),
+            tuple(r.penalty_grad for r in regs),
+            tuple(bool(r.one_sided) for r in regs),
+            objective=obj,
+            events=kcommon.EventLayout(weighted, split, self._atomic),
         )
         self.kernel_config = tiers.dense_config(self, setup, weighted, slices, self._atomic)
         self.tier = "full"  # the compiled tier of the current window's kernel (_take_window)
@@ -463,8 +462,9 @@ class DenseFlowProblem:
         self._check_alive()
         self._load(U)
         arrays = {**self._ws.arrays, **self._node_ws.arrays}
+        kernel = workspace.compiled((*self._kernels_key, self.tier), self._build_kernel)
         with backend.hand_written_gradient_kernels(self.tier):  # one slice per thread; the tier
-            self._run_k(
+            kernel(
                 self.n_events,
                 self._event_buffer.array,
                 self.grid.n_nodes,

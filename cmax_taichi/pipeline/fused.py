@@ -124,8 +124,12 @@ def stores_terms(declared: bool, serial: bool, n_voted: int) -> bool:
 
 
 class _Schedules:
-    """The fused kernel of one kernel key in its CPU schedules, each compiled when first used, and what
-    "auto" has learnt about where the calling thread alone is slower than the thread pool.
+    """The fused kernel of one kernel key in its CPU schedules and compiled tiers, each built when first
+    used, and what "auto" has learnt about where the calling thread alone is slower than the thread pool.
+
+    Each (schedule, tier) is a Taichi kernel of its own: Taichi 1.7.4 compiles a kernel object once, with
+    the compile options in force then, and never again, so the optimized tier cannot be a recompile of
+    the fast tier's kernel.
 
     ``parallel_from``: the smallest event count whose window ran on the pool because its timed calls
     on one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`) and the same call on the pool
@@ -137,14 +141,14 @@ class _Schedules:
 
     def __init__(self, build) -> None:
         self._build = build
-        self._kernels: dict[bool, object] = {}
+        self._kernels: dict[tuple[bool, str], object] = {}
         self.parallel_from = None
         self.serial_upto = 0  # the largest window whose first serial call was under the limit
 
-    def kernel(self, serial: bool):
-        if serial not in self._kernels:
-            self._kernels[serial] = self._build(serial)
-        return self._kernels[serial]
+    def kernel(self, serial: bool, tier: str):
+        if (serial, tier) not in self._kernels:
+            self._kernels[(serial, tier)] = self._build(serial)
+        return self._kernels[(serial, tier)]
 
 
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
@@ -470,7 +474,7 @@ class FusedPipeline:
             launcher.launch()
             return self._out.array
         self._compiling = True  # (or loading from the offline cache: not a measure of the window)
-        kernel = self._schedules.kernel(serial)
+        kernel = self._schedules.kernel(serial, self.tier)
         call = (
             self.n_events,
             plain(self.events),
