@@ -9,13 +9,12 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import shared_data_dir
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.io import detect_format, open_recording
-
-from conftest import shared_data_dir
 
 rosbags = pytest.importorskip(
     "rosbags", reason="the ROS bag reader needs 'rosbags': pip install rosbags (or cmax-taichi[rosbag])"
@@ -87,7 +86,9 @@ def test_other_message_types(tmp_path, ros2, msgtype, encoding):
     events, camera = _cut()
     events = events[:6000]
     options = {"encoding": encoding, "per_message": 777} if encoding else {}
-    bag = write_event_bag(tmp_path / ("b" if ros2 else "b.bag"), events, ros2=ros2, msgtype=msgtype, **options)
+    bag = write_event_bag(
+        tmp_path / ("b" if ros2 else "b.bag"), events, ros2=ros2, msgtype=msgtype, **options
+    )
     with open_recording(bag) as rec:
         assert rec.msgtype == msgtype and rec.encoding == (encoding or "events") and rec.camera is None
         read = rec.read()
@@ -105,7 +106,12 @@ def test_mono_packets(tmp_path):
     types = store.types
     from rosbags.rosbag1 import Writer
 
-    x, y, on, dt = np.array([3, 9, 239]), np.array([0, 5, 179]), np.array([1, 0, 1]), np.array([10, 500, 7000])
+    x, y, on, dt = (
+        np.array([3, 9, 239]),
+        np.array([0, 5, 179]),
+        np.array([1, 0, 1]),
+        np.array([10, 500, 7000]),
+    )
     words = dt.astype(np.uint64) | (x.astype(np.uint64) << 32) | (y.astype(np.uint64) << 48)
     words |= on.astype(np.uint64) << 63
     header = types["std_msgs/msg/Header"](seq=0, stamp=types["builtin_interfaces/msg/Time"](sec=5, nanosec=0),
@@ -171,7 +177,10 @@ def _array(t_ns, x=None, width=240, height=180):
         ([_array([1, 2, 3])[:-5]], r"message 0 .*not a dvs_msgs/msg/EventArray .*announces 3 events"),
         ([_array([1, 2]), _array([1])], r"message 1 .*times go backwards.*sort=True"),
         ([_array([1, 2], x=[5, 240])], r"message 0.*x up to 240.*outside its 240x180 sensor"),
-        ([_array([1])[:-9] + struct.pack("<II", 0, 1_500_000_000) + b"\x01"], r"nanosecond field of 1500000000"),
+        (
+            [_array([1])[:-9] + struct.pack("<II", 0, 1_500_000_000) + b"\x01"],
+            r"nanosecond field of 1500000000",
+        ),
     ],
     ids=["truncated", "backwards", "outside", "nanoseconds"],
 )
@@ -205,7 +214,11 @@ def _garbage(path):
 
 
 _event = st.tuples(
-    st.integers(0, 239), st.integers(0, 179), st.integers(0, 2**31 - 1), st.integers(0, 999_999_999), st.booleans()
+    st.integers(0, 239),
+    st.integers(0, 179),
+    st.integers(0, 2**31 - 1),
+    st.integers(0, 999_999_999),
+    st.booleans(),
 )
 
 
@@ -219,7 +232,9 @@ def test_numpy_decoders_match_rosbags(events, frame, ros2):
     time = T["builtin_interfaces/msg/Time"]
     header = (T["std_msgs/msg/Header"](stamp=time(sec=1, nanosec=2), frame_id=frame) if ros2 else
               T["std_msgs/msg/Header"](seq=3, stamp=time(sec=1, nanosec=2), frame_id=frame))  # fmt: skip
-    items = [T["dvs_msgs/msg/Event"](x=x, y=y, ts=time(sec=s, nanosec=n), polarity=p) for x, y, s, n, p in events]
+    items = [
+        T["dvs_msgs/msg/Event"](x=x, y=y, ts=time(sec=s, nanosec=n), polarity=p) for x, y, s, n, p in events
+    ]
     message = T["dvs_msgs/msg/EventArray"](header=header, height=180, width=240, events=items)
     if ros2:
         decoded, W, H = rosbag._array_cdr(bytes(store.serialize_cdr(message, "dvs_msgs/msg/EventArray")))

@@ -195,7 +195,9 @@ def test_lost_track_runs_the_global_search_again(events, monkeypatch):
     the better of both is kept ("warm+global"). The warm refinement itself is robust to a reversal of
     the motion (the identity is one of its starts), so the test forces the loss with a ratio no window
     can meet."""
-    monkeypatch.setattr(sequence, "TRACKING_LOSS_RATIO", 10.0)
+    from cmax_taichi.solve import warm
+
+    monkeypatch.setattr(warm, "TRACKING_LOSS_RATIO", 10.0)  # where the tracking test reads it
     result = sequence.process(events, "translation2", n_events=1000, max_windows=2, progress=False)
     assert [w.search for w in result.windows] == ["global", "warm+global"]
     assert result.windows[1].evaluations > 40  # the refinement's plus the global search's

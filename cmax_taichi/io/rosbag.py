@@ -132,7 +132,9 @@ def _bag_paths(path: Path) -> tuple[Path, list[Path]]:
     if path.is_dir():
         if not is_ros2_bag(path):
             raise ValueError(f"{path}: a folder without metadata.yaml is not a ROS2 bag")
-        files = sorted(p for p in path.iterdir() if p.suffix in _STORAGE_SUFFIXES or p.name == "metadata.yaml")
+        files = sorted(
+            p for p in path.iterdir() if p.suffix in _STORAGE_SUFFIXES or p.name == "metadata.yaml"
+        )
         for f in files:
             check_regular(f)
         return path, files
@@ -194,9 +196,7 @@ def _choose_topic(path: Path, reader, topic: str | None) -> tuple[str, str]:
         return name, events[name][0]
     if not events:
         every = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(reader.topics.items()))
-        raise ValueError(
-            f"{path}: no topic of events ({', '.join(EVENT_TYPES)}); topics: {every or 'none'}"
-        )
+        raise ValueError(f"{path}: no topic of events ({', '.join(EVENT_TYPES)}); topics: {every or 'none'}")
     raise ValueError(f"{path}: {len(events)} event topics, choose one with topic= (--topic): {listing}")
 
 
@@ -204,7 +204,9 @@ def _camera_topic(reader, event_topic: str, camera_topic: str | None) -> str | N
     infos = _topics(reader, (CAMERA_INFO,))
     if camera_topic is not None:
         if camera_topic not in infos:
-            raise ValueError(f"no {CAMERA_INFO} topic {camera_topic!r}; camera topics: {list(infos) or 'none'}")
+            raise ValueError(
+                f"no {CAMERA_INFO} topic {camera_topic!r}; camera topics: {list(infos) or 'none'}"
+            )
         return camera_topic
     beside = event_topic.rsplit("/", 1)[0] + "/camera_info"
     if beside in infos:
@@ -304,7 +306,8 @@ class _Sink:
         back = (self.n and t[0] < self.t_last) or np.any(np.diff(t) < 0)
         if self.check_order and back:
             raise ValueError(
-                f"{self.where}, {message}: event times go backwards (open_recording(..., sort=True) sorts them)"
+                f"{self.where}, {message}: event times go backwards "
+                "(open_recording(..., sort=True) sorts them)"
             )
         rows = np.empty((len(t), 4), dtype=np.float64)
         rows[:, 0], rows[:, 1], rows[:, 2] = t, x, y
@@ -427,7 +430,9 @@ def _decode_raw(raw_path: Path, encoding: str, sink: _Sink, bag: Path) -> None:
     except (KeyboardInterrupt, SystemExit):
         raise
     except BaseException as exc:  # the Rust decoder raises plain exceptions on corrupt words
-        raise ValueError(f"{bag}: cannot decode the {encoding} payloads after {sink.n} events ({exc})") from None
+        raise ValueError(
+            f"{bag}: cannot decode the {encoding} payloads after {sink.n} events ({exc})"
+        ) from None
 
 
 class RosbagRecording(CachedTableReads, Recording):
@@ -494,7 +499,9 @@ class RosbagRecording(CachedTableReads, Recording):
             key = {"topic": self.topic, "sensor_size": None if sensor_size is None else list(sensor_size),
                    "files": stats}  # fmt: skip
             source = next((f for f in files if f.suffix in _STORAGE_SUFFIXES), files[0])
-            meta = self._load_table(source, "rosbag", key, decode, cache_dir=cache_dir, cache=cache, sort=sort)
+            meta = self._load_table(
+                source, "rosbag", key, decode, cache_dir=cache_dir, cache=cache, sort=sort
+            )
         self.encoding = str(meta.get("encoding", "events"))
         self.camera_topic = info_topic
         size = sensor_size or info_size or (tuple(meta["sensor_size"]) if meta.get("sensor_size") else None)

@@ -28,7 +28,9 @@ def event_times_ns(t: np.ndarray) -> np.ndarray:
     return np.rint(np.asarray(t, dtype=np.float64) * 1e9).astype(np.int64)
 
 
-def ros1_event_array_bytes(x, y, t_ns, on, width: int, height: int, seq: int = 0, frame_id: str = "") -> bytes:
+def ros1_event_array_bytes(
+    x, y, t_ns, on, width: int, height: int, seq: int = 0, frame_id: str = ""
+) -> bytes:
     """A ``dvs_msgs/EventArray`` serialized for ROS1 with NumPy (the header stamped with the first event)."""
     n = len(t_ns)
     events = np.empty(n, dtype=_ROS1_EVENT)
@@ -46,7 +48,9 @@ def _camera_info(store, camera: Camera, size: tuple[int, int], stamp, ros2: bool
     header = _header(store, stamp, "camera", ros2)
     k = np.array([camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1], dtype=np.float64)
     p = np.array([camera.fx, 0, camera.cx, 0, 0, camera.fy, camera.cy, 0, 0, 0, 1, 0], dtype=np.float64)
-    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    roi = types["sensor_msgs/msg/RegionOfInterest"](
+        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+    )
     fields = dict(header=header, height=size[1], width=size[0], distortion_model="plumb_bob",
                   binning_x=0, binning_y=0, roi=roi)  # fmt: skip
     names = ("d", "k", "r", "p") if ros2 else ("D", "K", "R", "P")
