@@ -37,6 +37,7 @@ import sys
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
+from cmax_taichi.cli import _live
 from cmax_taichi.core.windows import describe_events
 from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 from cmax_taichi.pipeline.problem import POLARITY_MODES
@@ -119,6 +120,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["flo", "npz"],
         help="flo: Middlebury (u, v float32); npz: 'flow' (2, H, W) with t_start, t_end (default flo)",
     )
+    _live.add_arguments(parser)
 
 
 def check_choices(args: argparse.Namespace) -> None:
@@ -384,6 +386,7 @@ def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
     stride = None
     if args.stride is not None:
         stride = args.stride if args.duration is not None else int(args.stride)
+    adaptive, _ = _live.window_rule(args)
     optimize_options = {}
     if args.init != "auto":
         optimize_options["init"] = args.init
@@ -407,6 +410,7 @@ def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
             "whitening": args.whitening,
         },
         "optimize_options": optimize_options,
+        **({"adaptive": adaptive} if adaptive is not None else {}),
     }
 
 
@@ -440,6 +444,8 @@ def run_batch(args: argparse.Namespace) -> int:
         raise CliError("--example estimates one simulated recording: not with --workers / --engine / PATHs")
     if args.flow_out is not None:
         raise CliError("--flow-out writes the flow of one recording: run the recordings one by one for it")
+    if args.window_mode == "adaptive":
+        raise CliError("--window-mode adaptive estimates one recording: run the recordings one by one for it")
     if args.address is not None and args.engine != "ray":
         raise CliError("--address is a Ray cluster address: it needs --engine ray")
     if args.engine == "ray" and importlib.util.find_spec("ray") is None:
@@ -497,6 +503,10 @@ def run(args: argparse.Namespace) -> int:
     from cmax_taichi.solve.sequence import process
 
     regs = common.parse_regularizers(args.reg)
+    if args.live is not None:
+        args.warp = args.warp or "translation2"
+        check_choices(args)
+        return _live.run(args, regs, process_options(args, regs))
     if args.example is not None:
         if args.path:
             raise CliError("give a recording PATH or --example NAME, not both")
@@ -592,7 +602,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
         camera = example.camera
     else:
         path = Path(args.path[0])
-        source = io.open_recording(path, format=args.format)
+        source = io.open_recording(path, format=args.format, **({"topic": args.topic} if args.topic else {}))
         camera = None
     # per window, for the examples: the mean area scale of the warp at the estimate (a collapse
     # shrinks the events' neighbourhoods towards points: it drives the scale towards 0)

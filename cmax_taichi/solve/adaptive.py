@@ -155,7 +155,12 @@ class AdaptivePlanner:
         self.tries = 0  # solves of the first window so far
 
     def stop(
-        self, start: int, available: int, final: bool = False, duration: float | None = None
+        self,
+        start: int,
+        available: int,
+        final: bool = False,
+        duration: float | None = None,
+        t_start: float | None = None,
     ) -> int | None:
         """The end (exclusive index) of the window that starts at event ``start``, given ``available``
         events; None when it cannot end yet: the events that decide it have not all arrived, or, when
@@ -165,12 +170,13 @@ class AdaptivePlanner:
         (:meth:`keeps_tail`) takes it, within ``max_events`` and ``max_duration``.
 
         ``duration`` (s) replaces :attr:`duration`; without either (the first window) the window is
-        ``first_events`` events long."""
+        ``first_events`` events long. ``t_start``: the time of event ``start`` when ``time_of`` no longer
+        gives it (a live stream's first window, grown past the events already taken)."""
         rule = self.rule
         duration = self.duration if duration is None else duration
         if start >= available:
             return None
-        t0 = self.time_of(start)
+        t0 = self.time_of(start) if t_start is None else t_start
         cap = self.search(t0 + rule.max_duration)  # the hard bounds
         hard = min(start + rule.max_events, cap if cap < available else math.inf)
         if duration is None:
@@ -182,7 +188,7 @@ class AdaptivePlanner:
         if stop > available:
             return None
         stop = int(stop)
-        if final and stop < available and not self.keeps_tail(stop, available, duration):
+        if final and stop < available and t_start is None and not self.keeps_tail(stop, available, duration):
             merged_fits = available - start <= rule.max_events and (
                 self.time_of(available - 1) - t0 < rule.max_duration
             )

@@ -9,6 +9,7 @@ the FWL of the estimate. :func:`cmax_taichi.solve.sequence.process` (a recording
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
@@ -227,6 +228,31 @@ class WindowSolver:
                     self._fprob.set_events(prob.events)
                 value_fwl = self._fprob.value(res.theta)
         return res, search, float(value_fwl)
+
+    def warm_up(self, sensor_size: tuple[int, int], n_events: int, seed: int = 0) -> float:
+        """Compile (or load from Taichi's offline cache) what the windows of a ``sensor_size`` source
+        will run, on synthetic windows of about ``n_events`` events (a pattern translating at 200 px/s;
+        its undistortion too): the problem's kernels, the search from the identity and a warm
+        refinement. Leaves the problem allocated and no warm state. Returns the seconds it took."""
+        from cmax_taichi.solve.adaptive import extreme_speed
+
+        t0 = time.perf_counter()
+        W, H = sensor_size
+        rng = np.random.default_rng(seed)
+        n = max(16, int(n_events))
+        t = np.sort(rng.uniform(0.0, 0.02, n))
+        x0, y0 = rng.integers(0, W, 64), rng.integers(0, H, 64)  # 64 dots moving along x
+        k = rng.integers(0, 64, n)
+        x = np.clip(np.round(x0[k] + 200.0 * t), 0, W - 1)
+        events = Events(x, y0[k].astype(np.float64), t, rng.choice([-1.0, 1.0], n), (W, H))
+        if self.camera is not None and self.camera.has_distortion:
+            events = events.undistort(self.camera)
+        res, _, _ = self.solve(events, None, "identity")
+        self.retry_from(res)
+        res, _, _ = self.solve(events[: max(8, n // 2)])
+        extreme_speed(self.prob, np.full(self.model.n_params, 1e-3))
+        self.state = None
+        return time.perf_counter() - t0
 
     def advance(self, row: WindowResult, result: OptimizeResult) -> None:
         """The window of ``row`` is done: the next one warm-starts from it."""
