@@ -125,22 +125,36 @@ class LiveOutput:
         from cmax_taichi.io import outputs
 
         outputs.check_inputs(self.out, self.inputs, "--out")
+        self._created = not self.out.exists()
         try:
             self.out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OSError(f"--out: cannot create {self.out} ({exc.strerror or exc})") from None
-        self._stack.enter_context(outputs.hold_lock(self.out, "estimate --live"))
+        self._stack.callback(self._remove_if_unused)
         try:
+            self._stack.enter_context(outputs.hold_lock(self.out, "estimate --live"))
             outputs.refuse_foreign(self.out, LIVE_FILES)
-            (self.out / "results.json").unlink(missing_ok=True)  # a previous run's (ours: checked above)
-            self._file = self._stack.enter_context(open(self.out / "results.csv", "w", newline=""))
-            self._writer = csv.writer(self._file)
-            self._writer.writerow([*self.columns, "latency [s]"])
-            self._file.flush()
         except BaseException:
             self._stack.close()
             raise
         return self
+
+    def begin(self) -> None:
+        """Start results.csv (the header): the source is open, rows will come."""
+        (self.out / "results.json").unlink(missing_ok=True)  # a previous run's (ours: checked on entry)
+        self._file = self._stack.enter_context((self.out / "results.csv").open("w", newline=""))
+        self._writer = csv.writer(self._file)
+        self._writer.writerow([*self.columns, "latency [s]"])
+        self._file.flush()
+
+    def _remove_if_unused(self) -> None:
+        """A run that failed before its first row leaves no folder it created behind."""
+        from cmax_taichi.io import outputs
+
+        if self._created and self._file is None:
+            with contextlib.suppress(OSError):
+                (self.out / outputs.LOCK_NAME).unlink()
+                self.out.rmdir()
 
     def write(self, fields: list, latency: float) -> None:
         """One row, flushed at once."""
@@ -341,6 +355,7 @@ def run(args: argparse.Namespace, regs: dict, process_options: dict) -> int:
             stream.close()
             raise CliError(f"warp {model.name!r} needs a calibration, and {source} has none")
         shown = LiveDisplay() if display else None
+        out.begin()
 
         def on_window(row, prob, res, latency):
             out.write(SequenceResult.csv_row(row), latency)

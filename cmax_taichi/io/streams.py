@@ -51,6 +51,9 @@ __all__ = [
 
 PACKAGE = "dv-processing"
 EXTRA = "live"
+#: events the reader process of a dv-processing source holds for a parent that does not read them (then
+#: the oldest are dropped, and counted: :attr:`EventStream.dropped`)
+CHILD_BACKLOG_EVENTS = 4_000_000
 #: seconds of data per packet of a replay (a camera's driver sends about a packet per millisecond)
 PACKET_SECONDS = 0.001
 
@@ -85,9 +88,12 @@ class EventStream:
         ``(W, H)``, px.
     camera : Camera or None
         Intrinsics where the source gives them (a replayed recording) or the caller does.
+    dropped : int
+        Events the source dropped before they could be read (a reader that did not keep up).
     """
 
     address: str = ""
+    dropped: int = 0
     sensor_size: tuple[int, int] = (0, 0)
     camera: Camera | None = None
     _ended = False
@@ -299,15 +305,59 @@ def _dv_child(conn, kind: str, target: str, port: int, timeout: float) -> None:
     except Exception as exc:  # any failure to open: one message, then this process ends
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    _forward(reader, conn)
+
+
+def _forward(reader, conn) -> None:
+    """Take every batch from ``reader`` at once (dv-processing drops the batches it still holds when the
+    connection closes) and send them to the parent from a thread, holding at most
+    :data:`CHILD_BACKLOG_EVENTS` (beyond, the oldest are dropped and counted in an ``"overflow"``
+    message); ``"end"`` once the source closed and everything was sent."""
+    import collections
+    import threading
+
+    pending: collections.deque = collections.deque()
+    held = [0, 0]  # events held, events dropped since the last report
+    cond = threading.Condition()
+    finished = []
+
+    def send() -> None:
+        while True:
+            with cond:
+                while not pending and not finished:
+                    cond.wait()
+                if not pending:
+                    break
+                batch, dropped = pending.popleft(), held[1]
+                held[0] -= len(batch)
+                held[1] = 0
+            if dropped:
+                conn.send(("overflow", dropped))
+            conn.send(("events", batch))
+        conn.send(("end", finished[0]))
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
     while True:
         batch = reader.getNextEventBatch()
         if batch is None:
             if not reader.isRunning():
-                conn.send(("end", "the source closed the stream"))
-                return
+                break
             time.sleep(0.0005)
             continue
-        conn.send(("events", batch.numpy()))
+        events = batch.numpy()
+        with cond:
+            pending.append(events)
+            held[0] += len(events)
+            while held[0] > CHILD_BACKLOG_EVENTS and len(pending) > 1:
+                oldest = pending.popleft()
+                held[0] -= len(oldest)
+                held[1] += len(oldest)
+            cond.notify()
+    with cond:
+        finished.append("the source closed the stream")
+        cond.notify()
+    sender.join()
 
 
 class DvStream(EventStream):
@@ -385,6 +435,9 @@ class DvStream(EventStream):
         if message is None:
             return None
         kind, payload = message
+        if kind == "overflow":
+            self.dropped += int(payload)
+            return None
         if kind == "end":
             self._ended = True
             return None

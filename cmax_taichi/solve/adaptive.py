@@ -161,13 +161,14 @@ class AdaptivePlanner:
         final: bool = False,
         duration: float | None = None,
         t_start: float | None = None,
+        merge: bool = True,
     ) -> int | None:
         """The end (exclusive index) of the window that starts at event ``start``, given ``available``
         events; None when it cannot end yet: the events that decide it have not all arrived, or, when
         ``final`` (no event comes after them), they fall short of it (the rest is a partial tail).
 
-        When ``final``, a window that would leave a tail too short to be estimated on its own
-        (:meth:`keeps_tail`) takes it, within ``max_events`` and ``max_duration``.
+        When ``final`` (and ``merge``), a window that would leave a tail too short to be estimated on its
+        own (:meth:`keeps_tail`) takes it, within ``max_events`` and ``max_duration``.
 
         ``duration`` (s) replaces :attr:`duration`; without either (the first window) the window is
         ``first_events`` events long. ``t_start``: the time of event ``start`` when ``time_of`` no longer
@@ -188,7 +189,7 @@ class AdaptivePlanner:
         if stop > available:
             return None
         stop = int(stop)
-        if final and stop < available and t_start is None and not self.keeps_tail(stop, available, duration):
+        if final and merge and stop < available and not self.keeps_tail(stop, available, duration):
             merged_fits = available - start <= rule.max_events and (
                 self.time_of(available - 1) - t0 < rule.max_duration
             )

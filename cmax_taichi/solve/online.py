@@ -355,6 +355,7 @@ class _Live:
         self.error: BaseException | None = None
         self.t_last = -math.inf  # the latest event time received (later ones are late)
         self.behind_rows: list[tuple[int, float, float]] = []  # (events, t_start, t_end) skipped
+        self._source_dropped = 0
         self._quit = threading.Event()
         self._thread = threading.Thread(target=self._read, name="cmax-taichi live reader", daemon=True)
 
@@ -366,6 +367,10 @@ class _Live:
         try:
             while not self._quit.is_set():
                 packet = self.stream.read(_POLL)
+                if self.stream.dropped > self._source_dropped:  # dropped by the source: counted
+                    with self.cond:
+                        self.ledger.drop("behind", self.stream.dropped - self._source_dropped)
+                    self._source_dropped = self.stream.dropped
                 if packet is None:
                     if self.stream.ended:
                         self.reason = "ended"
@@ -497,7 +502,9 @@ class _Run:
             while True:
                 if buffer.base != taken_end:
                     return None, None  # events after the window were skipped: it cannot grow on
-                stop = planner.stop(start, buffer.end, final=live.done, duration=duration, t_start=t_start)
+                stop = planner.stop(
+                    start, buffer.end, final=live.done, duration=duration, t_start=t_start, merge=False
+                )
                 if stop is None and live.done:
                     stop = buffer.end
                 if stop is not None:

@@ -596,7 +596,8 @@ def _adapt(plan: _Plan, solver: WindowSolver, span, used, inside, kept, res, sea
     if planner.duration is None:
         while (longer := planner.retry_duration(solver.prob.duration, speed)) is not None:
             # no further than the events go
-            stop = planner.stop(span.start, plan.n_total, final=True, duration=longer) or plan.n_total
+            stop = planner.stop(span.start, plan.n_total, final=True, duration=longer, merge=False)
+            stop = stop or plan.n_total
             if stop <= span.stop:
                 break
             grown = Span(span.index, span.start, stop, span.tail, span.keep)

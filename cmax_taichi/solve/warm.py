@@ -196,7 +196,9 @@ class WindowSolver:
 
         ``start``: ``"auto"`` (the warm refinement of :attr:`state`, or the global search without one or
         without ``warm_start``), ``"identity"`` (a local ascent from the identity warp: ``search`` is
-        ``"identity"``) or ``"global"``."""
+        ``"identity"``; the global search too when the ascent stays at the identity, as it does on events
+        at whole pixels, whose image at the identity is a spike: ``"identity+global"``) or
+        ``"global"``."""
         weights = self.weights
         if weights is not None and kept is not None and np.shape(weights) == kept.shape:
             weights = np.asarray(weights)[kept]  # as the problem's own undistortion does
@@ -212,6 +214,9 @@ class WindowSolver:
             zero = np.zeros(self.model.n_params)
             res = maximize(prob, theta0=zero, method=self.warm_method, init="warm", **self.oopts)
             search = start
+            if not np.any(res.theta):  # held at the identity (events on whole pixels: its spike)
+                res = maximize(prob, method=self.method, **self.oopts)
+                search = "identity+global"
         else:
             state = self.state if self.warm_start and start == "auto" else None
             res, search = _solve_window(prob, state, self.method, self.warm_method, self.oopts)
