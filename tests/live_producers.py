@@ -10,7 +10,6 @@ import time
 
 import numpy as np
 
-
 _KEEP: list = []
 
 

@@ -22,6 +22,7 @@ V = (150.0, 60.0)  # px/s
 
 
 def _planner(n: int, spacing: float = 1e-3, **rule) -> AdaptivePlanner:
+    rule.setdefault("target_px", 3.0)
     t = np.arange(n) * spacing
     return AdaptivePlanner(
         AdaptiveWindows(**rule), lambda i: float(t[i]), lambda s: int(np.searchsorted(t, s, side="left"))

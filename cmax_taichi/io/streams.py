@@ -540,6 +540,7 @@ def serve_replay(
     started=None,
     linger: float = 1.0,
     keep: list | None = None,
+    go=None,
 ) -> int:
     """Serve ``source`` replayed (:class:`ReplayStream`: each packet sent when the wall clock reaches
     its last event) as a dv-processing TCP event stream on ``host:port`` until the replay ends; returns
@@ -549,7 +550,8 @@ def serve_replay(
     ``ready`` (an event) is set once the server listens, ``started`` (a shared double) gets the wall
     time (``time.perf_counter``, the same clock in every process of the machine) at which the first
     event's time is replayed. Up to :data:`PREBUILD_EVENTS` events are packed before the replay starts;
-    a longer replay packs each packet when it is due. The connection closes ``linger`` s after the last
+    a longer replay packs each packet when it is due. With ``go`` (an event), the replay waits for it too
+    (a client that prepares before it reads). The connection closes ``linger`` s after the last
     packet (dv-processing's reader drops the packets it holds when the connection closes: the end of the
     stream is seen that much later); ``keep``, a list, receives the writer instead of closing it."""
     dv = _dv("serving a dv-processing stream")
@@ -573,7 +575,7 @@ def serve_replay(
     if ready is not None:
         ready.set()
     deadline = time.monotonic() + wait_for_client
-    while writer.getClientCount() == 0:
+    while writer.getClientCount() == 0 or (go is not None and not go.is_set()):
         if time.monotonic() > deadline:
             raise TimeoutError(f"no client connected to tcp://{host}:{port} within {wait_for_client:g} s")
         time.sleep(0.002)
@@ -599,11 +601,11 @@ def serve_replay(
     return sent
 
 
-def _serve_child(ready, started, source, port, host, speed, loops, wait_for_client, linger) -> None:
+def _serve_child(ready, started, go, source, port, host, speed, loops, wait_for_client, linger) -> None:
     keep: list = []
     serve_replay(
         source, port, host=host, speed=speed, loops=loops, wait_for_client=wait_for_client, ready=ready,
-        started=started, linger=linger, keep=keep,
+        started=started, linger=linger, keep=keep, go=go,
     )  # fmt: skip
     os._exit(0)  # without the writer's destructor, which waits for its clients
 
@@ -622,6 +624,7 @@ class ReplayServer:
     process: multiprocessing.Process
     address: str
     started: object  # a shared double: the wall time the replay's first event time was sent at (0 before)
+    go: object = None  # with wait_for_go: the replay starts once this event is set (and a client is there)
 
     def stop(self) -> None:
         """End the server now (when it has not ended by itself)."""
@@ -639,16 +642,18 @@ def start_replay_server(
     loops: int = 1,
     wait_for_client: float = 60.0,
     linger: float = 1.0,
+    wait_for_go: bool = False,
 ) -> ReplayServer:
     """:func:`serve_replay` of ``source`` (a path: the child opens it) in a child process, once it
-    listens (it packs its packets first); the process ends ``linger`` s after the last packet."""
+    listens (it packs its packets first); the process ends ``linger`` s after the last packet. With
+    ``wait_for_go``, the replay starts only once ``server.go`` is set as well."""
     port = free_port(host) if port is None else port
     ctx = multiprocessing.get_context("spawn")
-    ready, started = ctx.Event(), ctx.Value("d", 0.0)
-    args = (ready, started, str(source), port, host, speed, loops, wait_for_client, linger)
+    ready, started, go = ctx.Event(), ctx.Value("d", 0.0), ctx.Event() if wait_for_go else None
+    args = (ready, started, go, str(source), port, host, speed, loops, wait_for_client, linger)
     process = ctx.Process(target=_serve_child, args=args, daemon=True)
     process.start()
     if not ready.wait(120.0):
         process.terminate()
         raise StreamError(f"the replay server of {source} did not start")
-    return ReplayServer(process, f"tcp://{host}:{port}", started)
+    return ReplayServer(process, f"tcp://{host}:{port}", started, go)

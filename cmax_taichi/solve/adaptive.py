@@ -5,11 +5,17 @@ of an ECD rotation cut hold half a pixel (an estimate of noise), 5,000 events of
 hold ten. :class:`AdaptiveWindows` sizes each window by the motion instead: the previous window's
 estimate predicts the image speed at the window's extreme pixels (the corners of the bounding box of its
 events, :func:`extreme_speed`), and the next window takes the events of the time in which that speed
-moves them by ``target_px`` (2-4 px: enough motion to be estimated at subpixel accuracy, little enough
-that the motion stays about constant in the window), bounded by ``min_events`` / ``max_events`` and
+moves them by ``target_px`` (8 px by default: enough motion to be estimated, little enough that the
+motion stays about constant in the window), bounded by ``min_events`` / ``max_events`` and
 ``max_duration``. The first window has no previous estimate: it starts with ``first_events`` events and
 grows (at most ``first_tries`` times, each time to the duration its own estimate predicts, at most
 ``first_growth`` times longer) until its estimate predicts at least ``accept`` times the target.
+
+Why 8 px at the extreme pixels (the corners; about 5 px at the centre of a DAVIS240 under rotation): at
+3-4 px the estimates of the ECD rotation cuts were 28-68% off the gyro for boxes_rotation (its windows of
+8,000-12,000 events, sized by estimates that overshoot the speed of a window holding little motion, stay
+that small), at 8 px each cut but shapes_rotation is one window and as accurate as it can be
+(docs/live.md, "Choosing the target").
 
 The trade-off: the motion in a window, and so the accuracy of its estimate, no longer depends on the
 event rate, but the window's duration does: fast motion gives short windows (more estimates per second,
@@ -45,7 +51,7 @@ class AdaptiveWindows:
     ----------
     target_px : float
         Displacement (px) that a window should hold at its extreme pixels, as the previous estimate
-        predicts it (default 3).
+        predicts it (default 8).
     min_events, max_events : int
         Bounds on a window's events (defaults 2,000 and 500,000). ``max_events`` and ``max_duration``
         are hard bounds; ``min_events`` gives way to ``max_duration`` (a slow event rate then gives
@@ -70,7 +76,7 @@ class AdaptiveWindows:
         ``"global"``, the global search of :func:`~cmax_taichi.maximize`.
     """
 
-    target_px: float = 3.0
+    target_px: float = 8.0
     min_events: int = 2_000
     max_events: int = 500_000
     max_duration: float = 0.5
@@ -161,14 +167,15 @@ class AdaptivePlanner:
         final: bool = False,
         duration: float | None = None,
         t_start: float | None = None,
-        merge: bool = True,
+        tail_duration: float | None = None,
     ) -> int | None:
         """The end (exclusive index) of the window that starts at event ``start``, given ``available``
         events; None when it cannot end yet: the events that decide it have not all arrived, or, when
         ``final`` (no event comes after them), they fall short of it (the rest is a partial tail).
 
-        When ``final`` (and ``merge``), a window that would leave a tail too short to be estimated on its
-        own (:meth:`keeps_tail`) takes it, within ``max_events`` and ``max_duration``.
+        When ``final``, a window that would leave a tail too short to be estimated on its own
+        (:meth:`keeps_tail` at ``tail_duration``, default ``duration``: the windows the motion asks for)
+        takes it, within ``max_events`` and ``max_duration``.
 
         ``duration`` (s) replaces :attr:`duration`; without either (the first window) the window is
         ``first_events`` events long. ``t_start``: the time of event ``start`` when ``time_of`` no longer
@@ -189,7 +196,8 @@ class AdaptivePlanner:
         if stop > available:
             return None
         stop = int(stop)
-        if final and merge and stop < available and not self.keeps_tail(stop, available, duration):
+        tail_duration = duration if tail_duration is None else tail_duration
+        if final and stop < available and not self.keeps_tail(stop, available, tail_duration):
             merged_fits = available - start <= rule.max_events and (
                 self.time_of(available - 1) - t0 < rule.max_duration
             )
@@ -210,10 +218,15 @@ class AdaptivePlanner:
         held = self.time_of(end - 1) - self.time_of(start)
         return held >= rule.accept * min(duration, rule.max_duration)
 
+    def predicted(self, speed: float) -> float:
+        """The duration (s) in which ``speed`` (px/s) moves the extreme pixels by the target (inf when
+        still)."""
+        return self.rule.target_px / speed if speed > 0 and math.isfinite(speed) else math.inf
+
     def predict(self, speed: float) -> float:
         """The duration (s) in which ``speed`` (px/s) moves the extreme pixels by the target (inf when
         still), kept for the next window."""
-        self.duration = self.rule.target_px / speed if speed > 0 and math.isfinite(speed) else math.inf
+        self.duration = self.predicted(speed)
         return self.duration
 
     def retry_duration(self, duration: float, speed: float) -> float | None:

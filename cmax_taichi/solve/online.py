@@ -175,7 +175,11 @@ class LiveResult:
         Wall time of the warm-up before the stream was read (kernels compiled or loaded), s.
     latencies : ndarray
         Seconds from each window's last event's arrival to its estimate (the most recent
-        :data:`LATENCY_RING`).
+        :data:`LATENCY_RING`), for the windows that their own events closed (not the last window,
+        which the end of the stream closes: ``end_latency``).
+    end_latency : float
+        That of the window the end of the stream closed, which includes the wait for the end (NaN
+        when none).
     recent : deque of WindowResult
         The most recent rows (:data:`RECENT_ROWS`).
     stop_reason : str
@@ -197,6 +201,7 @@ class LiveResult:
     first_window_seconds: float = math.nan
     warm_up_seconds: float = 0.0
     latencies: np.ndarray = field(default_factory=lambda: np.empty(0))
+    end_latency: float = math.nan
     recent: deque = field(default_factory=lambda: deque(maxlen=RECENT_ROWS))
     stop_reason: str = ""
     error: str | None = None
@@ -488,35 +493,39 @@ class _Run:
         keep = not tail or (self.keep_tail and planner.keeps_tail(buffer.base, stop))
         start = buffer.base
         arrival = buffer.arrival_of(stop - 1)
+        by_end = live.done and stop == buffer.end  # the end of the stream closed it
         columns = buffer.take(stop - start)
         span = Span(self.index, self.position, self.position + stop - start, tail=tail, keep=keep)
-        return columns, arrival, span, start
+        return columns, arrival, span, start, by_end
 
-    def _grow(self, columns, start: int, t_start: float, duration: float):
+    def _grow(self, columns, start: int, t_start: float, duration: float, tail_duration: float):
         """The first window, longer (``duration`` s from its first event at buffer position ``start``):
-        its columns with the events up to the new end, once they arrived; None when it cannot grow (no
-        later events, or the buffer skipped some of them meanwhile)."""
+        ``(columns, arrival of its last event, whether the stream's end closed it)`` once the events up to
+        the new end arrived; ``(None, None, False)`` when it cannot grow (no later events, the buffer
+        skipped some of them meanwhile, or the run is stopping)."""
         live, buffer, planner = self.live, self.live.buffer, self.live.planner
         taken_end = start + len(columns[0])
         with live.cond:
             while True:
                 if buffer.base != taken_end:
-                    return None, None  # events after the window were skipped: it cannot grow on
+                    return None, None, False  # events after the window were skipped: it cannot grow
                 stop = planner.stop(
-                    start, buffer.end, final=live.done, duration=duration, t_start=t_start, merge=False
-                )
+                    start, buffer.end, final=live.done, duration=duration, t_start=t_start,
+                    tail_duration=tail_duration,
+                )  # fmt: skip
                 if stop is None and live.done:
                     stop = buffer.end
                 if stop is not None:
                     break
                 if live.stop_event is not None and live.stop_event.is_set():
-                    return None, None
+                    return None, None, False
                 live.cond.wait(0.05)
             if stop <= taken_end:
-                return None, None
+                return None, None, False
             arrival = buffer.arrival_of(stop - 1)
+            by_end = live.done and stop == buffer.end
             more = buffer.take(stop - taken_end)
-        return tuple(np.concatenate([a, b]) for a, b in zip(columns, more, strict=True)), arrival
+        return tuple(np.concatenate([a, b]) for a, b in zip(columns, more, strict=True)), arrival, by_end
 
     # --- estimating ---------------------------------------------------------------------------------
     def _fate(self, columns, span: Span):
@@ -531,7 +540,7 @@ class _Run:
             self.lossy.add(events, used)
         return used, inside, kept, window_status(span, len(used), used.duration)
 
-    def _estimate(self, columns, arrival: float, span: Span, start: int) -> None:
+    def _estimate(self, columns, arrival: float, span: Span, start: int, by_end: bool) -> None:
         t0 = time.perf_counter()
         used, inside, kept, status = self._fate(columns, span)
         solver, planner = self.solver, self.live.planner
@@ -547,7 +556,9 @@ class _Run:
             speed = extreme_speed(solver.prob, res.theta)
             searches = [search]
             while first and (longer := planner.retry_duration(solver.prob.duration, speed)) is not None:
-                grown, grown_arrival = self._grow(columns, start, float(columns[0][0]), longer)
+                grown, grown_arrival, grown_by_end = self._grow(
+                    columns, start, float(columns[0][0]), longer, planner.predicted(speed)
+                )
                 if grown is None:
                     break
                 wider = Span(span.index, span.start, span.start + len(grown[0]), span.tail, span.keep)
@@ -555,6 +566,7 @@ class _Run:
                 if fate[3] not in ESTIMATED_STATUSES:
                     break
                 columns, arrival, span, (used, inside, kept, status) = grown, grown_arrival, wider, fate
+                by_end = grown_by_end
                 solver.retry_from(res)
                 before = res
                 res, search, fwl = solver.solve(used, kept)
@@ -572,8 +584,11 @@ class _Run:
             n_dropped=len(span) - prob.n_events,
         )  # fmt: skip
         latency = estimated_at - arrival
-        self.latencies[self.n_latencies % LATENCY_RING] = latency
-        self.n_latencies += 1
+        if by_end:
+            self.result.end_latency = latency
+        else:
+            self.latencies[self.n_latencies % LATENCY_RING] = latency
+            self.n_latencies += 1
         result = self.result
         if result.windows == 0:
             result.first_window_seconds = row.seconds

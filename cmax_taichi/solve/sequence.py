@@ -361,7 +361,7 @@ def process(
     adaptive : AdaptiveWindows or True, optional
         Motion-adaptive windows (:class:`~cmax_taichi.solve.adaptive.AdaptiveWindows`; True: the
         default rule): each window holds the events of the time in which the previous estimate moves
-        the window's extreme pixels by ``target_px`` (3 px), bounded by a minimum and maximum number of
+        the window's extreme pixels by ``target_px`` (8 px), bounded by a minimum and maximum number of
         events and a maximum duration; the first window grows until its own estimate does. Replaces
         ``n_events``; not with ``duration`` or ``stride``. The first window's ``search`` names its
         solves: ``"identity"`` (a local ascent from the identity warp), then ``"warm"`` when it grew
@@ -596,7 +596,9 @@ def _adapt(plan: _Plan, solver: WindowSolver, span, used, inside, kept, res, sea
     if planner.duration is None:
         while (longer := planner.retry_duration(solver.prob.duration, speed)) is not None:
             # no further than the events go
-            stop = planner.stop(span.start, plan.n_total, final=True, duration=longer, merge=False)
+            stop = planner.stop(
+                span.start, plan.n_total, final=True, duration=longer, tail_duration=planner.predicted(speed)
+            )
             stop = stop or plan.n_total
             if stop <= span.stop:
                 break
