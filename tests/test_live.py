@@ -234,3 +234,26 @@ def test_cli_live_bad_input(tmp_path, args, fragment):
     assert proc.returncode == 2
     lines = [line for line in stderr.splitlines() if line.strip() and not line.startswith("[Taichi]")]
     assert len(lines) == 1 and fragment in lines[0], stderr
+
+
+def test_display_frames_draw_and_update():
+    """The live display's drawing (run in its own process by estimate --live): a first frame builds the
+    panels, the next updates them in place."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from cmax_taichi.cli._live import draw_frame
+
+    fig = Figure(figsize=(9, 3))
+    FigureCanvasAgg(fig)
+    artists: dict = {}
+    for k in range(2):
+        frame = {
+            "identity": np.random.default_rng(k).random((18, 24)), "estimate": np.ones((18, 24)),
+            "t": [0.01, 0.02, 0.03][: k + 2], "theta": [[1.0, 2.0, 3.0][: k + 2], [0.0, 1.0, 0.0][: k + 2]],
+            "names": ("v_x", "v_y"), "units": ("px/s", "px/s"), "title": f"window {k}",
+        }  # fmt: skip
+        draw_frame(fig, frame, artists)
+        fig.canvas.draw()
+    assert len(fig.axes) >= 3 and fig._suptitle.get_text() == "window 1"
+    np.testing.assert_array_equal(artists["lines"][0].get_xdata(), [0.01, 0.02, 0.03])

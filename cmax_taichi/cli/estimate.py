@@ -653,7 +653,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
     events = result.events
     if events.get("total"):
         left = events["total"] - events["estimated"]
-        count_windows = args.window if args.duration is None else None
+        count_windows = args.window if args.duration is None and args.window_mode != "adaptive" else None
         reasons = describe_events(events, count_windows, args.max_windows)
         note = f"; {left} not estimated ({reasons}; {len(result.skipped)} window(s) skipped)" if left else ""
         print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
@@ -671,6 +671,12 @@ def _why_no_window(args: argparse.Namespace, result) -> str:
     total = events.get("total", 0)
     if total == 0:
         return "the recording has no events"
+    if args.window_mode == "adaptive":
+        first = _live.window_rule(args)[0].first_events
+        return (
+            f"{total} events; no adaptive window was estimated (the first takes {first} events; --keep-tail "
+            "estimates what there is as one window)"
+        )
     if args.duration is None and total < args.window:
         least = min_tail_events(args.window)
         hint = (
