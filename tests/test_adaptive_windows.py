@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import test_sequence as sequence_tests
 
 import cmax_taichi as cm
 from cmax_taichi.core.windows import CATEGORIES
@@ -93,18 +94,8 @@ def test_extreme_speed_is_the_flow_at_the_corners(warp):
     assert extreme_speed(prob, np.zeros(model.n_params)) == 0.0
 
 
-def translating_edges(v=V, n=6000, duration=0.2, seed=3) -> cm.Events:
-    rng = np.random.default_rng(seed)
-    W, H = SENSOR
-    centres = rng.uniform([12, 10], [W - 12, H - 10], size=(10, 2))
-    angles = rng.uniform(0, np.pi, size=10)
-    which = rng.integers(0, 10, n)
-    s = rng.uniform(-7, 7, n)
-    t = np.sort(rng.uniform(0, duration, n))
-    x = centres[which, 0] + s * np.cos(angles[which]) + v[0] * (t - duration / 2)
-    y = centres[which, 1] + s * np.sin(angles[which]) + v[1] * (t - duration / 2)
-    keep = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
-    return cm.Events(x[keep], y[keep], t[keep], rng.integers(0, 2, n)[keep], SENSOR)
+def translating_edges(n=6000, duration=0.2, seed=3) -> cm.Events:
+    return sequence_tests.translating_edges(V, n=n, duration=duration, seed=seed, sensor=SENSOR)
 
 
 def test_process_adaptive_windows_hold_the_target_motion():
