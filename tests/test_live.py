@@ -110,6 +110,12 @@ def _packets(events: cm.Events, size: int):
                events.y[sl].astype(int), (events.p[sl] > 0).astype(int))  # fmt: skip
 
 
+def test_loopback_nothing_listening_is_one_clear_error():
+    address = f"tcp://127.0.0.1:{free_port()}"
+    with pytest.raises(StreamError, match=r"cannot open \(RuntimeError: connect: Connection refused\)$"):
+        open_stream(address)
+
+
 def test_loopback_late_packets_burst_behind_and_a_producer_that_stops():
     """Packets at the recorded pace, a late packet (times earlier than what came before), a burst while
     the estimator is slow (the buffer skips whole windows: ``behind``), then the producer stops sending

@@ -53,7 +53,7 @@ PACKAGE = "dv-processing"
 EXTRA = "live"
 #: events the reader process of a dv-processing source holds for a parent that does not read them (then
 #: the oldest are dropped, and counted: :attr:`EventStream.dropped`)
-CHILD_BACKLOG_EVENTS = 4_000_000
+CHILD_BACKLOG_EVENTS = 1_000_000
 #: seconds of data per packet of a replay (a camera's driver sends about a packet per millisecond)
 PACKET_SECONDS = 0.001
 
@@ -303,7 +303,8 @@ def _dv_child(conn, kind: str, target: str, port: int, timeout: float) -> None:
             raise ConnectionError("the source gives no event resolution")
         conn.send(("hello", (int(size[0]), int(size[1])), str(reader.getCameraName())))
     except Exception as exc:  # any failure to open: one message, then this process ends
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        reason = str(exc).split(" [", 1)[0]  # without boost's source location
+        conn.send(("error", f"{type(exc).__name__}: {reason}"))
         return
     _forward(reader, conn)
 

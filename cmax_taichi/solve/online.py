@@ -104,10 +104,12 @@ class _Buffer:
 
     def __init__(self, capacity: int) -> None:
         self.capacity = int(capacity)
-        self.t = np.empty(self.capacity, dtype=np.float64)
-        self.x = np.empty(self.capacity, dtype=np.float64)
-        self.y = np.empty(self.capacity, dtype=np.float64)
-        self.p = np.empty(self.capacity, dtype=np.int8)
+        # zeros written, not just allocated: the pages are the process's from the start, so its memory
+        # does not grow the first time a backlog fills them
+        self.t = np.full(self.capacity, 0.0)
+        self.x = np.full(self.capacity, 0.0)
+        self.y = np.full(self.capacity, 0.0)
+        self.p = np.full(self.capacity, 0, dtype=np.int8)
         self.head = 0  # array index of position base
         self.count = 0
         self.base = 0
@@ -268,8 +270,9 @@ def run_live(
     max_windows : int, optional
         Stop after this many windows (estimated or not).
     backlog_events : int, optional
-        Events the buffer holds at most (default: 4 windows of the largest size, at least a million:
-        about 25 MB); beyond, whole windows are skipped from its front (``behind``).
+        Events the buffer holds at most (default: 2 windows of the largest size, at least a million:
+        25 bytes each, allocated at the start); beyond, whole windows are skipped from its front
+        (``behind``).
     idle_timeout : float, optional
         Stop when no packet came for this many seconds (default: wait for the stream to end).
     keep_tail : bool
@@ -308,7 +311,7 @@ def run_live(
     rule_size = windows.max_events if isinstance(windows, AdaptiveWindows) else None
     if rule_size is None and isinstance(windows, (int, np.integer)) and not isinstance(windows, bool):
         rule_size = int(windows)
-    capacity = backlog_events or max(1_000_000, 4 * (rule_size or AdaptiveWindows().max_events))
+    capacity = backlog_events or max(1_000_000, 2 * (rule_size or AdaptiveWindows().max_events))
     capacity = checks.whole_number("backlog_events", capacity, 2)
     buffer = _Buffer(capacity)
     planner = _rule(windows, buffer)
