@@ -168,7 +168,8 @@ class LiveResult:
     skipped : int
         Windows not estimated (too few events, all at one time, a partial tail, ``behind``).
     busy_seconds : float
-        Wall time spent on the windows (the first window's search and growth included), s.
+        Wall time spent on the windows (the first window's search and growth included, not the time it
+        waited for the events it grew by), s; a row's ``seconds`` is its part.
     data_seconds : float
         Time spanned by the events taken into windows, s (of the source's clock).
     first_window_seconds : float
@@ -459,6 +460,7 @@ class _Run:
         self.latencies = np.full(LATENCY_RING, np.nan)
         self.n_latencies = 0
         self.t_first = self.t_last = math.nan
+        self.waiting = 0.0  # seconds the window in hand waited for events (a growing first window)
 
     # --- taking windows -------------------------------------------------------------------------------
     def loop(self) -> None:
@@ -508,6 +510,7 @@ class _Run:
         skipped some of them meanwhile, or the run is stopping)."""
         live, buffer, planner = self.live, self.live.buffer, self.live.planner
         taken_end = start + len(columns[0])
+        waited = time.perf_counter()
         with live.cond:
             while True:
                 if buffer.base != taken_end:
@@ -523,6 +526,7 @@ class _Run:
                 if live.stop_event is not None and live.stop_event.is_set():
                     return None, None, False
                 live.cond.wait(0.05)
+            self.waiting += time.perf_counter() - waited  # for events: not the window's work
             if stop <= taken_end:
                 return None, None, False
             arrival = buffer.arrival_of(stop - 1)
@@ -545,6 +549,7 @@ class _Run:
 
     def _estimate(self, columns, arrival: float, span: Span, start: int, by_end: bool) -> None:
         t0 = time.perf_counter()
+        self.waiting = 0.0
         used, inside, kept, status = self._fate(columns, span)
         solver, planner = self.solver, self.live.planner
         if status not in ESTIMATED_STATUSES:
@@ -583,7 +588,8 @@ class _Run:
         prob = solver.prob
         row = WindowResult.of_optimization(
             res, index=self.index, t_start=float(used.t[0]), t_end=float(used.t[-1]),
-            n_events=prob.n_events, fwl=fwl, seconds=estimated_at - t0, search=search, status=status,
+            n_events=prob.n_events, fwl=fwl, seconds=estimated_at - t0 - self.waiting, search=search,
+            status=status,
             n_dropped=len(span) - prob.n_events,
         )  # fmt: skip
         latency = estimated_at - arrival
