@@ -11,11 +11,11 @@ motion stays about constant in the window), bounded by ``min_events`` / ``max_ev
 grows (at most ``first_tries`` times, each time to the duration its own estimate predicts, at most
 ``first_growth`` times longer) until its estimate predicts at least ``accept`` times the target.
 
-Why 8 px at the extreme pixels (the corners; about 5 px at the centre of a DAVIS240 under rotation): at
-3-4 px the estimates of the ECD rotation cuts were 28-68% off the gyro for boxes_rotation (its windows of
-8,000-12,000 events, sized by estimates that overshoot the speed of a window holding little motion, stay
-that small), at 8 px each cut but shapes_rotation is one window and as accurate as it can be
-(docs/live.md, "Choosing the target").
+Why 8 px at the extreme pixels (the corners; about 5 px at the centre of a DAVIS240 under rotation), and
+a first window of 30,000 events: a window is sized by the estimate before it, and the estimate of a
+window that holds little motion can overshoot; with a first window of 10,000 events and 3-4 px,
+boxes_rotation's windows stayed at 7,000-12,000 events and 28-68% off the gyro (docs/live.md, "Choosing
+the target and the first window").
 
 The trade-off: the motion in a window, and so the accuracy of its estimate, no longer depends on the
 event rate, but the window's duration does: fast motion gives short windows (more estimates per second,
@@ -60,7 +60,8 @@ class AdaptiveWindows:
         Longest window, s (default 0.5): a still camera (an estimate of no motion) gets windows of
         this length.
     first_events : int
-        Events of the first window's first try (default 10,000).
+        Events of the first window's first try (default 30,000, the count windows' default: a first
+        estimate has to come from a window that holds enough motion, whatever it is).
     first_tries : int
         Most solves of the first window (default 3).
     first_growth : float
@@ -80,7 +81,7 @@ class AdaptiveWindows:
     min_events: int = 2_000
     max_events: int = 500_000
     max_duration: float = 0.5
-    first_events: int = 10_000
+    first_events: int = 30_000
     first_tries: int = 3
     first_growth: float = 4.0
     accept: float = 0.7
