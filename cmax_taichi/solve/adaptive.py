@@ -33,14 +33,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from cmax_taichi.core import checks
 from cmax_taichi.core.events import Camera
 
-__all__ = ["AdaptivePlanner", "AdaptiveWindows", "extreme_speed"]
+__all__ = ["AdaptivePlanner", "AdaptiveWindows", "extreme_speed", "settle_window"]
 
 
 @dataclass(frozen=True)
@@ -242,3 +242,64 @@ class AdaptivePlanner:
             return None
         wanted = rule.target_px / speed if speed > 0 else math.inf
         return min(wanted, rule.first_growth * max(duration, 1e-9))
+
+
+def settle_window(planner: AdaptivePlanner, solver, solved: tuple, used, kept, grow: Callable):
+    """The adaptive rule after a window's solve, for :func:`~cmax_taichi.solve.sequence.process` and
+    :func:`~cmax_taichi.solve.online.run_live` alike.
+
+    The first window grows while its estimate predicts too little motion over it
+    (:meth:`AdaptivePlanner.retry_duration`), each time solved again warm from the last try; when it was
+    solved from the identity and holds more than twice the target, the global search runs too and the
+    better J is kept. Then the next window's duration is what the estimate predicts.
+
+    Parameters
+    ----------
+    planner : AdaptivePlanner
+    solver : WindowSolver
+        Holding the window just solved.
+    solved : tuple
+        ``(result, search, fwl)`` of that solve.
+    used, kept
+        The window's events and undistortion mask, as solved.
+    grow : callable
+        ``grow(duration, tail_duration)``: the first window grown to ``duration`` s (a tail shorter than
+        ``tail_duration`` s worth of a window joins it), as ``(used, kept, extra)``; None when it cannot
+        grow. ``extra`` is the caller's (its span, masks).
+
+    Returns
+    -------
+    tuple
+        ``(result, search, fwl, used, kept, extra)``: the searches joined by ``+`` (``"identity+warm"``),
+        the evaluations and seconds of every solve summed; ``extra`` of the last growth, None without.
+    """
+    res, search, fwl = solved
+    searches, extra = [search], None
+    speed = extreme_speed(solver.prob, res.theta)
+
+    def add(before, after):
+        return replace(after, n_evaluations=before.n_evaluations + after.n_evaluations,
+                       seconds=before.seconds + after.seconds)  # fmt: skip
+
+    if planner.duration is None:
+        while (longer := planner.retry_duration(solver.prob.duration, speed)) is not None:
+            grown = grow(longer, planner.predicted(speed))
+            if grown is None:
+                break
+            used, kept, extra = grown
+            solver.retry_from(res)
+            before = res
+            res, search, fwl = solver.solve(used, kept)
+            res = add(before, res)
+            searches.append(search)
+            speed = extreme_speed(solver.prob, res.theta)
+        if searches[0] == "identity" and speed * solver.prob.duration > 2 * planner.rule.target_px:
+            # more motion than a local ascent from the identity is sure to reach: the global search too
+            full, _, full_fwl = solver.solve(used, kept, "global")
+            if full.value > res.value:
+                res, fwl, speed = add(res, full), full_fwl, extreme_speed(solver.prob, full.theta)
+            else:
+                res = add(full, res)
+            searches.append("global")
+    planner.predict(speed)
+    return res, "+".join(dict.fromkeys(searches)), fwl, used, kept, extra

@@ -30,7 +30,7 @@ import time
 import warnings
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -46,7 +46,7 @@ from cmax_taichi.core.windows import (
     window_status,
 )
 from cmax_taichi.models.warps import get_warp
-from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, extreme_speed
+from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_window
 from cmax_taichi.solve.results import WindowResult
 from cmax_taichi.solve.warm import WindowSolver
 
@@ -559,30 +559,29 @@ class _Run:
             return
         adaptive = isinstance(planner, AdaptivePlanner)
         first = adaptive and planner.duration is None
-        res, search, fwl = solver.solve(used, kept, planner.rule.first_search if first else "auto")
+        solved = solver.solve(used, kept, planner.rule.first_search if first else "auto")
+        res, search, fwl = solved
         if adaptive:
-            speed = extreme_speed(solver.prob, res.theta)
-            searches = [search]
-            while first and (longer := planner.retry_duration(solver.prob.duration, speed)) is not None:
-                grown, grown_arrival, grown_by_end = self._grow(
-                    columns, start, float(columns[0][0]), longer, planner.predicted(speed)
-                )
+            window = [columns, arrival, span, by_end]
+
+            def grow(duration: float, tail_duration: float):
+                cols, at, wide, end = window
+                grown, grown_arrival, grown_by_end = self._grow(cols, start, float(cols[0][0]), duration,
+                                                                tail_duration)  # fmt: skip
                 if grown is None:
-                    break
-                wider = Span(span.index, span.start, span.start + len(grown[0]), span.tail, span.keep)
-                fate = self._fate(grown, wider)
-                if fate[3] not in ESTIMATED_STATUSES:
-                    break
-                columns, arrival, span, (used, inside, kept, status) = grown, grown_arrival, wider, fate
-                by_end = grown_by_end
-                solver.retry_from(res)
-                before = res
-                res, search, fwl = solver.solve(used, kept)
-                res = replace(res, n_evaluations=before.n_evaluations + res.n_evaluations)
-                searches.append(search)
-                speed = extreme_speed(solver.prob, res.theta)
-            planner.predict(speed)
-            search = "+".join(dict.fromkeys(searches))
+                    return None
+                wider = Span(wide.index, wide.start, wide.start + len(grown[0]), wide.tail, wide.keep)
+                more_used, more_inside, more_kept, more_status = self._fate(grown, wider)
+                if more_status not in ESTIMATED_STATUSES:
+                    return None
+                window[:] = [grown, grown_arrival, wider, grown_by_end]
+                return more_used, more_kept, more_inside
+
+            res, search, fwl, used, kept, grown_inside = settle_window(
+                planner, solver, solved, used, kept, grow
+            )
+            columns, arrival, span, by_end = window
+            inside = inside if grown_inside is None else grown_inside
         estimated_at = time.perf_counter()
         self._account(span, status, inside, kept)
         prob = solver.prob

@@ -22,7 +22,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, TextIO
 
 import numpy as np
@@ -34,7 +34,7 @@ from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.core.windows import ESTIMATED_STATUSES, EventLedger, Span, count_spans, window_status
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.pipeline.problem import ContrastMaximization
-from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, extreme_speed
+from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_window
 from cmax_taichi.solve.optimize import OptimizeResult
 from cmax_taichi.solve.results import SequenceResult, WindowResult, read_results
 from cmax_taichi.solve.warm import TRACKING_LOSS_RATIO, WARM_XTOL, WarmState, WindowSolver
@@ -197,7 +197,7 @@ def _adaptive_plan(source, rule: AdaptiveWindows, keep_tail: bool) -> _Plan:
 def _adaptive_spans(planner: AdaptivePlanner, n_total: int, keep_tail: bool) -> Iterator[Span]:
     """Spans from ``planner``: each starts where the window before it ended (``planner.next_start``: an
     adaptive first window may grow); the events too few for a window are the partial tail, kept with
-    ``keep_tail`` when they hold at least ``min_events``."""
+    ``keep_tail`` when they hold enough (:meth:`AdaptivePlanner.keeps_tail`)."""
     index = start = 0
     while start < n_total:
         stop = planner.stop(start, n_total, final=True)
@@ -543,7 +543,7 @@ def process(
                 res, search, value_fwl = solver.solve(used, kept, start)
                 if plan.planner is not None:  # the window follows the motion (an adaptive first one grows)
                     span, used, inside, kept, res, search, value_fwl = _adapt(
-                        plan, solver, span, used, inside, kept, res, search, value_fwl, fate_camera, lossy
+                        plan, solver, span, used, inside, kept, (res, search, value_fwl), fate_camera, lossy
                     )
                 ledger.add(span, status, inside, kept)
                 prob = solver.prob
@@ -586,43 +586,27 @@ def process(
     return result
 
 
-def _adapt(plan: _Plan, solver: WindowSolver, span, used, inside, kept, res, search, fwl, fate_camera, lossy):
-    """An adaptive window after its solve: the first one grows while its estimate predicts too little
-    motion over it (solved again, warm from the last try, each time); then the next window's duration
-    is what the estimate predicts. Returns the window as kept, with its solve."""
+def _adapt(plan: _Plan, solver: WindowSolver, span, used, inside, kept, solved, fate_camera, lossy):
+    """An adaptive window after its solve (:func:`~cmax_taichi.solve.adaptive.settle_window`; the first
+    one may grow). Returns the window as kept and its solve: ``(span, used, inside, kept, result,
+    search, fwl)``."""
     planner = plan.planner
-    speed = extreme_speed(solver.prob, res.theta)
-    searches = [search]
-    if planner.duration is None:
-        while (longer := planner.retry_duration(solver.prob.duration, speed)) is not None:
-            # no further than the events go
-            stop = planner.stop(
-                span.start, plan.n_total, final=True, duration=longer, tail_duration=planner.predicted(speed)
-            )
-            stop = stop or plan.n_total
-            if stop <= span.stop:
-                break
-            grown = Span(span.index, span.start, stop, span.tail, span.keep)
-            more = _window_fate(grown, plan, fate_camera, lossy)
-            if more[3] not in ESTIMATED_STATUSES:
-                break
-            span, (used, inside, kept, _) = grown, more
-            solver.retry_from(res)
-            first = res
-            res, search, fwl = solver.solve(used, kept)
-            res = replace(res, n_evaluations=first.n_evaluations + res.n_evaluations,
-                          seconds=first.seconds + res.seconds)  # fmt: skip
-            searches.append(search)
-            speed = extreme_speed(solver.prob, res.theta)
-        rule = planner.rule
-        if searches[0] == "identity" and speed * solver.prob.duration > 2 * rule.target_px:
-            # more motion than a local ascent from the identity is sure to reach: the global search too
-            full, _, full_fwl = solver.solve(used, kept, "global")
-            if full.value > res.value:
-                res, fwl, speed = full, full_fwl, extreme_speed(solver.prob, full.theta)
-            searches.append("global")
-    planner.predict(speed)
+
+    def grow(duration: float, tail_duration: float):
+        stop = planner.stop(span.start, plan.n_total, True, duration=duration, tail_duration=tail_duration)
+        stop = stop or plan.n_total  # no further than the events go
+        current = grown_span[0]
+        if stop <= current.stop:
+            return None
+        wider = Span(current.index, current.start, stop, current.tail, current.keep)
+        more_used, more_inside, more_kept, status = _window_fate(wider, plan, fate_camera, lossy)
+        if status not in ESTIMATED_STATUSES:
+            return None
+        grown_span[0] = wider
+        return more_used, more_kept, more_inside
+
+    grown_span = [span]
+    res, search, fwl, used, kept, extra = settle_window(planner, solver, solved, used, kept, grow)
+    span, inside = grown_span[0], inside if extra is None else extra
     planner.next_start = span.stop
-    return span, used, inside, kept, res, "+".join(dict.fromkeys(searches)), fwl
-
-
+    return span, used, inside, kept, res, search, fwl
