@@ -111,7 +111,7 @@ def tcp_case(data: Path, name: str, warp: str, speed: float, rule) -> dict:
         camera, n_total = rec.camera, rec.n_events
         gyro = rec.angular_velocity(0.5 * (rec.t_start + rec.t_end)) if warp == "rotation3" else None
         span = rec.t_end - rec.t_start
-    server = start_replay_server(folder, speed=speed, linger=0.3, wait_for_go=True)
+    server = start_replay_server(folder, speed=speed, linger=0.3, wait_for_go=True, wait_for_client=900)
     load_before = load()
     try:
         result, rows = live_run(lambda: open_stream(server.address, camera=camera), warp, camera, rule,
@@ -215,7 +215,7 @@ def run_soak(data: Path, out_dir: Path, minutes: float, rule, log) -> dict:
     with io.open_recording(folder) as rec:
         camera, span = rec.camera, rec.t_end - rec.t_start
     loops = int(math.ceil(minutes * 60 / span)) + 1
-    server = start_replay_server(folder, loops=loops, linger=0.3, wait_for_go=True)
+    server = start_replay_server(folder, loops=loops, linger=0.3, wait_for_go=True, wait_for_client=900)
     samples = []
     stop = threading.Event()
     stream_box = {}
