@@ -13,7 +13,7 @@ aedat4   ``.aedat4`` (needs the optional package ``aedat``)          :mod:`.aeda
 raw      Prophesee ``.raw`` / ``.evt`` (EVT 2.0, 2.1, 3.0; ``faery``)  :mod:`.faery_formats`
 dat      Prophesee ``.dat`` starting with ``%`` (CD; ``faery``)       :mod:`.faery_formats`
 es       Event Stream ``.es`` (DVS, ATIS; ``faery``)                  :mod:`.faery_formats`
-rosbag   ROS1 ``.bag`` / ROS2 bag folder, one event topic (``rosbags``) :mod:`.rosbag`
+rosbag   ROS1 ``.bag`` / ROS2 bag folder, an event topic (rosbags)    :mod:`.rosbag`
 ======== =========================================================== ==========================
 """
 
