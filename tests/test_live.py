@@ -263,3 +263,12 @@ def test_display_frames_draw_and_update():
         fig.canvas.draw()
     assert len(fig.axes) >= 3 and fig._suptitle.get_text() == "window 1"
     np.testing.assert_array_equal(artists["lines"][0].get_xdata(), [0.01, 0.02, 0.03])
+
+
+def test_cli_live_calib_file_is_checked(tmp_path):
+    folder = shared_data_dir("ecd_slider_depth")
+    proc = _cli(["--live", str(folder), "--calib", str(tmp_path / "none.txt"), "--out", str(tmp_path / "o")],
+                tmp_path)  # fmt: skip
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and "--calib" in stderr and "no such file" in stderr
+    assert not (tmp_path / "o").exists()  # a run that failed before its first row leaves no folder

@@ -55,6 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     live.add_argument(
         "--idle-timeout", type=float, default=None, metavar="S", help="stop after S seconds without events"
     )
+    live.add_argument(
+        "--calib", default=None, metavar="FILE", help="the camera of a stream: a calib.txt (fx fy cx cy "
+        "[k1 k2 p1 p2 k3]); a replayed recording's own by default",
+    )  # fmt: skip
     shown = live.add_mutually_exclusive_group()
     shown.add_argument("--display", dest="display", action="store_true", default=None, help="live display")
     shown.add_argument("--no-display", dest="display", action="store_false", help="no live display")
@@ -345,15 +349,22 @@ def run(args: argparse.Namespace, regs: dict, process_options: dict) -> int:
     model = cm.get_warp(args.warp)
     columns = SequenceResult(model.name, model.params, model.units).columns()
     options = {k: v for k, v in (("format", args.format), ("topic", args.topic)) if v is not None}
+    camera = None
+    if args.calib is not None:
+        from cmax_taichi.io.text import read_calib
+
+        if not Path(args.calib).is_file():
+            raise CliError(f"--calib {args.calib}: no such file")
+        camera, _ = read_calib(Path(args.calib))
     with LiveOutput(args.out, inputs, columns) as out:  # OUT checked and locked before anything opens
         common_init(args)
         try:
-            stream = open_stream(source, speed=args.speed, loops=args.loops, **options)
+            stream = open_stream(source, speed=args.speed, loops=args.loops, camera=camera, **options)
         except (ImportError, StreamError) as exc:
             raise CliError(str(exc)) from None
         if model.needs_camera and stream.camera is None:
             stream.close()
-            raise CliError(f"warp {model.name!r} needs a calibration, and {source} has none")
+            raise CliError(f"warp {model.name!r} needs a calibration, and {source} has none (--calib FILE)")
         shown = LiveDisplay() if display else None
         out.begin()
 
