@@ -24,6 +24,9 @@ examples:
   cmax-taichi estimate rec_a rec_b rec_c --workers 2 --out out_batch   # several recordings at once:
       # OUT/<name>/results.csv each, OUT/summary.csv; a re-run skips the windows already written
   cmax-taichi estimate rec_* --engine ray --address auto --workers 16 --out /shared/out  (docs/BATCH.md)
+  cmax-taichi estimate --live tcp://127.0.0.1:7777 --out out_live   # while the camera records: rows
+      # appended as they come, motion-adaptive windows, a live display (docs/live.md)
+  cmax-taichi estimate recording.bag --topic /dvs/events --window-mode adaptive --out out_bag
 """
 
 from __future__ import annotations
