@@ -219,8 +219,6 @@ class LiveResult:
 
 
 def _rule(windows, buffer: _Buffer):
-    if windows is None or windows is True:
-        windows = AdaptiveWindows()
     if isinstance(windows, AdaptiveWindows):
         return AdaptivePlanner(windows, buffer.time_of, buffer.search)
     if isinstance(windows, bool) or not isinstance(windows, (int, float, np.integer, np.floating)):
@@ -302,6 +300,7 @@ def run_live(
         summary is in the exception's ``live_result``).
     """
     model = get_warp(warp)
+    windows = AdaptiveWindows() if windows is None or windows is True else windows
     camera = camera if camera is not None else getattr(stream, "camera", None)
     if model.needs_camera and camera is None:
         raise ValueError(f"warp {model.name!r} needs a camera: the stream has none, pass camera=")
@@ -312,7 +311,7 @@ def run_live(
     rule_size = windows.max_events if isinstance(windows, AdaptiveWindows) else None
     if rule_size is None and isinstance(windows, (int, np.integer)) and not isinstance(windows, bool):
         rule_size = int(windows)
-    capacity = backlog_events or max(1_000_000, 2 * (rule_size or AdaptiveWindows().max_events))
+    capacity = backlog_events or max(1_000_000, 2 * (rule_size or 0))
     capacity = checks.whole_number("backlog_events", capacity, 2)
     buffer = _Buffer(capacity)
     planner = _rule(windows, buffer)
