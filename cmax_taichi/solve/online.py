@@ -505,8 +505,9 @@ class _Run:
     def _grow(self, columns, start: int, t_start: float, duration: float, tail_duration: float):
         """The first window, longer (``duration`` s from its first event at buffer position ``start``):
         ``(columns, arrival of its last event, whether the stream's end closed it)`` once the events up to
-        the new end arrived; ``(None, None, False)`` when it cannot grow (no later events, the buffer
-        skipped some of them meanwhile, or the run is stopping)."""
+        the new end arrived; ``(None, None, ended)`` when it cannot grow: the stream ended first
+        (``ended`` True: its latency then includes that wait, like a window the end closed), the buffer
+        skipped events after it meanwhile, or the run is stopping."""
         live, buffer, planner = self.live, self.live.buffer, self.live.planner
         taken_end = start + len(columns[0])
         waited = time.perf_counter()
@@ -526,8 +527,8 @@ class _Run:
                     return None, None, False
                 live.cond.wait(0.05)
             self.waiting += time.perf_counter() - waited  # for events: not the window's work
-            if stop <= taken_end:
-                return None, None, False
+            if stop <= taken_end:  # the stream ended before the window could grow: the end closed it
+                return None, None, live.done
             arrival = buffer.arrival_of(stop - 1)
             by_end = live.done and stop == buffer.end
             more = buffer.take(stop - taken_end)
@@ -568,6 +569,7 @@ class _Run:
                 grown, grown_arrival, grown_by_end = self._grow(cols, start, float(cols[0][0]), duration,
                                                                 tail_duration)  # fmt: skip
                 if grown is None:
+                    window[3] = window[3] or grown_by_end  # it waited for the stream's end
                     return None
                 wider = Span(wide.index, wide.start, wide.start + len(grown[0]), wide.tail, wide.keep)
                 more_used, more_inside, more_kept, more_status = self._fate(grown, wider)
