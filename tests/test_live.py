@@ -149,7 +149,8 @@ def test_loopback_late_packets_burst_behind_and_a_producer_that_stops():
     ev = result.events
     assert ev["late"] == 500
     assert ev["behind"] > 0 and ev["windows"]["behind"] >= 1 and ev["behind"] % 1500 == 0  # whole windows
-    assert result.windows >= 4
+    assert result.windows >= 2  # before the slow window and after the burst (how many: the machine's load)
+    assert ev["estimated"] + ev["behind"] + ev["late"] + ev["partial_tail"] + ev["after_stop"] == ev["total"]
     _accounted(ev, len(events) + 500)
 
 
