@@ -3,6 +3,7 @@ and malformed input."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import time
 import warnings
@@ -261,8 +262,11 @@ def test_missing_path_and_unknown_format(tmp_path):
     (tmp_path / "x.bin").write_bytes(b"\0" * 10)
     with pytest.raises(ValueError, match="supported formats: " + ", ".join(FORMATS)):
         open_recording(tmp_path / "x.bin")
-    with pytest.raises(ValueError, match="unknown format 'rosbag'"):
-        open_recording(tmp_path / "x.bin", format="rosbag")
+    with pytest.raises(ValueError, match="unknown format 'laserdisc'"):
+        open_recording(tmp_path / "x.bin", format="laserdisc")
+    if importlib.util.find_spec("rosbags") is not None:  # the optional reader: its own error
+        with pytest.raises(ValueError, match="x.bin: not a readable ROS1 bag"):
+            open_recording(tmp_path / "x.bin", format="rosbag")
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="no events file found"):
         open_recording(tmp_path / "empty")

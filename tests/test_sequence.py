@@ -24,10 +24,10 @@ V = (150.0, 60.0)  # px/s
 QUICK = {"init": "none", "max_iter": 3}  # the optimizer's least: for tests of the windows, not the estimates
 
 
-def translating_edges(v=V, n=3300, duration=0.12, seed=4):
+def translating_edges(v=V, n=3300, duration=0.12, seed=4, sensor=SENSOR):
     """Edges translating at ``v`` px/s for ``duration`` s (events leaving the sensor are dropped)."""
     rng = np.random.default_rng(seed)
-    W, H = SENSOR
+    W, H = sensor
     k = 8
     centres = rng.uniform([12, 10], [W - 12, H - 10], size=(k, 2))
     angles = rng.uniform(0, np.pi, size=k)
@@ -37,7 +37,7 @@ def translating_edges(v=V, n=3300, duration=0.12, seed=4):
     x = centres[which, 0] + s * np.cos(angles[which]) + v[0] * (t - duration / 2)
     y = centres[which, 1] + s * np.sin(angles[which]) + v[1] * (t - duration / 2)
     keep = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
-    return cm.Events(x[keep], y[keep], t[keep], rng.integers(0, 2, n)[keep], SENSOR)
+    return cm.Events(x[keep], y[keep], t[keep], rng.integers(0, 2, n)[keep], sensor)
 
 
 @pytest.fixture(scope="module")
@@ -195,7 +195,9 @@ def test_lost_track_runs_the_global_search_again(events, monkeypatch):
     the better of both is kept ("warm+global"). The warm refinement itself is robust to a reversal of
     the motion (the identity is one of its starts), so the test forces the loss with a ratio no window
     can meet."""
-    monkeypatch.setattr(sequence, "TRACKING_LOSS_RATIO", 10.0)
+    from cmax_taichi.solve import warm
+
+    monkeypatch.setattr(warm, "TRACKING_LOSS_RATIO", 10.0)  # where the tracking test reads it
     result = sequence.process(events, "translation2", n_events=1000, max_windows=2, progress=False)
     assert [w.search for w in result.windows] == ["global", "warm+global"]
     assert result.windows[1].evaluations > 40  # the refinement's plus the global search's

@@ -134,7 +134,7 @@ def add_recording_arguments(
         "path",
         metavar="PATH",
         help="recording: an ECD folder or events.txt, MVSEC *_data.hdf5, DSEC events.h5, *.aedat4, "
-        "Prophesee *.raw / *.dat, Event Stream *.es" + path_note,
+        "Prophesee *.raw / *.dat, Event Stream *.es, a ROS1 *.bag or ROS2 bag folder" + path_note,
         **path_kwargs,
     )
     if examples is not None:

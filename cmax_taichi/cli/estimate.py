@@ -24,6 +24,9 @@ examples:
   cmax-taichi estimate rec_a rec_b rec_c --workers 2 --out out_batch   # several recordings at once:
       # OUT/<name>/results.csv each, OUT/summary.csv; a re-run skips the windows already written
   cmax-taichi estimate rec_* --engine ray --address auto --workers 16 --out /shared/out  (docs/BATCH.md)
+  cmax-taichi estimate --live tcp://127.0.0.1:7777 --out out_live   # while the camera records: rows
+      # appended as they come, motion-adaptive windows, a live display (docs/live.md)
+  cmax-taichi estimate recording.bag --topic /dvs/events --window-mode adaptive --out out_bag
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ import time
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
+from cmax_taichi.cli import _live
 from cmax_taichi.core.windows import describe_events
 from cmax_taichi.models.regularizers import RECOMMENDED_LAMBDA
 from cmax_taichi.pipeline.problem import POLARITY_MODES
@@ -120,6 +124,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["flo", "npz"],
         help="flo: Middlebury (u, v float32); npz: 'flow' (2, H, W) with t_start, t_end (default flo)",
     )
+    _live.add_arguments(parser)
 
 
 def check_choices(args: argparse.Namespace) -> None:
@@ -385,6 +390,7 @@ def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
     stride = None
     if args.stride is not None:
         stride = args.stride if args.duration is not None else int(args.stride)
+    adaptive, _ = _live.window_rule(args)
     optimize_options = {}
     if args.init != "auto":
         optimize_options["init"] = args.init
@@ -408,6 +414,7 @@ def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
             "whitening": args.whitening,
         },
         "optimize_options": optimize_options,
+        **({"adaptive": adaptive} if adaptive is not None else {}),
     }
 
 
@@ -441,6 +448,8 @@ def run_batch(args: argparse.Namespace) -> int:
         raise CliError("--example estimates one simulated recording: not with --workers / --engine / PATHs")
     if args.flow_out is not None:
         raise CliError("--flow-out writes the flow of one recording: run the recordings one by one for it")
+    if args.window_mode == "adaptive":
+        raise CliError("--window-mode adaptive estimates one recording: run the recordings one by one for it")
     if args.address is not None and args.engine != "ray":
         raise CliError("--address is a Ray cluster address: it needs --engine ray")
     if args.engine == "ray" and importlib.util.find_spec("ray") is None:
@@ -498,6 +507,10 @@ def run(args: argparse.Namespace) -> int:
     from cmax_taichi.solve.sequence import process
 
     regs = common.parse_regularizers(args.reg)
+    if args.live is not None:
+        args.warp = args.warp or "translation2"
+        check_choices(args)
+        return _live.run(args, regs, process_options(args, regs))
     if args.example is not None:
         if args.path:
             raise CliError("give a recording PATH or --example NAME, not both")
@@ -593,7 +606,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
         camera = example.camera
     else:
         path = Path(args.path[0])
-        source = io.open_recording(path, format=args.format)
+        source = io.open_recording(path, format=args.format, **({"topic": args.topic} if args.topic else {}))
         camera = None
     # per window, for the examples: the mean area scale of the warp at the estimate (a collapse
     # shrinks the events' neighbourhoods towards points: it drives the scale towards 0)
@@ -648,7 +661,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
     events = result.events
     if events.get("total"):
         left = events["total"] - events["estimated"]
-        count_windows = args.window if args.duration is None else None
+        count_windows = args.window if args.duration is None and args.window_mode != "adaptive" else None
         reasons = describe_events(events, count_windows, args.max_windows)
         note = f"; {left} not estimated ({reasons}; {len(result.skipped)} window(s) skipped)" if left else ""
         print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
@@ -682,6 +695,12 @@ def _why_no_window(args: argparse.Namespace, result) -> str:
     total = events.get("total", 0)
     if total == 0:
         return "the recording has no events"
+    if args.window_mode == "adaptive":
+        first = _live.window_rule(args)[0].first_events
+        return (
+            f"{total} events; no adaptive window was estimated (the first takes {first} events; --keep-tail "
+            "estimates what there is as one window)"
+        )
     if args.duration is None and total < args.window:
         least = min_tail_events(args.window)
         hint = (

@@ -22,6 +22,18 @@ every event of the source ends in exactly one category of :data:`CATEGORIES`:
 ``after_max_windows``
     after the last window that ``max_windows`` allowed.
 
+A live stream (:func:`cmax_taichi.solve.online.run_live`) has four more, for events that never got a
+place in a window (``EventLedger(stream=True)``, :meth:`EventLedger.drop`):
+
+``late``
+    earlier than an event that arrived before it (a late packet): dropped on arrival;
+``malformed``
+    a time or a coordinate that is not a finite number: dropped on arrival;
+``behind``
+    in a whole window skipped because the estimator had fallen behind the stream;
+``after_stop``
+    received, but not yet in a window when the run stopped (Ctrl-C, SIGTERM, a failed source).
+
 So ``n_total == sum(counts.values())`` for any window size, stride, duration and gap (the property
 ``tests/test_input_properties.py`` checks). Overlapping windows (a stride below the window) count each
 event once: it is ``estimated`` when any estimated window used it, else it takes the reason of the window
@@ -44,9 +56,11 @@ __all__ = [
     "ESTIMATED",
     "ESTIMATED_STATUSES",
     "MIN_WINDOW_EVENTS",
+    "BEHIND",
     "PARTIAL_TAIL",
     "SHORT_TAIL",
     "STATUSES",
+    "STREAM_CATEGORIES",
     "TAIL_FRACTION",
     "TOO_FEW_EVENTS",
     "ZERO_DURATION",
@@ -70,8 +84,11 @@ SHORT_TAIL = "short_tail"  # the partial tail, estimated as a shorter window (ke
 PARTIAL_TAIL = "partial_tail"
 TOO_FEW_EVENTS = "too_few_events"
 ZERO_DURATION = "zero_duration"
+BEHIND = "behind"  # a live stream's window skipped because the estimator fell behind
 ESTIMATED_STATUSES = (ESTIMATED, SHORT_TAIL)
 STATUSES = (ESTIMATED, SHORT_TAIL, PARTIAL_TAIL, TOO_FEW_EVENTS, ZERO_DURATION)
+#: the categories of a live stream's events that never got a place in a window (not event codes)
+STREAM_CATEGORIES = ("late", "malformed", "behind", "after_stop")
 
 #: where the events went; an event's code is its position here (higher codes win, see the module docstring)
 CATEGORIES = (
@@ -216,6 +233,16 @@ def describe_events(events: dict, n_events: int | None = None, max_windows: int 
     if c[_AFTER]:
         limit = f"={max_windows}" if max_windows is not None else ""
         parts.append(f"{c[_AFTER]} after the last window of max_windows{limit}")
+    stream = {name: events.get(name, 0) for name in STREAM_CATEGORIES}
+    if stream["late"]:
+        parts.append(f"{stream['late']} late (earlier than an event received before them)")
+    if stream["malformed"]:
+        parts.append(f"{stream['malformed']} malformed (a time or coordinate not a finite number)")
+    if stream["behind"]:
+        skipped = w.get(BEHIND, 0)
+        parts.append(f"{stream['behind']} in {skipped} window(s) skipped while the estimator was behind")
+    if stream["after_stop"]:
+        parts.append(f"{stream['after_stop']} received but not yet in a window when the run stopped")
     return ", ".join(parts)
 
 
@@ -228,14 +255,19 @@ class EventLedger:
     Parameters
     ----------
     n_total : int
-        Events of the source.
+        Events of the source (of a stream: those received so far that have a place in the pass,
+        :meth:`extend`).
+    stream : bool
+        A live stream's ledger: with the categories of :data:`STREAM_CATEGORIES` and the ``behind``
+        windows.
     """
 
-    def __init__(self, n_total: int) -> None:
+    def __init__(self, n_total: int, stream: bool = False) -> None:
         self.n_total = int(n_total)
-        self.counts = dict.fromkeys((*CATEGORIES, _AFTER), 0)
+        self.counts = dict.fromkeys((*CATEGORIES, _AFTER, *(STREAM_CATEGORIES if stream else ())), 0)
         #: windows per status
-        self.windows = dict.fromkeys(STATUSES, 0)
+        self.windows = dict.fromkeys((*STATUSES, *((BEHIND,) if stream else ())), 0)
+        self._dropped = 0  # a stream's events counted by drop(), outside the index space
         self._base = 0  # events before it are final
         self._fate = np.zeros(0, dtype=np.int8)  # codes of the events base .. base + len
         self._finished = False
@@ -277,6 +309,21 @@ class EventLedger:
         segment = self._fate[span.start - self._base : span.stop - self._base]
         np.maximum(segment, fate, out=segment)
 
+    def extend(self, n: int) -> None:
+        """``n`` more events of a stream have a place in the pass (they come after every event so far)."""
+        self.n_total += int(n)
+
+    def drop(self, category: str, n: int, windows: int = 0) -> None:
+        """Count ``n`` events of a stream that never got a place in the pass (``category`` one of
+        :data:`STREAM_CATEGORIES`; ``windows``: whole ``behind`` windows they made)."""
+        if category not in STREAM_CATEGORIES or category not in self.counts:
+            raise ValueError(f"drop() counts a stream's {STREAM_CATEGORIES}, not {category!r}")
+        self.counts[category] += int(n)
+        self.n_total += int(n)
+        self._dropped += int(n)
+        if windows:
+            self.windows[BEHIND] += int(windows)
+
     def _finalize(self, upto: int) -> None:
         """Count the events before ``upto``: no later window can hold them."""
         if upto <= self._base:
@@ -293,10 +340,10 @@ class EventLedger:
         ``after_max_windows`` when ``max_windows`` stopped it (``stopped_early``). Returns :attr:`counts`."""
         if not self._finished:
             self._finalize(self._base + len(self._fate))
-            rest = self.n_total - self._base
+            rest = self.n_total - self._dropped - self._base
             if rest > 0:
                 self.counts[_AFTER if stopped_early else "between_windows"] += rest
-            self._base = self.n_total
+            self._base = self.n_total - self._dropped
             self._finished = True
         return self.counts
 

@@ -13,6 +13,7 @@ aedat4   ``.aedat4`` (needs the optional package ``aedat``)          :mod:`.aeda
 raw      Prophesee ``.raw`` / ``.evt`` (EVT 2.0, 2.1, 3.0; ``faery``)  :mod:`.faery_formats`
 dat      Prophesee ``.dat`` starting with ``%`` (CD; ``faery``)       :mod:`.faery_formats`
 es       Event Stream ``.es`` (DVS, ATIS; ``faery``)                  :mod:`.faery_formats`
+rosbag   ROS1 ``.bag`` / ROS2 bag folder, an event topic (rosbags)    :mod:`.rosbag`
 ======== =========================================================== ==========================
 """
 
@@ -40,6 +41,7 @@ _READERS = {
     "raw": ("faery_formats", "RawRecording"),
     "dat": ("faery_formats", "DatRecording"),
     "es": ("faery_formats", "EventStreamRecording"),
+    "rosbag": ("rosbag", "RosbagRecording"),
 }
 #: the supported format names
 FORMATS = tuple(_READERS)
@@ -81,6 +83,8 @@ def detect_format(path: str | os.PathLike) -> str:
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
     if path.is_dir():
+        if is_present(path / "metadata.yaml") and (any(path.glob("*.db3")) or any(path.glob("*.mcap"))):
+            return "rosbag"
         if any([is_present(path / name) for name in EVENT_FILE_NAMES]):
             return "ecd" if count_columns(find_events_file(path)) == 4 else "text"
         if is_present(path / "events.h5") or is_present(path / "events" / "left" / "events.h5"):
@@ -100,6 +104,8 @@ def detect_format(path: str | os.PathLike) -> str:
         return _hdf5_format(path)
     if suffix in (".raw", ".evt"):
         return "raw"
+    if suffix == ".bag" or (suffix in (".db3", ".mcap") and is_present(path.parent / "metadata.yaml")):
+        return "rosbag"
     if suffix == ".es" or _starts_with(path, b"Event Stream"):
         return "es"
     if suffix == ".dat" and _starts_with(path, b"%"):
@@ -116,15 +122,16 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
     ----------
     path : path
         A file (``events.txt``, ``*_data.hdf5``, ``events.h5``, ``*.aedat4``, ``*.raw``, ``*.dat``,
-        ``*.es``) or a folder holding
-        one (an ECD folder, a DSEC sequence).
+        ``*.es``, a ROS1 ``*.bag``) or a folder holding
+        one (an ECD folder, a DSEC sequence, a ROS2 bag).
     format : str, optional
         One of :data:`FORMATS`; detected from the path when None.
     **options
         Passed to the format's reader. Every reader takes ``sensor_size=(W, H)`` (px) and
         ``camera=`` (a :class:`~cmax_taichi.Camera`); text formats take ``columns=``,
         ``undistorted=``, ``cache_dir=`` and ``cache=``; the ``faery`` formats (raw, dat, es) take
-        ``version=``, ``cache_dir=`` and ``cache=``; see each module.
+        ``version=``, ``cache_dir=`` and ``cache=``; ROS bags take ``topic=``, ``camera_topic=``,
+        ``cache_dir=`` and ``cache=``; see each module.
 
     Returns
     -------

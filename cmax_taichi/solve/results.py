@@ -192,6 +192,26 @@ class SequenceResult:
         params = [f"{n} [{u}]" for n, u in zip(self.param_names, self.units, strict=True)]
         return [*self.WINDOW_COLUMNS, *params, *self.DIAGNOSTIC_COLUMNS]
 
+    @staticmethod
+    def csv_row(w: WindowResult) -> list:
+        """The CSV fields of one window (in the order of :meth:`columns`)."""
+        return (
+            [w.index, repr(w.t_start), repr(w.t_end), w.n_events]
+            + [repr(float(v)) for v in w.theta]
+            + [
+                repr(float(w.value)),
+                repr(float(w.fwl)),
+                w.iterations,
+                f"{w.seconds:.4f}",
+                int(w.converged),
+                w.evaluations,
+                w.search,
+                w.n_dropped,
+                w.status,
+                w.kernels,
+            ]
+        )
+
     def to_csv(self, path: str | os.PathLike) -> Path:
         """Write one row per window, estimated or not (see :meth:`columns`), through a temporary file
         renamed when complete; returns the path."""
@@ -200,22 +220,7 @@ class SequenceResult:
             writer = csv.writer(fh)
             writer.writerow(self.columns())
             for w in self.rows():
-                writer.writerow(
-                    [w.index, repr(w.t_start), repr(w.t_end), w.n_events]
-                    + [repr(float(v)) for v in w.theta]
-                    + [
-                        repr(float(w.value)),
-                        repr(float(w.fwl)),
-                        w.iterations,
-                        f"{w.seconds:.4f}",
-                        int(w.converged),
-                        w.evaluations,
-                        w.search,
-                        w.n_dropped,
-                        w.status,
-                        w.kernels,
-                    ]
-                )
+                writer.writerow(self.csv_row(w))
         return path
 
     def as_dict(self) -> dict:

@@ -22,7 +22,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, TextIO
 
 import numpy as np
@@ -32,15 +32,17 @@ from cmax_taichi.core import checks
 from cmax_taichi.core import windows as spans_
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.core.windows import ESTIMATED_STATUSES, EventLedger, Span, count_spans, window_status
-from cmax_taichi.metrics import fwl_problem
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.pipeline.problem import ContrastMaximization
-from cmax_taichi.solve.optimize import OptimizeResult, maximize
+from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_window
+from cmax_taichi.solve.optimize import OptimizeResult
 from cmax_taichi.solve.results import SequenceResult, WindowResult, read_results
+from cmax_taichi.solve.warm import TRACKING_LOSS_RATIO, WARM_XTOL, WarmState, WindowSolver
 
 __all__ = [
     "TRACKING_LOSS_RATIO",
     "WARM_XTOL",
+    "AdaptiveWindows",
     "WarmState",
     "WindowResult",
     "SequenceResult",
@@ -49,108 +51,6 @@ __all__ = [
     "process",
     "read_results",
 ]
-
-#: a warm-started window whose refined J falls below this fraction of the previous window's J, and whose
-#: gain over the identity, J(theta) - J(0), falls below this fraction of the previous window's gain (scaled
-#: down by the squared ratio of window durations when this window is shorter: the gain grows with the
-#: identity's motion blur, as its square for blurs of a few px) has lost track of the motion (a sudden
-#: change): the global search runs too. Windows of varying sizes or small fluctuations are not a loss
-TRACKING_LOSS_RATIO = 0.8
-
-#: the warm refinement's ``xtol`` (px over the window): it stops at a quasi-Newton step, or an accepted
-#: step, shorter than this, unless ``optimize_options`` gives an ``xtol``. ``maximize``'s default of
-#: 0.01 px chased steps that the windows' data do not resolve: on the shared recordings and the simulated
-#: streams this rule takes 25-60% fewer warm evaluations, with errors against the truth about the same
-#: (docs/performance.md, "2026-12-05, evening")
-WARM_XTOL = 0.03
-
-#: problem options under which the estimate's own problem measures the FWL (variance, normalised, no
-#: weights or whitening): then its J at the estimate is the FWL and no second problem is built
-_FWL_COMPATIBLE_OPTIONS = {"blur_sigma", "t_ref", "polarity"}
-
-
-@dataclass(frozen=True)
-class WarmState:
-    """What the warm start of a window takes from the window before it (see :func:`process`).
-
-    Attributes
-    ----------
-    theta : ndarray
-        The previous estimate, physical units.
-    value : float
-        Its J.
-    value_identity : float
-        J of the identity warp on that window (NaN: unknown; then the tracking test compares J alone).
-    duration : float
-        That window's duration, s (NaN: unknown).
-    hess_inv : ndarray or None
-        The BFGS inverse Hessian of its refinement (internal units, px^2), or None.
-    """
-
-    theta: np.ndarray
-    value: float
-    value_identity: float = math.nan
-    duration: float = math.nan
-    hess_inv: np.ndarray | None = None
-
-    @classmethod
-    def after(cls, row: WindowResult, result: OptimizeResult) -> WarmState:
-        """The state a window leaves for the next one: its row and its optimizer result."""
-        return cls(
-            theta=np.asarray(row.theta, dtype=np.float64),
-            value=float(row.value),
-            value_identity=float(result.value_identity),
-            duration=float(row.t_end - row.t_start),
-            hess_inv=None if result.hess_inv is None else np.array(result.hess_inv, dtype=np.float64),
-        )
-
-    def as_dict(self) -> dict:
-        """JSON-friendly (NaN as None)."""
-
-        def number(v: float) -> float | None:
-            return float(v) if math.isfinite(v) else None
-
-        return {
-            "theta": [float(v) for v in self.theta],
-            "value": number(self.value),
-            "value_identity": number(self.value_identity),
-            "duration": number(self.duration),
-            "hess_inv": None if self.hess_inv is None else np.asarray(self.hess_inv).tolist(),
-        }
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> WarmState:
-        """The inverse of :meth:`as_dict`."""
-
-        def number(v) -> float:
-            return math.nan if v is None else float(v)
-
-        hess = data.get("hess_inv")
-        return cls(
-            theta=np.asarray(data["theta"], dtype=np.float64),
-            value=number(data.get("value")),
-            value_identity=number(data.get("value_identity")),
-            duration=number(data.get("duration")),
-            hess_inv=None if hess is None else np.asarray(hess, dtype=np.float64),
-        )
-
-    def lost_track(self, value: float, value_identity: float, duration: float) -> bool:
-        """Whether a refined window (``value``, its identity's J, its duration in s) lost track of the
-        motion this state describes (see :data:`TRACKING_LOSS_RATIO`): J fell below the ratio times
-        the previous J, and, where both identities' J are known, so did the gain over the identity
-        (scaled for a shorter window). Either test alone misfires: J alone on windows of varying
-        sizes, the gain alone on recordings of weak contrast (gains of a few % that fluctuate)."""
-        if not math.isfinite(self.value) or value >= TRACKING_LOSS_RATIO * self.value:
-            return False
-        if math.isfinite(self.value_identity) and math.isfinite(value_identity):
-            gain_before = self.value - self.value_identity
-            if not gain_before > 0:
-                return False  # the previous window gained nothing over the identity: nothing to lose
-            scale = 1.0
-            if math.isfinite(self.duration) and self.duration > 0 and duration > 0:
-                scale = min(1.0, duration / self.duration) ** 2
-            return value - value_identity < TRACKING_LOSS_RATIO * gain_before * scale
-        return True
 
 
 class ProgressBar:
@@ -230,10 +130,13 @@ class _Plan:
     camera: Camera | None
     undistorted: bool  # coordinates already undistorted
     desc: dict
+    planner: AdaptivePlanner | None = None  # motion-adaptive windows
 
 
-def _plan(source, n_events: int, duration: float | None, stride, keep_tail: bool) -> _Plan:
+def _plan(source, n_events: int, duration: float | None, stride, keep_tail: bool, adaptive=None) -> _Plan:
     """The pass of windows over an Events or an open Recording (arguments checked, timestamps checked)."""
+    if adaptive is not None:
+        return _adaptive_plan(source, adaptive, keep_tail)
     if isinstance(source, Events):
         n = len(source)
         if n > 1 and source.t[0] == source.t[-1]:
@@ -271,6 +174,40 @@ def _plan(source, n_events: int, duration: float | None, stride, keep_tail: bool
             getattr(source, "camera", None), bool(getattr(source, "undistorted", False)), desc,
         )  # fmt: skip
     raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
+
+
+def _adaptive_plan(source, rule: AdaptiveWindows, keep_tail: bool) -> _Plan:
+    """The pass of motion-adaptive windows (:mod:`cmax_taichi.solve.adaptive`) over an Events or an open
+    Recording: each span is planned when the previous window's estimate is known."""
+    if isinstance(source, Events):
+        plan = _plan(source, 2, None, None, keep_tail)  # the checks and the reads of count windows
+        times = np.asarray(source.t)
+        planner = AdaptivePlanner(
+            rule, lambda i: float(times[i]), lambda t: int(np.searchsorted(times, t, side="left"))
+        )
+    elif hasattr(source, "window_spans"):
+        plan = _plan(source, 2, None, None, keep_tail)
+        planner = AdaptivePlanner(rule, lambda i: float(source._times(i, i + 1)[0]), source._search_time)
+    else:
+        raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
+    plan.spans, plan.total, plan.planner = _adaptive_spans(planner, plan.n_total, keep_tail), None, planner
+    return plan
+
+
+def _adaptive_spans(planner: AdaptivePlanner, n_total: int, keep_tail: bool) -> Iterator[Span]:
+    """Spans from ``planner``: each starts where the window before it ended (``planner.next_start``: an
+    adaptive first window may grow); the events too few for a window are the partial tail, kept with
+    ``keep_tail`` when they hold enough (:meth:`AdaptivePlanner.keeps_tail`)."""
+    index = start = 0
+    while start < n_total:
+        stop = planner.stop(start, n_total, final=True)
+        if stop is None:
+            keep = keep_tail and planner.keeps_tail(start, n_total)
+            yield Span(index, start, n_total, tail=True, keep=keep)
+            return
+        yield Span(index, start, stop)
+        start = max(stop, planner.next_start)
+        index += 1
 
 
 def _count_spans(n_total: int, n_events: int, stride: int | None, keep_tail: bool) -> int:
@@ -339,6 +276,19 @@ def count_events(
     return ledger.as_dict()
 
 
+def _adaptive_rule(adaptive, duration, stride) -> AdaptiveWindows | None:
+    """``adaptive=`` of :func:`process`: None, or the rule (True: the default one); not with a duration
+    or a stride."""
+    if adaptive is None or adaptive is False:
+        return None
+    rule = AdaptiveWindows() if adaptive is True else adaptive
+    if not isinstance(rule, AdaptiveWindows):
+        raise TypeError(f"adaptive must be True or an AdaptiveWindows, got {type(adaptive).__name__}")
+    if duration is not None or stride is not None:
+        raise ValueError("adaptive windows choose their own length: not with duration= or stride=")
+    return rule
+
+
 def _skipped_row(span: Span, events: Events, n_used: int, status: str, n_params: int) -> WindowResult:
     """The row of a window that is not estimated (NaN parameters and values)."""
     nan = math.nan
@@ -382,6 +332,7 @@ def process(
     warm_method: str = "bfgs",
     keep_tail: bool = False,
     on_skipped: Callable[[WindowResult], None] | None = None,
+    adaptive: AdaptiveWindows | bool | None = None,
 ) -> SequenceResult:
     """Estimate the motion of every window of a recording.
 
@@ -404,7 +355,17 @@ def process(
         Count windows: estimate the partial tail (the events after the last full window) as a shorter
         window when it holds at least half a window (:func:`cmax_taichi.core.windows.min_tail_events`;
         status ``"short_tail"``). Default: the tail gets a row with status ``"partial_tail"`` and its
-        events are counted as not estimated.
+        events are counted as not estimated. Adaptive windows: the events after the last window, too
+        few to reach the duration the motion asks for, are the tail, kept when they hold at least
+        ``min_events`` and ``accept`` times the target motion.
+    adaptive : AdaptiveWindows or True, optional
+        Motion-adaptive windows (:class:`~cmax_taichi.solve.adaptive.AdaptiveWindows`; True: the
+        default rule): each window holds the events of the time in which the previous estimate moves
+        the window's extreme pixels by ``target_px`` (8 px), bounded by a minimum and maximum number of
+        events and a maximum duration; the first window grows until its own estimate does. Replaces
+        ``n_events``; not with ``duration`` or ``stride``. The first window's ``search`` names its
+        solves: ``"identity"`` (a local ascent from the identity warp), then ``"warm"`` when it grew
+        (refinements of the longer window), ``"global"`` when the global search ran too.
     method : str
         Local optimizer of :func:`~cmax_taichi.maximize` after a global search (the first window, and
         every window without ``warm_start`` or after a tracking loss); default ``"bfgs"``, which with
@@ -482,6 +443,7 @@ def process(
         stride = None if stride is None else checks.seconds("stride", stride, positive=True)
     if max_windows is not None:
         max_windows = checks.whole_number("max_windows", max_windows, 1)
+    adaptive = _adaptive_rule(adaptive, duration, stride)
     if isinstance(source, (str, os.PathLike)):
         from cmax_taichi import io
 
@@ -508,11 +470,12 @@ def process(
                 warm_method=warm_method,
                 keep_tail=keep_tail,
                 on_skipped=on_skipped,
+                adaptive=adaptive,
             )
     if first_window < 0:
         raise ValueError(f"first_window must be >= 0, got {first_window}")
     model = get_warp(warp)
-    plan = _plan(source, n_events, duration, stride, keep_tail)
+    plan = _plan(source, n_events, duration, stride, keep_tail, adaptive)
     total, desc = plan.total, plan.desc
     camera = camera if camera is not None else plan.camera
     if model.needs_camera and camera is None:
@@ -523,14 +486,16 @@ def process(
         total = min(total, int(max_windows)) if total is not None else int(max_windows)
     if total is not None:
         total = max(0, total - first_window)
+    by_count = duration is None and adaptive is None
     settings = {
         **desc,
         "warp": model.name,
         "objective": objective,
         "regularizers": dict(regularizers or {}),
         "camera": None if camera is None else [camera.fx, camera.fy, camera.cx, camera.cy, *camera.dist],
-        "window_events": None if duration is not None else int(n_events),
+        "window_events": int(n_events) if by_count else None,
         "window_duration": duration,
+        "window_adaptive": None if adaptive is None else adaptive.as_dict(),
         "stride": stride,
         "keep_tail": bool(keep_tail),
         "method": method,
@@ -542,19 +507,14 @@ def process(
     bar = None
     if progress:
         bar = ProgressBar(total, stream=progress if not isinstance(progress, bool) else None)
-    if warm_state is not None and not isinstance(warm_state, WarmState):
-        raise TypeError(f"warm_state must be a sequence.WarmState, got {type(warm_state).__name__}")
-    state = warm_state  # what the previous window leaves for the next one's warm start
-    fwl_is_value = (
-        objective == "variance"
-        and not any(float(w) for w in (regularizers or {}).values())
-        and set(popts) <= _FWL_COMPATIBLE_OPTIONS
-    )
+    solver = WindowSolver(
+        model, objective=objective, regularizers=regularizers, camera=camera, problem_options=popts,
+        optimize_options=oopts, method=method, warm_method=warm_method, warm_start=warm_start,
+        compute_fwl=compute_fwl, state=warm_state,
+    )  # fmt: skip
     lossy = checks.UndistortionTally()  # holds back the undistortion warnings after the first lossy window
     ledger = EventLedger(plan.n_total)
-    undistort = camera is not None and camera.has_distortion and not plan.undistorted
-    weights = popts.pop("weights", None)
-    prob = fprob = None  # built on the first window, then given each next window (set_events)
+    fate_camera = camera if camera is not None and camera.has_distortion and not plan.undistorted else None
     stopped_early = False
     try:
         with warnings.catch_warnings():  # restores the filter that the tally adds
@@ -564,11 +524,13 @@ def process(
                     break
                 index = span.index
                 t0 = time.perf_counter()
-                used, inside, kept, status = _window_fate(span, plan, camera if undistort else None, lossy)
-                ledger.add(span, status, inside, kept)
-                if index < first_window:
-                    continue  # done by an earlier, interrupted run (accounted for all the same)
-                if status not in ESTIMATED_STATUSES:
+                used, inside, kept, status = _window_fate(span, plan, fate_camera, lossy)
+                if index < first_window or status not in ESTIMATED_STATUSES:
+                    ledger.add(span, status, inside, kept)
+                    if plan.planner is not None:
+                        plan.planner.next_start = span.stop
+                    if index < first_window:
+                        continue  # done by an earlier, interrupted run (accounted for all the same)
                     row = _skipped_row(span, used, len(used), status, model.n_params)
                     result.add(row)
                     if on_skipped is not None:
@@ -576,39 +538,22 @@ def process(
                     if bar is not None and span.keep:  # the bar counts the windows that could be estimated
                         bar.update(status)
                     continue
-                window_weights = weights
-                if weights is not None and kept is not None and np.shape(weights) == kept.shape:
-                    window_weights = np.asarray(weights)[kept]  # as the problem's own undistortion does
-                if prob is None:
-                    prob = ContrastMaximization(
-                        used,
-                        warp=model,
-                        objective=objective,
-                        regularizers=regularizers,
-                        camera=camera,
-                        weights=window_weights,
-                        **popts,
+                first_adaptive = plan.planner is not None and plan.planner.duration is None
+                start = plan.planner.rule.first_search if first_adaptive and solver.state is None else "auto"
+                res, search, value_fwl = solver.solve(used, kept, start)
+                if plan.planner is not None:  # the window follows the motion (an adaptive first one grows)
+                    span, used, inside, kept, res, search, value_fwl = _adapt(
+                        plan, solver, span, used, inside, kept, (res, search, value_fwl), fate_camera, lossy
                     )
-                else:  # the same problem takes the next window: its fields, kernels and buffers stay
-                    prob.set_events(used, weights=window_weights)
-                res, search = _solve_window(prob, state if warm_start else None, method, warm_method, oopts)
-                value_fwl = math.nan
-                if compute_fwl:
-                    if fwl_is_value:
-                        value_fwl = res.value  # the estimate's problem is the FWL problem
-                    else:
-                        if fprob is None:
-                            fprob = _fwl_problem(prob, model, camera, popts.get("t_ref", "first"))
-                        else:
-                            fprob.set_events(prob.events)
-                        value_fwl = fprob.value(res.theta)
+                ledger.add(span, status, inside, kept)
+                prob = solver.prob
                 row = WindowResult.of_optimization(
                     res,
                     index=index,
                     t_start=float(used.t[0]),
                     t_end=float(used.t[-1]),
                     n_events=prob.n_events,
-                    fwl=float(value_fwl),
+                    fwl=value_fwl,
                     seconds=time.perf_counter() - t0,
                     search=search,
                     status=status,
@@ -618,7 +563,7 @@ def process(
                 result.add(row)
                 if on_window is not None:
                     on_window(row, prob, res)
-                state = WarmState.after(row, res)
+                solver.advance(row, res)
                 if bar is not None:
                     bar.update(f"J={res.value:.3f}")
     finally:
@@ -626,7 +571,7 @@ def process(
             bar.close()
     ledger.finish(stopped_early)
     result.events = ledger.as_dict()
-    ledger.warn(desc["source"], n_events if duration is None else None, max_windows, stacklevel=2)
+    ledger.warn(desc["source"], n_events if by_count else None, max_windows, stacklevel=2)
     at_identity = result.identity_windows()
     if at_identity:
         warnings.warn(
@@ -635,59 +580,34 @@ def process(
                 "identity warp exactly (every parameter 0). Unless the camera and the scene were still, "
                 "those windows hold too little motion: at about a pixel of it or less, the events on "
                 "their integer pixels make a sharper image than any warp of them. Use windows of more "
-                "events (n_events=, --window) or a longer duration."
+                "events (n_events=, --window), a longer duration, or motion-adaptive windows."
             ),
             stacklevel=2,
         )
     return result
 
 
-def _fwl_problem(prob: ContrastMaximization, model, camera: Camera | None, t_ref) -> ContrastMaximization:
-    """The problem whose J is the FWL of ``prob``'s window (the same, already undistorted, events).
+def _adapt(plan: _Plan, solver: WindowSolver, span, used, inside, kept, solved, fate_camera, lossy):
+    """An adaptive window after its solve (:func:`~cmax_taichi.solve.adaptive.settle_window`; the first
+    one may grow). Returns the window as kept and its solve: ``(span, used, inside, kept, result,
+    search, fwl)``."""
+    planner = plan.planner
 
-    For a variance problem with regularizers on the fused path: the same regularizers at weight 0, so
-    that it runs on the estimate's compiled kernel (the weights are data); a problem without them would
-    compile a kernel of its own on the first window (about a second of front end and code generation).
-    """
-    options = dict(camera=camera, blur_sigma=prob.blur_sigma, t_ref=t_ref, polarity=prob.polarity)
-    if prob.regularizer_weights and prob.path == "fused" and prob.objective.name == "variance":
-        zero = {name: 0.0 for name in prob.regularizer_weights}
-        return ContrastMaximization(
-            prob.events, warp=model, objective="variance", regularizers=zero, **options
-        )
-    return fwl_problem(prob.events, model, **options)
+    def grow(duration: float, tail_duration: float):
+        stop = planner.stop(span.start, plan.n_total, True, duration=duration, tail_duration=tail_duration)
+        stop = stop or plan.n_total  # no further than the events go
+        current = grown_span[0]
+        if stop <= current.stop:
+            return None
+        wider = Span(current.index, current.start, stop, current.tail, current.keep)
+        more_used, more_inside, more_kept, status = _window_fate(wider, plan, fate_camera, lossy)
+        if status not in ESTIMATED_STATUSES:
+            return None
+        grown_span[0] = wider
+        return more_used, more_kept, more_inside
 
-
-def _solve_window(
-    prob: ContrastMaximization,
-    state: WarmState | None,
-    method: str,
-    warm_method: str,
-    oopts: dict,
-) -> tuple[OptimizeResult, str]:
-    """Solve one window: the global search, or the warm refinement with its tracking test.
-
-    A BFGS refinement starts with the previous window's inverse Hessian (a quasi-Newton first step):
-    consecutive windows of one motion have about the same curvature in the per-window pixel units of
-    :func:`~cmax_taichi.maximize`."""
-    if state is None:
-        return maximize(prob, method=method, **oopts), "global"
-    if "init" in oopts:  # the caller's init in every window, from the previous estimate
-        return maximize(prob, theta0=state.theta, method=method, **oopts), oopts["init"]
-    warm_options = dict(oopts)
-    warm_options.setdefault("xtol", WARM_XTOL)
-    if warm_method == "bfgs" and state.hess_inv is not None and "hess_inv0" not in warm_options:
-        warm_options["hess_inv0"] = state.hess_inv
-    res = maximize(prob, theta0=state.theta, method=warm_method, init="warm", **warm_options)
-    if not state.lost_track(res.value, res.value_identity, prob.duration):
-        return res, "warm"
-    full = maximize(prob, method=method, candidates=[state.theta], **oopts)
-    best = full if full.value > res.value else res
-    return (
-        replace(
-            best,
-            n_evaluations=res.n_evaluations + full.n_evaluations,
-            seconds=res.seconds + full.seconds,
-        ),
-        "warm+global",
-    )
+    grown_span = [span]
+    res, search, fwl, used, kept, extra = settle_window(planner, solver, solved, used, kept, grow)
+    span, inside = grown_span[0], inside if extra is None else extra
+    planner.next_start = span.stop
+    return span, used, inside, kept, res, search, fwl

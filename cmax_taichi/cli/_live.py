@@ -1,0 +1,449 @@
+"""``cmax-taichi estimate --live SOURCE``: estimate while the events arrive (a dv-processing TCP stream, a
+camera, or a recording replayed at its recorded speed), each window's row appended to OUT/results.csv and
+flushed as soon as it is estimated, with an optional live display.
+
+Output: ``OUT/results.csv`` holds the columns of a recorded run's results.csv and ``latency [s]`` (from
+the arrival of the window's last event to its estimate); a window that was not estimated has its row
+too (``status``: ``behind`` when the estimator had fallen behind and skipped it). The folder is checked
+and locked as for every command (:mod:`cmax_taichi.io.outputs`): never an input, no file that no run
+wrote is replaced, one run at a time; the rows are written in place (a crash loses at most the window in
+flight), and when the run ends (the source ends, ``--idle-timeout``, ``--max-windows``, Ctrl-C or
+SIGTERM: the window in flight is finished first; a second Ctrl-C stops at once) ``OUT/results.json``
+gets every row, the settings and where every event went, and the manifest lists the files.
+
+The display (a separate process, matplotlib's interactive window: the IWE of the latest window before
+and after the estimate, and the parameters over time) takes the latest window about four times a
+second; the estimator never waits for it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from cmax_taichi.cli import CliError
+
+#: the files a live run writes into OUT
+LIVE_FILES = ("results.csv", "results.json")
+#: seconds between two frames of the display
+DISPLAY_PERIOD = 0.25
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of live input and of the window rule, on ``estimate``."""
+    live = parser.add_argument_group(
+        "live input (estimate while the events arrive; results appended to OUT/results.csv)"
+    )
+    live.add_argument(
+        "--live",
+        default=None,
+        metavar="SOURCE",
+        help="tcp://HOST:PORT (a dv-processing event stream), camera or camera:SERIAL (dv-processing), "
+        "or a recording replayed at its recorded speed (--speed)",
+    )
+    live.add_argument("--speed", type=float, default=1.0, help="replay speed of a recording (default 1)")
+    live.add_argument("--loops", type=int, default=1, help="times a replayed recording plays (default 1)")
+    live.add_argument(
+        "--idle-timeout", type=float, default=None, metavar="S", help="stop after S seconds without events"
+    )
+    live.add_argument(
+        "--calib", default=None, metavar="FILE", help="the camera of a stream: a calib.txt (fx fy cx cy "
+        "[k1 k2 p1 p2 k3]); a replayed recording's own by default",
+    )  # fmt: skip
+    shown = live.add_mutually_exclusive_group()
+    shown.add_argument("--display", dest="display", action="store_true", default=None, help="live display")
+    shown.add_argument("--no-display", dest="display", action="store_false", help="no live display")
+    win = parser.add_argument_group("window rule")
+    win.add_argument(
+        "--window-mode",
+        default=None,
+        choices=["count", "duration", "adaptive"],
+        help="count: --window events; duration: --duration seconds; adaptive: as long as the motion needs "
+        "(--target-px at the window's extreme pixels). Default: adaptive with --live, else count (or "
+        "duration with --duration)",
+    )
+    win.add_argument("--target-px", type=float, default=None, help="adaptive: displacement per window, px")
+    win.add_argument("--min-events", type=int, default=None, help="adaptive: fewest events per window")
+    win.add_argument("--max-events", type=int, default=None, help="adaptive: most events per window")
+    win.add_argument(
+        "--max-duration", type=float, default=None, metavar="S", help="adaptive: longest window, s"
+    )
+    parser.add_argument("--topic", default=None, help="ROS bag: the event topic (listed when ambiguous)")
+
+
+def window_rule(args: argparse.Namespace):
+    """The ``adaptive=`` of ``sequence.process`` (None: count or duration windows), and for --live the
+    ``windows=`` of ``run_live``; CliError for options that do not fit together."""
+    from cmax_taichi.solve.adaptive import AdaptiveWindows
+
+    mode = args.window_mode
+    if mode is None:
+        mode = "adaptive" if args.live else "duration" if args.duration is not None else "count"
+    given = {
+        name: getattr(args, name)
+        for name in ("target_px", "min_events", "max_events", "max_duration")
+        if getattr(args, name) is not None
+    }
+    if mode != "adaptive":
+        if given:
+            names = ", ".join("--" + n.replace("_", "-") for n in given)
+            raise CliError(f"{names}: options of --window-mode adaptive")
+        if mode == "duration" and args.duration is None:
+            raise CliError("--window-mode duration needs --duration S")
+        if mode == "count" and args.duration is not None:
+            raise CliError("--duration gives windows by time: not with --window-mode count")
+        return None, (args.window if mode == "count" else args.duration)
+    if args.duration is not None or args.stride is not None:
+        raise CliError("adaptive windows choose their own length: not with --duration or --stride")
+    try:
+        rule = AdaptiveWindows(**given)
+    except (TypeError, ValueError) as exc:
+        raise CliError(f"adaptive windows: {exc}") from None
+    return rule, rule
+
+
+# --- output --------------------------------------------------------------------------------------------
+class LiveOutput:
+    """OUT for a live run: checked and locked on entry, results.csv appended and flushed row by row,
+    results.json and the manifest when the run ends (:meth:`finish`)."""
+
+    def __init__(self, out: str | os.PathLike, inputs: list[Path], columns: list[str]) -> None:
+        self.out = Path(out)
+        self.inputs = inputs
+        self.columns = columns
+        self._stack = contextlib.ExitStack()
+        self._file = None
+        self._writer = None
+        self.rows = 0
+
+    def __enter__(self) -> LiveOutput:
+        from cmax_taichi.io import outputs
+
+        outputs.check_inputs(self.out, self.inputs, "--out")
+        self._created = not self.out.exists()
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OSError(f"--out: cannot create {self.out} ({exc.strerror or exc})") from None
+        self._stack.callback(self._remove_if_unused)
+        try:
+            self._stack.enter_context(outputs.hold_lock(self.out, "estimate --live"))
+            outputs.refuse_foreign(self.out, LIVE_FILES)
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def begin(self) -> None:
+        """Start results.csv (the header): the source is open, rows will come."""
+        (self.out / "results.json").unlink(missing_ok=True)  # a previous run's (ours: checked on entry)
+        self._file = self._stack.enter_context((self.out / "results.csv").open("w", newline=""))
+        self._writer = csv.writer(self._file)
+        self._writer.writerow([*self.columns, "latency [s]"])
+        self._file.flush()
+
+    def _remove_if_unused(self) -> None:
+        """A run that failed before its first row leaves no folder it created behind."""
+        from cmax_taichi.io import outputs
+
+        if self._created and self._file is None:
+            with contextlib.suppress(OSError):
+                (self.out / outputs.LOCK_NAME).unlink()
+                self.out.rmdir()
+
+    def write(self, fields: list, latency: float) -> None:
+        """One row, flushed at once."""
+        self._writer.writerow([*fields, "" if math.isnan(latency) else f"{latency:.6f}"])
+        self._file.flush()
+        self.rows += 1
+
+    def finish(self, summary: dict) -> list[Path]:
+        """results.json (every row of results.csv, the settings and the summary) and the manifest."""
+        from cmax_taichi.io import outputs
+
+        self._file.flush()
+        with open(self.out / "results.csv", newline="") as fh:
+            reader = csv.reader(fh)
+            header = next(reader)
+            rows = [dict(zip(header, row, strict=True)) for row in reader]
+        text = json.dumps({**summary, "windows": rows}, indent=1)
+        outputs.atomic_write_text(self.out / "results.json", text)
+        outputs.write_manifest(self.out, LIVE_FILES, "estimate --live")
+        return [self.out / name for name in LIVE_FILES]
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+
+# --- display -------------------------------------------------------------------------------------------
+def display_available() -> bool:
+    """Whether a window can be shown: a display server, and an interactive matplotlib backend."""
+    server = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    if sys.platform.startswith("linux") and not server:
+        return False
+    backend = os.environ.get("MPLBACKEND", "").lower()
+    return backend not in ("agg", "pdf", "svg", "ps", "cairo", "template")
+
+
+def draw_frame(fig, frame: dict, artists: dict) -> None:
+    """Draw (or update) one frame of the display into ``fig``: the IWE before and after the estimate,
+    and the parameters over the recent windows."""
+    from cmax_taichi import viz
+
+    if not artists:
+        axes = fig.subplots(1, 3)
+        names, units = frame["names"], frame["units"]
+        artists["before"] = viz.show_iwe(axes[0], frame["identity"], title="IWE, identity warp")
+        artists["after"] = viz.show_iwe(axes[1], frame["estimate"], title="IWE, estimate")
+        artists["lines"] = [
+            axes[2].plot([], [], ".-", label=f"{n} [{u}]")[0] for n, u in zip(names, units, strict=True)
+        ]
+        axes[2].legend(loc="upper left", fontsize=8)
+        axes[2].set_xlabel("time (window middle) [s]")
+        axes[2].set_title("parameters")
+        artists["axes"] = axes
+    else:
+        artists["before"].set_data(frame["identity"])
+        artists["after"].set_data(frame["estimate"])
+    for k, line in enumerate(artists["lines"]):
+        line.set_data(frame["t"], frame["theta"][k])
+    artists["axes"][2].relim()
+    artists["axes"][2].autoscale_view()
+    fig.suptitle(frame["title"], fontsize=10)
+
+
+def _display_child(conn) -> None:
+    """The display process: show each frame it receives, ask for the next one, until None."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and ends this process
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(14, 4.5))
+    artists: dict = {}
+    conn.send("ready")
+    while True:
+        if conn.poll(0.05):
+            frame = conn.recv()
+            if frame is None:
+                break
+            draw_frame(fig, frame, artists)
+            conn.send("ready")
+        if not plt.fignum_exists(fig.number):
+            break  # the user closed the window: the run goes on without it
+        plt.pause(0.01)
+
+
+class LiveDisplay:
+    """The display process (see the module docstring): :meth:`offer` sends the latest window when the
+    display is ready and a period has passed, else drops it."""
+
+    def __init__(self) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(target=_display_child, args=(child,), daemon=True)
+        self._process.start()
+        child.close()
+        self._ready = False
+        self._last = 0.0
+        self.history: list[tuple[float, list[float]]] = []
+
+    def offer(self, row, prob, theta) -> None:
+        self.history = (self.history + [(0.5 * (row.t_start + row.t_end), list(theta))])[-300:]
+        now = time.perf_counter()
+        try:
+            while self._conn.poll():
+                self._ready = self._conn.recv() == "ready" or self._ready
+        except (EOFError, OSError):
+            return  # the window was closed
+        if not self._ready or now - self._last < DISPLAY_PERIOD:
+            return
+        import numpy as np
+
+        model = prob.model
+        frame = {
+            "identity": prob.iwe(np.zeros(model.n_params)),
+            "estimate": prob.iwe(theta),
+            "t": [t for t, _ in self.history],
+            "theta": [[v[k] for _, v in self.history] for k in range(model.n_params)],
+            "names": model.params,
+            "units": model.units,
+            "title": f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events",
+        }
+        with contextlib.suppress(OSError, BrokenPipeError):
+            self._conn.send(frame)
+            self._ready, self._last = False, now
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError, BrokenPipeError):
+            self._conn.send(None)
+        self._process.join(timeout=2.0)
+        if self._process.is_alive():
+            self._process.terminate()
+
+
+# --- signals ---------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def graceful_stop():
+    """For the block: the first Ctrl-C or SIGTERM sets the yielded event (the run ends after the window
+    in flight), a second raises as usual. The event's ``signal`` attribute names the first signal."""
+    stop = threading.Event()
+    stop.signal = None
+    previous = {}
+
+    def handler(signum, frame):
+        if stop.is_set():
+            signal.signal(signum, previous[signum])
+            raise KeyboardInterrupt
+        stop.signal = signum
+        stop.set()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(ValueError):  # not the main thread
+            previous[signum] = signal.signal(signum, handler)
+    try:
+        yield stop
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
+# --- the run -------------------------------------------------------------------------------------------
+def run(args: argparse.Namespace, regs: dict, process_options: dict) -> int:
+    """``estimate --live``: returns the exit code (0; 130 / 143 when Ctrl-C / SIGTERM ended the run)."""
+    import cmax_taichi as cm
+    from cmax_taichi.io.streams import StreamError, open_stream
+    from cmax_taichi.solve.online import run_live
+    from cmax_taichi.solve.results import SequenceResult
+
+    if args.path or args.example is not None:
+        raise CliError("--live SOURCE replaces PATH and --example")
+    if args.workers is not None or args.engine is not None or args.flow_out is not None:
+        raise CliError("--live estimates one stream: not with --workers, --engine or --flow-out")
+    if args.keep_tail or args.stride is not None:
+        raise CliError("--live keeps the last window when it holds enough, and has no --stride")
+    if not (math.isfinite(args.speed) and args.speed > 0):
+        raise CliError(f"--speed must be a positive number, got {args.speed}")
+    if args.loops < 1:
+        raise CliError(f"--loops must be at least 1, got {args.loops}")
+    if args.idle_timeout is not None and not (math.isfinite(args.idle_timeout) and args.idle_timeout > 0):
+        raise CliError(f"--idle-timeout must be a positive number of seconds, got {args.idle_timeout}")
+    _, windows = window_rule(args)
+    display = display_available() if args.display is None else args.display
+    if args.display and not display_available():
+        raise CliError("--display: no display here ($DISPLAY unset, or a non-interactive MPLBACKEND)")
+    source = args.live
+    is_path = not (source.startswith("tcp://") or source == "camera" or source.startswith("camera:"))
+    inputs = [Path(source)] if is_path else []
+    if is_path and not Path(source).exists():
+        raise CliError(f"--live {source}: no such file or folder (nor tcp://HOST:PORT, camera)")
+    model = cm.get_warp(args.warp)
+    columns = SequenceResult(model.name, model.params, model.units).columns()
+    options = {k: v for k, v in (("format", args.format), ("topic", args.topic)) if v is not None}
+    camera = None
+    if args.calib is not None:
+        from cmax_taichi.io.text import read_calib
+
+        if not Path(args.calib).is_file():
+            raise CliError(f"--calib {args.calib}: no such file")
+        camera, _ = read_calib(Path(args.calib))
+    with LiveOutput(args.out, inputs, columns) as out:  # OUT checked and locked before anything opens
+        common_init(args)
+        try:
+            stream = open_stream(source, speed=args.speed, loops=args.loops, camera=camera, **options)
+        except (ImportError, StreamError) as exc:
+            raise CliError(str(exc)) from None
+        if model.needs_camera and stream.camera is None:
+            stream.close()
+            raise CliError(f"warp {model.name!r} needs a calibration, and {source} has none (--calib FILE)")
+        shown = LiveDisplay() if display else None
+        out.begin()
+
+        def on_window(row, prob, res, latency):
+            out.write(SequenceResult.csv_row(row), latency)
+            if shown is not None:
+                shown.offer(row, prob, res.theta)
+
+        def on_skipped(row):
+            out.write(SequenceResult.csv_row(row), math.nan)
+
+        print(f"live: {stream.address} ({stream.sensor_size[0]}x{stream.sensor_size[1]}), warp {model.name}, "
+              f"writing {out.out / 'results.csv'}; Ctrl-C ends it", file=sys.stderr)  # fmt: skip
+        error = None
+        try:
+            with graceful_stop() as stop:
+                result = run_live(
+                    stream, model.name, objective=args.objective, regularizers=regs, camera=stream.camera,
+                    windows=windows, method=process_options["method"],
+                    warm_start=process_options["warm_start"],
+                    problem_options=process_options["problem_options"],
+                    optimize_options=process_options["optimize_options"], max_windows=args.max_windows,
+                    idle_timeout=args.idle_timeout, stop=stop, on_window=on_window, on_skipped=on_skipped,
+                )  # fmt: skip
+        except StreamError as exc:
+            error, result = exc, exc.live_result
+        finally:
+            if shown is not None:
+                shown.close()
+        summary = _summary(result, args, windows)
+        files = out.finish(summary)
+    _print_summary(result, files)
+    if error is not None:
+        raise CliError(f"{error} (the {out.rows} row(s) before it are in {files[0]})")
+    if result.stop_reason == "stopped":
+        return 143 if stop.signal == signal.SIGTERM else 130
+    return 0
+
+
+def common_init(args) -> None:
+    from cmax_taichi.cli import _common as common
+
+    common.init_backend(args.arch, args.precision)
+
+
+def _summary(result, args, windows) -> dict:
+    return {
+        "warp": result.warp,
+        "params": list(result.param_names),
+        "units": list(result.units),
+        "settings": {**result.settings, "windows": result.settings["windows"]},
+        "events": result.events,
+        "live": {
+            "stop_reason": result.stop_reason,
+            "error": result.error,
+            "windows_estimated": result.windows,
+            "windows_not_estimated": result.skipped,
+            "real_time_factor": result.real_time_factor(),
+            "busy_seconds": result.busy_seconds,
+            "data_seconds": result.data_seconds,
+            "first_window_seconds": result.first_window_seconds,
+            "latency_median_s": result.latency(50),
+            "latency_p99_s": result.latency(99),
+        },
+    }
+
+
+def _print_summary(result, files) -> None:
+    from cmax_taichi.core.windows import describe_events
+
+    events = result.events
+    left = events.get("total", 0) - events.get("estimated", 0)
+    print(
+        f"{result.windows} window(s) estimated, {result.skipped} not ({result.stop_reason}); "
+        "real-time factor "
+        f"{result.real_time_factor():.2f} (first window included: {result.first_window_seconds:.3f} s); "
+        f"latency median {1e3 * result.latency(50):.1f} ms, 99th percentile {1e3 * result.latency(99):.1f} ms"
+    )
+    note = f"; {left} not estimated ({describe_events(events)})" if left else ""
+    print(f"  events: {events.get('estimated', 0)} of {events.get('total', 0)} estimated{note}")
+    print("wrote: " + ", ".join(str(p) for p in files))
+    sys.stdout.flush()
