@@ -133,7 +133,10 @@ class DenseEvaluation:
     Attributes
     ----------
     J : float
-        The augmented objective (maximised).
+        The augmented objective (maximised), with the exact penalties.
+    J_rounded : float
+        The same with the regularizers' kinks rounded (``kink_width``): the value the optimizer
+        maximises (``J`` where ``kink_width`` is 0).
     data : float
         ``H``: the weighted harmonic mean of ``G_r / G0`` (``G_r`` raw where ``normalize=False``).
     G : tuple of float
@@ -147,6 +150,7 @@ class DenseEvaluation:
     """
 
     J: float
+    J_rounded: float
     data: float
     G: tuple[float, ...]
     penalties: dict = field(default_factory=dict)
@@ -201,6 +205,12 @@ class DenseFlowProblem:
         vote. Without it, an expanding flow that carries texture out of the image loses those events
         from the IWE, which biases the estimate near the borders towards less motion (0 = the sensor's
         image, as :class:`~cmax_taichi.ContrastMaximization`).
+    kink_width : float
+        Width of the rounded kinks of the event-map regularizers in :meth:`value` and
+        :meth:`value_and_grad` (:meth:`Regularizer.with_rounded_kinks`: the divergence's hinge, the
+        deformation's ``max(D, 1/D)`` at D = 1), so that a line search sees the slope of the function
+        it steps on; each rounded penalty exceeds the exact one by at most ``kink_width / 4``.
+        :meth:`evaluate` gives the exact terms (and ``J_rounded``). 0 (default): exact everywhere.
     """
 
     def __init__(
@@ -218,6 +228,7 @@ class DenseFlowProblem:
         polarity: str = "ignore",
         weights: Sequence[float] | np.ndarray | None = None,
         padding: int = 0,
+        kink_width: float = 0.0,
     ) -> None:
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
@@ -246,6 +257,8 @@ class DenseFlowProblem:
                     "penalty_grad: the dense flow kernels need both"
                 )
         self.regularizer_weights = dict(setup.regularizer_weights)
+        self.kink_width = _weight("kink_width", kink_width)
+        self._rounded = tuple(reg.with_rounded_kinks(self.kink_width) for reg in self.regularizers)
         self.width, self.height = setup.width, setup.height
         if not isinstance(grid, FlowGrid):
             try:
@@ -309,24 +322,30 @@ class DenseFlowProblem:
 
         self._ws = workspace.acquire(key, build, f"a {W}x{H} dense flow problem")
         self.fields = self._ws.fields
-        kkey = kernels_key(self.objective.name, obj, self.regularizers, weighted, split, self._atomic)
-        if kkey not in self._ws.kernels:
-            regs = self.regularizers
-            self._ws.kernels[kkey] = kdense.make_dense_flow_kernels(
-                self.fields,
-                tuple(r.kind for r in regs),
-                tuple(r.penalty for r in regs),
-                tuple(r.penalty_grad for r in regs),
-                tuple(bool(r.one_sided) for r in regs),
-                objective=obj,
-                events=kcommon.EventLayout(weighted, split, self._atomic),
-            )
-        self._run_k = self._ws.kernels[kkey]
+        self._run_k = self._kernels(self._rounded)  # what value() and value_and_grad() launch
+        self._exact_k = self._run_k if self.kink_width == 0.0 else None  # evaluate()'s, on first use
         self._out = np.zeros(2 + R + Q + Q * R)
         self._gout = np.zeros(2 * cap)
         self._nodes_buf = np.zeros((cap, 2), dtype=backend.numpy_real())
         self._event_buffer = None
         self._generation = backend.info().generation
+
+    def _kernels(self, regs: tuple):
+        """The compiled kernel of this problem's options with the regularizers ``regs`` (exact or with
+        rounded kinks), compiled on first use and kept in the workspace."""
+        obj = self.objective.fused
+        kkey = kernels_key(self.objective.name, obj, regs, self._weighted, self._split, self._atomic)
+        if kkey not in self._ws.kernels:
+            self._ws.kernels[kkey] = kdense.make_dense_flow_kernels(
+                self.fields,
+                tuple(r.kind for r in regs),
+                tuple(r.penalty for r in regs),
+                tuple(r.penalty_grad for r in regs),
+                tuple(r.hinge for r in regs),
+                objective=obj,
+                events=kcommon.EventLayout(self._weighted, self._split, self._atomic),
+            )
+        return self._ws.kernels[kkey]
 
     def _take_window(self, setup: ProblemSetup) -> None:
         """Load a window: its events, constants and G0."""
@@ -455,11 +474,14 @@ class DenseFlowProblem:
         f.g0[None] = self._g0
         self._ws.take(self)
 
-    def _launch(self, U: np.ndarray, grad: int, maps: bool = True) -> np.ndarray:
+    def _launch(self, U: np.ndarray, grad: int, maps: bool = True, exact: bool = False) -> np.ndarray:
         self._check_alive()
         self._load(U)
+        if exact and self._exact_k is None:
+            self._exact_k = self._kernels(self.regularizers)
+        run = self._exact_k if exact else self._run_k
         with backend.hand_written_gradient_kernels():  # one slice per thread; the compile mode
-            self._run_k(
+            run(
                 self.n_events,
                 self._event_buffer.array,
                 self.grid.n_nodes,
@@ -501,14 +523,18 @@ class DenseFlowProblem:
         return float(out[0]) - penalty, g - gs
 
     def evaluate(self, nodes) -> DenseEvaluation:
-        """J and its terms at node flow ``nodes``."""
+        """J and its terms at node flow ``nodes``, with the exact penalties (and ``J_rounded``, the value
+        of :meth:`value` with its rounded kinks)."""
         U = self.grid.check_nodes(nodes)
-        out = self._launch(U, 0).copy()
+        rounded = float(self._launch(U, 0)[0]) if self.kink_width > 0.0 else None
+        out = self._launch(U, 0, exact=True).copy()
         penalty, _, smooth = self._smoothness(U, False)
         R, Q = len(self.fractions), len(self.regularizers)
         names = [r.name for r in self.regularizers]
+        exact = float(out[0]) - penalty
         return DenseEvaluation(
-            J=float(out[0]) - penalty,
+            J=exact,
+            J_rounded=exact if rounded is None else rounded - penalty,
             data=float(out[1]),
             G=tuple(float(v) for v in out[2 : 2 + R]),
             penalties={n: float(out[2 + R + q]) for q, n in enumerate(names)},
