@@ -226,18 +226,18 @@ def _mean(values) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
-def summary_table(rows: list[dict], windows: list[Window]) -> str:
+def summary_table(rows: list[dict]) -> str:
     """One line per (variant, reference): mean AEE on the simulated scenes and on ECD, mean FWL on MVSEC
     (and the ECD FWL over the gyro's), the largest share of shrunk events on a real recording, the
-    mean iterations per level (coarsest first), and the levels that stalled."""
+    mean iterations per level (coarsest first), the levels that moved the flow of all levels run, and
+    the levels that stalled."""
     by_key: dict = {}
     for r in rows:
         by_key.setdefault((r["variant"], r["references"], r["kink_width"]), []).append(r)
-    true_fwl = {w.name: w.true_fwl for w in windows if w.dataset == "ecd"}
     lines = [
         "| variant | t_ref | sim AEE px | ECD AEE px | ECD FWL / gyro's | MVSEC FWL | shrunk % (max, real) "
-        "| iterations per level | stalled levels |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| iterations per level | levels moved | stalled levels |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (variant, refs, width), rs in by_key.items():
         sim = [r["AEE"] for r in rs if r["dataset"] == "sim"]
@@ -247,13 +247,15 @@ def summary_table(rows: list[dict], windows: list[Window]) -> str:
         n_levels = max(len(r["levels"]) for r in rs) if rs and "levels" in rs[0] else 0
         its = [_mean([r["levels"][k]["iterations"] for r in rs]) for k in range(n_levels)]
         stalled = sum(r.get("stalled", 0) for r in rs)
+        moved = sum(lv["change_px"] > 0 for r in rs for lv in r["levels"])
         label = variant if width is None or len(_widths(rows)) == 1 else f"{variant} (kink {width:g})"
         lines.append(
             f"| {label} | {refs} | {_fmt(_mean(sim))} | {_fmt(_mean([r['AEE'] for r in ecd]))} | "
-            f"{_fmt(_mean([r['FWL'] / true_fwl[r['window']] for r in ecd]))} | "
+            f"{_fmt(_mean([r['FWL'] / r['true_fwl'] for r in ecd]))} | "
             f"{_fmt(_mean([r['FWL'] for r in mv]))} | "
             f"{_fmt(100 * max([r['shrunk'] for r in real], default=float('nan')), 1)} | "
-            f"{' / '.join(f'{v:.0f}' for v in its)} | {stalled} |"
+            f"{' / '.join(f'{v:.0f}' for v in its)} | {moved} of {sum(len(r['levels']) for r in rs)} "
+            f"| {stalled} |"
         )
     return "\n".join(lines)
 
@@ -334,6 +336,36 @@ def _csv(rows: list[dict], path: Path) -> None:
 
 
 # --- main -------------------------------------------------------------------------------------------------
+def render(rows: list[dict], command: str, seconds: float, load) -> str:
+    """The markdown of a run: the summary table, the strong penalties at the first event beside the
+    translation, and the per-window tables."""
+    variant_rows = [r for r in rows if "levels" in r]
+    text = [
+        f"Command: {command}",
+        f"{len(variant_rows)} runs in {seconds / 60:.1f} min; load average at the end {load[0]:.2f} "
+        f"{load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} CPUs",
+        "",
+        summary_table(variant_rows),
+        "",
+    ]
+    if any(r["variant"] == "div+def 10" and r["references"] == "first" for r in variant_rows):
+        text += [
+            "divergence 10 + deformation 10, t_ref first, beside the best global translation",
+            "",
+            translation_table(rows, "div+def 10", "first"),
+            "",
+        ]
+    for dataset, metric in (("sim", "AEE"), ("ecd", "AEE"), ("ecd", "FWL"), ("mvsec", "FWL")):
+        table = window_table(rows, dataset, metric)
+        if table:
+            text += [f"{dataset} {metric} per window", "", table, ""]
+    for dataset in ("ecd", "mvsec"):
+        table = window_table(rows, dataset, "shrunk")
+        if table:
+            text += [f"{dataset}: events shrunk below half their area, % per window", "", table, ""]
+    return "\n".join(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     from cmax_taichi.flow import KINK_WIDTH
 
@@ -350,7 +382,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sim", nargs="+", default=None, choices=SIM_SCENES, help="simulated scenes")
     parser.add_argument("--ecd", nargs="+", default=None, choices=ECD_CUTS, help="ECD cuts")
     parser.add_argument("--mvsec", nargs="+", default=None, choices=MVSEC_WINDOWS)
+    parser.add_argument(
+        "--tables-from", type=Path, default=None, metavar="JSON", help="print the tables of a saved run"
+    )
     args = parser.parse_args(argv)
+    if args.tables_from is not None:
+        saved = json.loads(args.tables_from.read_text())
+        print(render(saved["rows"], saved.get("command", "?"), saved["seconds"], saved["load"]))
+        return 0
     known = dict(VARIANTS)
     labels = args.variants or (list(QUICK_VARIANTS) if args.quick else [v[0] for v in VARIANTS])
     unknown = [v for v in labels if v not in known]
@@ -382,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     rows: list[dict] = []
     for w in windows:
-        base = {"dataset": w.dataset, "window": w.name, "n_events": len(w.events)}
+        base = {"dataset": w.dataset, "window": w.name, "n_events": len(w.events), "true_fwl": w.true_fwl}
         row = {**base, "variant": "global translation", "references": "first", "kink_width": None}
         row.update(run_translation(w))
         rows.append(row)
@@ -399,36 +438,14 @@ def main(argv: list[str] | None = None) -> int:
             )
     elapsed = time.perf_counter() - t_run
     load = os.getloadavg()
-    variant_rows = [r for r in rows if "levels" in r]
-    text = [
-        f"Command: python -m benchmarks.flow_ablation {' '.join(argv if argv is not None else sys.argv[1:])}",
-        f"{len(variant_rows)} runs in {elapsed / 60:.1f} min; load average at the end {load[0]:.2f} "
-        f"{load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} CPUs",
-        "",
-        summary_table(variant_rows, windows),
-        "",
-    ]
-    if any(r["variant"] == "div+def 10" and r["references"] == "first" for r in variant_rows):
-        text += [
-            "divergence 10 + deformation 10, t_ref first, beside the best global translation",
-            "",
-            translation_table(rows, "div+def 10", "first"),
-            "",
-        ]
-    for dataset, metric in (("sim", "AEE"), ("ecd", "AEE"), ("ecd", "FWL"), ("mvsec", "FWL")):
-        table = window_table(rows, dataset, metric)
-        if table:
-            text += [f"{dataset} {metric} per window", "", table, ""]
-    for dataset in ("ecd", "mvsec"):
-        table = window_table(rows, dataset, "shrunk")
-        if table:
-            text += [f"{dataset}: events shrunk below half their area, % per window", "", table, ""]
-    (args.out / "flow_ablation.md").write_text("\n".join(text))
+    command = f"python -m benchmarks.flow_ablation {' '.join(argv if argv is not None else sys.argv[1:])}"
+    text = render(rows, command, elapsed, load)
+    (args.out / "flow_ablation.md").write_text(text)
     (args.out / "flow_ablation.json").write_text(
-        json.dumps({"rows": rows, "seconds": elapsed, "load": load}, indent=1)
+        json.dumps({"command": command, "rows": rows, "seconds": elapsed, "load": load}, indent=1)
     )
     _csv(rows, args.out / "flow_ablation.csv")
-    print("\n".join(text))
+    print(text)
     print(f"wrote {args.out / 'flow_ablation.md'}, .json, .csv")
     return 0
 

@@ -506,16 +506,19 @@ class DenseFlowProblem:
         return total, g, values
 
     def value(self, nodes, maps: bool = True) -> float:
-        """J at node flow ``nodes`` (px/s, shape ``grid.shape`` or flat). ``maps=False`` leaves out the
-        event-map regularizers (exact for a constant flow, whose divergence is 0 and determinant 1 at every
-        event, so that every map has its neutral value; the global search evaluates such flows)."""
+        """J at node flow ``nodes`` (px/s, shape ``grid.shape`` or flat), with the regularizers' kinks
+        rounded over ``kink_width`` (exact where it is 0; :meth:`evaluate` gives both). ``maps=False``
+        leaves out the event-map regularizers: the exact J of a constant flow, whose divergence is 0 and
+        determinant 1 at every event, so that every map has its neutral value and every exact penalty
+        is 0 (the global search evaluates such flows)."""
         U = self.grid.check_nodes(nodes)
         out = self._launch(U, 0, maps)
         penalty, _, _ = self._smoothness(U, False)
         return float(out[0]) - penalty
 
     def value_and_grad(self, nodes) -> tuple[float, np.ndarray]:
-        """``(J, dJ/dU)`` at node flow ``nodes``; the gradient has the shape ``grid.shape`` (1/(px/s))."""
+        """``(J, dJ/dU)`` at node flow ``nodes``, J as :meth:`value` gives it; the gradient has the shape
+        ``grid.shape`` (1/(px/s))."""
         U = self.grid.check_nodes(nodes)
         out = self._launch(U, 1)
         g = self._gout[: self.grid.n_params].reshape(self.grid.shape).copy()

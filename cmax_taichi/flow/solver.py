@@ -13,9 +13,13 @@ of a recording) and solves one window with :meth:`DenseFlowEstimator.estimate`:
    the events' coordinates are scaled so that the grid's nodes keep their places, and the divergence,
    the determinant and the strain of the smoothness terms are the same at every scale.
 
-Everything is deterministic on one machine: the kernels add their per-thread partial sums in a fixed
-order and L-BFGS-B is a deterministic algorithm, so the same window gives the same flow to the last
-bit. :func:`estimate_flow` is the one-call form.
+Everything is deterministic on one machine at a given number of CPU threads: the kernels add their
+per-thread partial sums in a fixed order and L-BFGS-B is a deterministic algorithm, so the same window
+gives the same flow to the last bit. Another thread count groups the sums differently, and the flow moves
+by up to about 0.02 px with the defaults (docs/flow.md, "Deterministic at a given thread count"). The
+levels maximise J with the regularizers' kinks rounded (:data:`KINK_WIDTH`) and report what their
+optimizer did (:class:`LevelReport`); a level that L-BFGS-B leaves where it started gets a fallback.
+:func:`estimate_flow` is the one-call form.
 """
 
 from __future__ import annotations
@@ -46,8 +50,9 @@ __all__ = [
     "estimate_flow",
 ]
 
-#: the weights of :class:`DenseFlowEstimator` unless given (docs/flow.md, "Choosing the weights"): the
-#: paper's two penalties against a global collapse, the curvature prior against a local one
+#: the weights of :class:`DenseFlowEstimator` unless given (docs/flow.md, "What each regularizer does",
+#: the ablation of ``python -m benchmarks.flow_ablation``): the curvature prior against local collapse
+#: and for accuracy, the paper's two penalties as the guard when the reference time or the weights move
 DEFAULT_REGULARIZERS = {"divergence": 1.0, "deformation": 1.0, "curvature": 0.1}
 #: the width of the regularizers' rounded kinks in the optimizer's objective by default (``kink_width``;
 #: docs/flow.md, "Kinks of the penalties"): the divergence's hinge at R = 0 and the deformation's
