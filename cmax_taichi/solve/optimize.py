@@ -72,8 +72,8 @@ def _settle(obj, run, start, method, lo, hi, *, lr, max_iter, gtol, xtol, rtol, 
     search, "ABNORMAL") goes on by BFGS from its best point. A BFGS or Armijo run that moved and then
     found no ascent step longer than ``xtol`` has converged (a maximum to ``xtol`` along its
     directions), and so has one of ``init="warm"`` that found none at its start: that start is the
-    previous window's maximum, where a sequence's warm windows usually stay (probing them cost 10-20%
-    more evaluations over the ECD and MVSEC cuts' 5,000-event windows).
+    previous window's maximum, where a sequence's warm windows usually stay (probing them cost 8-23%
+    more evaluations over the ECD rotation cuts' and the MVSEC cut's 5,000-event windows).
     """
     moved = not np.array_equal(run.u, start)
     if run.converged:
