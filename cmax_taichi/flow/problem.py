@@ -323,7 +323,8 @@ class DenseFlowProblem:
         self._ws = workspace.acquire(key, build, f"a {W}x{H} dense flow problem")
         self.fields = self._ws.fields
         self._run_k = self._kernels(self._rounded)  # what value() and value_and_grad() launch
-        self._exact_k = self._run_k if self.kink_width == 0.0 else None  # evaluate()'s, on first use
+        rounds = self._rounded != tuple(self.regularizers)  # a kink to round (no event-map term: none)
+        self._exact_k = None if rounds else self._run_k  # evaluate()'s, compiled on first use
         self._out = np.zeros(2 + R + Q + Q * R)
         self._gout = np.zeros(2 * cap)
         self._nodes_buf = np.zeros((cap, 2), dtype=backend.numpy_real())
@@ -529,7 +530,7 @@ class DenseFlowProblem:
         """J and its terms at node flow ``nodes``, with the exact penalties (and ``J_rounded``, the value
         of :meth:`value` with its rounded kinks)."""
         U = self.grid.check_nodes(nodes)
-        rounded = float(self._launch(U, 0)[0]) if self.kink_width > 0.0 else None
+        rounded = None if self._exact_k is self._run_k else float(self._launch(U, 0)[0])
         out = self._launch(U, 0, exact=True).copy()
         penalty, _, smooth = self._smoothness(U, False)
         R, Q = len(self.fractions), len(self.regularizers)
