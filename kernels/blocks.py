@@ -13,7 +13,8 @@ Blocks:
 * objectives: per-pixel terms, finalize and adjoint of ``variance``, ``mean_square`` and
   ``gradient_magnitude`` (one Sobel table, :data:`SOBEL_X`; :func:`make_sobel`,
   :func:`make_sobel_transpose`);
-* the augmented objective: :func:`support_ratio`, :func:`scaled_penalty`, :func:`make_augmented`.
+* the augmented objective: :func:`support_ratio`, :func:`scaled_penalty` (the hinge, exact or with its kink
+  rounded: :func:`smooth_abs`), :func:`make_augmented`.
 
 Literals such as ``0.0`` take Taichi's default float, which ``core/backend.py`` sets to the
 working precision. Images are read through small ``read(src, c, y, x)`` functions of the caller, so
@@ -333,24 +334,64 @@ def support_ratio(weighted_sum, support_sum):
     return ratio
 
 
+def hinge_width(one_sided) -> float:
+    """The hinge of a regularizer's flag ``one_sided`` (compile time): -1 for none (False), 0 for the
+    exact hinge (True), a positive float for the width of its rounded kink (:func:`smooth_abs`)."""
+    if one_sided is True:
+        return 0.0
+    if one_sided is False or not one_sided:
+        return -1.0
+    return float(one_sided)
+
+
+@ti.func
+def smooth_abs(z, width: ti.template()):
+    """``|z|``, its kink at 0 rounded over ``|z| < width`` to ``z^2 / (2 width) + width / 2`` (the same
+    value and slope at ``|z| = width``; at most ``width / 2`` above ``|z|``, at ``z = 0``); exactly
+    ``|z|`` for ``width`` 0. Penalties written as ``(a + b + |a - b|) / 2`` (a hinge, a max) use it so
+    that a quasi-Newton line search sees the slope of the function it steps on near their kinks."""
+    out = ti.abs(z)
+    if ti.static(width > 0.0):  # noqa: SIM102 - compile-time if
+        if out < width:
+            out = z * z * ti.static(0.5 / width) + ti.static(0.5 * width)
+    return out
+
+
+@ti.func
+def smooth_abs_slope(z, width: ti.template()):
+    """``d smooth_abs / dz``: the sign of ``z`` (``-1`` at 0 for width 0, the side Taichi's autodiff
+    of ``ti.abs`` takes), ``z / width`` within the rounded band."""
+    out = 1.0 if z > 0.0 else -1.0
+    if ti.static(width > 0.0):  # noqa: SIM102 - compile-time if
+        if ti.abs(z) < width:
+            out = z * ti.static(1.0 / width)
+    return out
+
+
 @ti.func
 def scaled_penalty(ratio, scale, one_sided: ti.template()):
-    """``R = s ratio``, hinged to ``max(0, R)`` when ``one_sided``."""
+    """``R = s ratio``, hinged to ``max(0, R)`` when ``one_sided`` is True; a positive float
+    ``one_sided`` rounds the hinge's kink over ``|R| < one_sided`` (``(R + smooth_abs(R)) / 2``:
+    exact outside the band, at most ``one_sided / 4`` above it inside)."""
     rr = scale * ratio
-    if ti.static(one_sided):
+    if ti.static(hinge_width(one_sided) == 0.0):
         rr = ti.max(rr, 0.0)
+    elif ti.static(hinge_width(one_sided) > 0.0):
+        rr = 0.5 * (rr + smooth_abs(rr, ti.static(hinge_width(one_sided))))
     return rr
 
 
 @ti.func
 def scaled_penalty_slope(ratio, scale, one_sided: ti.template()):
     """``dR/d ratio`` of :func:`scaled_penalty` for hand-written backwards (autodiff differentiates
-    :func:`scaled_penalty` itself): at the kink of the hinge no gradient passes, as Taichi's autodiff
-    of ``ti.max`` does."""
+    :func:`scaled_penalty` itself): at the kink of the exact hinge no gradient passes, as Taichi's
+    autodiff of ``ti.max`` does; the smoothed hinge's slope rises from 0 to ``s`` across its band."""
     slope = scale
-    if ti.static(one_sided):  # noqa: SIM102 - compile-time if
+    if ti.static(hinge_width(one_sided) == 0.0):  # noqa: SIM102 - compile-time if
         if scale * ratio <= 0.0:
             slope = 0.0
+    elif ti.static(hinge_width(one_sided) > 0.0):
+        slope = 0.5 * scale * (1.0 + smooth_abs_slope(scale * ratio, ti.static(hinge_width(one_sided))))
     return slope
 
 

@@ -9,6 +9,8 @@ reduction through per-segment partial sums added in list order (a fixed order).
 Formulas: docs/FORMULAS.md, "Regularizer maps and penalties".
 """
 
+import functools
+
 import taichi as ti
 
 from . import blocks as _b
@@ -44,6 +46,32 @@ def deformation_penalty_grad(avg):
     if avg > DEF_FLOOR:
         out = 1.0 if avg > 1.0 else -1.0 / (avg * avg)
     return out
+
+
+@functools.cache
+def rounded_deformation_penalty(width: float) -> tuple:
+    """``(penalty, penalty_grad)``: :func:`deformation_penalty` with its kink at ``D = 1`` rounded,
+    ``max(D, 1/D) = (D + 1/D + |D - 1/D|) / 2`` with ``|.|`` replaced by ``blocks.smooth_abs`` of width
+    ``width`` > 0: exact where ``|D - 1/D| >= width``, at most ``width / 4`` above it inside (at D = 1).
+    One pair of functions per width (compiled kernels are keyed by them)."""
+    if not width > 0.0:
+        raise ValueError(f"the rounding width must be > 0, got {width!r}")
+
+    @ti.func
+    def penalty(avg):
+        d = ti.max(avg, DEF_FLOOR)
+        inv = 1.0 / d
+        return 0.5 * (d + inv + _b.smooth_abs(d - inv, width)) - 1.0
+
+    @ti.func
+    def penalty_grad(avg):
+        out = 0.0 * avg
+        if avg > DEF_FLOOR:
+            inv2 = 1.0 / (avg * avg)
+            out = 0.5 * (1.0 - inv2 + _b.smooth_abs_slope(avg - 1.0 / avg, width) * (1.0 + inv2))
+        return out
+
+    return penalty, penalty_grad
 
 
 #: derivatives of the built-in pixel penalties, for the fused pipeline's hand-written map adjoints

@@ -141,18 +141,25 @@ def test_levels_scales_and_options_are_checked(f64, scene):
         DenseFlowEstimator(references="start")
 
 
-def test_flow_command_end_to_end(tmp_path, f64, scene):
-    """``cmax-taichi flow`` on a recording written to disk: flow files readable back, the timestamps,
-    the table and the figure."""
-    from cmax_taichi.cli import main
-    from cmax_taichi.io.writers import read_flow_npz
-
+def _write_recording(tmp_path, scene):
     ev = scene.events
     path = tmp_path / "events.txt"
     (tmp_path / "calib.txt").write_text(f"100 100 59.5 44.5\n{SENSOR[0]} {SENSOR[1]}\n")  # no distortion
     with path.open("w") as f:
         for t, x, y, p in zip(ev.t, ev.x, ev.y, ev.p, strict=True):
             f.write(f"{t:.9f} {int(x)} {int(y)} {int(p > 0)}\n")
+    return path
+
+
+def test_flow_command_end_to_end(tmp_path, f64, scene):
+    """``cmax-taichi flow`` on a recording written to disk: flow files readable back, the timestamps,
+    the table (with what the optimizer did on each level) and the figure."""
+    import csv
+
+    from cmax_taichi.cli import main
+    from cmax_taichi.io.writers import read_flow_npz
+
+    path = _write_recording(tmp_path, scene)
     out = tmp_path / "out"
     rc = main(
         [
@@ -168,10 +175,39 @@ def test_flow_command_end_to_end(tmp_path, f64, scene):
     assert (out / "flow_timestamps.txt").read_text().count("\n") == 2
     assert (out / "figures" / "window_0000.png").is_file()
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["windows"] == 2
+    assert summary["windows"] == 2 and summary["stalled_windows"] == 0
     assert summary["options"]["regularizers"] == {"deformation": 1.0, "curvature": 0.1}
+    with (out / "results.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert rows[0]["levels"].startswith("2x2 ") and rows[0]["levels"].count(" it ") == 2
     assert main(["flow", str(path), "--reg", "smooth=1"]) == 2  # one clear error, no traceback
     assert main(["flow", "--out", str(out)]) == 2
+
+
+def test_flow_command_reports_a_stalled_level(tmp_path, f64, scene, monkeypatch, capsys):
+    """The exact penalties' kinks stall L-BFGS-B at the global search's constant flow (t_ref first,
+    divergence 10 + deformation 10): the command says so, and so do results.csv and summary.json."""
+    import csv
+
+    from cmax_taichi.cli import main
+
+    monkeypatch.setitem(DenseFlowEstimator.__init__.__kwdefaults__, "kink_width", 0.0)
+    path = _write_recording(tmp_path, scene)
+    out = tmp_path / "out"
+    rc = main(
+        [
+            "flow", str(path), "--out", str(out), "--window", "8000", "--grid", "4", "4", "--levels", "2",
+            "--references", "first", "--reg", "divergence=10", "--reg", "deformation=10", "--figures", "0",
+            "--quiet",
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    assert "have a level whose optimizer did not move the flow" in capsys.readouterr().out
+    with (out / "results.csv").open() as f:
+        row = next(csv.DictReader(f))
+    assert row["status"] == "stalled" and "stalled 0 it 0 px" in row["levels"]
+    assert json.loads((out / "summary.json").read_text())["stalled_windows"] == 1
 
 
 def test_bad_windows_are_refused(f64):

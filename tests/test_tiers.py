@@ -18,6 +18,7 @@ from conftest import CAMERA, SENSOR, edge_events
 import cmax_taichi as cm
 from cmax_taichi.core import backend
 from cmax_taichi.flow import DenseFlowProblem
+from cmax_taichi.flow.solver import KINK_WIDTH
 from cmax_taichi.pipeline import tiers
 from cmax_taichi.pipeline.fused import FusedPipeline
 
@@ -66,9 +67,14 @@ def test_a_problem_and_warmup_name_the_same_configuration(own_cache):
     assert want.describe() == "mitrokhin4 + variance + divergence, deformation"
     other = tiers.config_for(warp="mitrokhin4", regularizers=("deformation", "divergence"), polarity="split")
     assert other.key() != want.key()  # the regularizers' order is the kernels' quantity order
-    flow = DenseFlowProblem(cm.Events(*edge_events(n=400), SENSOR), (2, 2), regularizers=regs)
+    events = cm.Events(*edge_events(n=400), SENSOR)
+    flow = DenseFlowProblem(events, (2, 2), regularizers=regs, kink_width=KINK_WIDTH)  # the estimator's
     dense = tiers.config_for(warp=None, objective="gradient_magnitude", regularizers=tuple(regs))
-    assert flow.kernel_config == dense
+    assert flow.kernel_config == dense and dense.kink_width == KINK_WIDTH
+    exact = DenseFlowProblem(events, (2, 2), regularizers=regs)
+    assert exact.kernel_config == tiers.config_for(
+        warp=None, objective="gradient_magnitude", regularizers=tuple(regs), kink_width=0.0
+    )
     with pytest.raises(ValueError, match="unknown warp"):
         tiers.config_for(warp="warp9")
 

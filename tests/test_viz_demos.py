@@ -234,5 +234,5 @@ def test_dense_flow_collapse_demo_renders(tmp_path, capsys):
     out = tmp_path / "dense.png"
     argv = ["--save", str(out), "--synthetic", "--max-events", "3000", "--grid", "4", "4", "--levels", "2"]
     assert _demo("dense_flow_collapse").main(argv) == 0
-    assert capsys.readouterr().out.count(" FWL ") == 4
+    assert capsys.readouterr().out.count(" FWL ") == 5
     _assert_not_blank(out)

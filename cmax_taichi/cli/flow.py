@@ -6,7 +6,8 @@ L-BFGS-B on the exact gradient of the contrast objective, with the event-collaps
 Results go to OUT: flow/flow_NNNN.<format> (the displacement over --dt, px: .npz with its interval,
 Middlebury .flo, or DSEC's 16-bit submission PNG), flow_timestamps.txt (t_start t_end
 of each file, for 'cmax-taichi evaluate'), results.csv and summary.json (per window: time span, events,
-J and its terms, evaluations, seconds, and AEE / NPE / %Out where the recording has flow ground truth),
+J and its terms, evaluations, seconds, what the optimizer did on each level, and AEE / NPE / %Out where
+the recording has flow ground truth),
 figures/window_NNNN.png (IWE without and with the flow, the flow in colour).
 
 examples:
@@ -226,6 +227,8 @@ _COLUMNS = [
     "smoothness",
     "evaluations",
     "seconds",
+    "status",
+    "levels",
     "AEE",
     "3PE",
     "outlier",
@@ -247,6 +250,8 @@ def _row(window) -> dict:
         "smoothness": ";".join(f"{k}={v:.5g}" for k, v in ev.smoothness.items()),
         "evaluations": res.n_evaluations,
         "seconds": f"{res.seconds:.3f}",
+        "status": res.status,
+        "levels": "; ".join(lv.summary() for lv in res.levels),
         "AEE": "" if "AEE" not in m else f"{m['AEE']:.4f}",
         "3PE": "" if "3PE" not in m else f"{m['3PE']:.3f}",
         "outlier": "" if "outlier" not in m else f"{m['outlier']:.3f}",
@@ -360,6 +365,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"  (zero flow: AEE {zero:.3f} px)")
     elif args.example is None:
         print("  no flow ground truth in this recording: no metrics")
+    stalled = [w.index for w in windows if w.result.status == "stalled"]
+    if stalled:
+        print(
+            f"  warning: {len(stalled)} window(s) ({', '.join(map(str, stalled[:10]))}"
+            f"{', ...' if len(stalled) > 10 else ''}) have a level whose optimizer did not move the flow: "
+            "their flow there is the level's start (results.csv, columns status and levels)"
+        )
     flows = [p for p in written if p.parent == out / "flow"]
     others = [p for p in written if p.parent != out / "flow"]
     shown = [str(out / "flow" / f"flow_*.{args.flow_format}") + f" ({len(flows)} files)"] + [

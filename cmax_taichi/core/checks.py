@@ -21,6 +21,7 @@ __all__ = [
     "MIN_EVENTS_PER_WINDOW",
     "MAX_ABS_WEIGHT",
     "EventsDroppedWarning",
+    "OptimizerStallWarning",
     "sensor_size",
     "whole_number",
     "seconds",
@@ -43,6 +44,11 @@ MAX_ABS_WEIGHT = 1e9
 
 class EventsDroppedWarning(RuntimeWarning):
     """Events were dropped (outside the sensor, or lost by undistortion); the message gives the counts."""
+
+
+class OptimizerStallWarning(RuntimeWarning):
+    """An optimizer ended where it started without converging, and its fallback did not move it either
+    (a level of the dense flow, a local run of :func:`cmax_taichi.maximize`); the message says which."""
 
 
 class IdentityEstimateWarning(RuntimeWarning):

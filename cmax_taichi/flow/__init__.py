@@ -14,6 +14,8 @@ from cmax_taichi.flow.smoothness import SMOOTHNESS, Smoothness, register_smoothn
 from cmax_taichi.flow.solver import (
     DEFAULT_OPTIONS,
     DEFAULT_REGULARIZERS,
+    KINK_WIDTH,
+    LEVEL_STATUSES,
     DenseFlowEstimator,
     FlowResult,
     LevelReport,
@@ -29,6 +31,8 @@ __all__ = [
     "FlowGrid",
     "FlowResult",
     "FlowWindow",
+    "KINK_WIDTH",
+    "LEVEL_STATUSES",
     "LevelReport",
     "MULTI_REFERENCE",
     "SMOOTHNESS",

@@ -15,6 +15,7 @@ smoothness terms of ``flow/smoothness.py`` (host, float64). Formulas: docs/FORMU
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 from collections.abc import Mapping, Sequence
@@ -135,7 +136,10 @@ class DenseEvaluation:
     Attributes
     ----------
     J : float
-        The augmented objective (maximised).
+        The augmented objective (maximised), with the exact penalties.
+    J_rounded : float
+        The same with the regularizers' kinks rounded (``kink_width``): the value the optimizer
+        maximises (``J`` where ``kink_width`` is 0).
     data : float
         ``H``: the weighted harmonic mean of ``G_r / G0`` (``G_r`` raw where ``normalize=False``).
     G : tuple of float
@@ -149,6 +153,7 @@ class DenseEvaluation:
     """
 
     J: float
+    J_rounded: float
     data: float
     G: tuple[float, ...]
     penalties: dict = field(default_factory=dict)
@@ -203,6 +208,12 @@ class DenseFlowProblem:
         vote. Without it, an expanding flow that carries texture out of the image loses those events
         from the IWE, which biases the estimate near the borders towards less motion (0 = the sensor's
         image, as :class:`~cmax_taichi.ContrastMaximization`).
+    kink_width : float
+        Width of the rounded kinks of the event-map regularizers in :meth:`value` and
+        :meth:`value_and_grad` (:meth:`Regularizer.with_rounded_kinks`: the divergence's hinge, the
+        deformation's ``max(D, 1/D)`` at D = 1), so that a line search sees the slope of the function
+        it steps on; each rounded penalty exceeds the exact one by at most ``kink_width / 4``.
+        :meth:`evaluate` gives the exact terms (and ``J_rounded``). 0 (default): exact everywhere.
     """
 
     def __init__(
@@ -220,6 +231,7 @@ class DenseFlowProblem:
         polarity: str = "ignore",
         weights: Sequence[float] | np.ndarray | None = None,
         padding: int = 0,
+        kink_width: float = 0.0,
     ) -> None:
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax_taichi.Events, got {type(events).__name__}")
@@ -248,6 +260,8 @@ class DenseFlowProblem:
                     "penalty_grad: the dense flow kernels need both"
                 )
         self.regularizer_weights = dict(setup.regularizer_weights)
+        self.kink_width = _weight("kink_width", kink_width)
+        self._rounded = tuple(reg.with_rounded_kinks(self.kink_width) for reg in self.regularizers)
         self.width, self.height = setup.width, setup.height
         if not isinstance(grid, FlowGrid):
             try:
@@ -315,25 +329,10 @@ class DenseFlowProblem:
             f"the nodes of a {cap}-node dense flow problem",
         )
         self.max_nodes = cap
-        regs = self.regularizers
-        kkey = (
-            "dense_flow",
-            backend.info().generation,
-            shape,
-            *kernels_key(self.objective.name, obj, regs, weighted, split, self._atomic),
-        )
-        # one Taichi kernel per tier (Taichi compiles a kernel object once, with the options of then)
-        self._kernels_key = kkey
-        self._build_kernel = lambda: kdense.make_dense_flow_kernels(
-            shape,
-            tuple(r.kind for r in regs),
-            tuple(r.penalty for r in regs),
-            tuple(r.penalty_grad for r in regs),
-            tuple(bool(r.one_sided) for r in regs),
-            objective=obj,
-            events=kcommon.EventLayout(weighted, split, self._atomic),
-        )
-        self.kernel_config = tiers.dense_config(self, setup, weighted, slices, self._atomic)
+        # value() and value_and_grad() climb the rounded kinks; evaluate() reports the exact penalties
+        # (the same kernel where nothing is rounded)
+        self._variants = {False: self._rounded, True: tuple(self.regularizers)}
+        self.kernel_config = tiers.dense_config(self, setup, weighted, slices, self._atomic, self.kink_width)
         self.tier = "full"  # the compiled tier of the current window's kernel (_take_window)
         self._params_at = shape.params_layout()
         self._params = np.zeros(self._params_at["size"])
@@ -342,6 +341,37 @@ class DenseFlowProblem:
         self._nodes_buf = np.zeros(2 * cap, dtype=backend.numpy_real())
         self._event_buffer = None
         self._generation = backend.info().generation
+
+    def _kernel(self, exact: bool) -> tuple:
+        """``(kernel, tier)`` of this problem's options with the regularizers' kinks rounded (or exact),
+        in the tier that serves them now. One Taichi kernel per variant and tier (Taichi compiles a
+        kernel object once, with the options of then), kept for the life of the program."""
+        regs = self._variants[exact]
+        config = self.kernel_config
+        if regs is not self._rounded:
+            config = dataclasses.replace(config, kink_width=0.0)
+        tier = self.tier if config == self.kernel_config else tiers.current_tier(config)
+        obj = self.objective.fused
+        key = (
+            "dense_flow",
+            backend.info().generation,
+            self._shape,
+            tier,
+            *kernels_key(self.objective.name, obj, regs, self._weighted, self._split, self._atomic),
+        )
+        kernel = workspace.compiled(
+            key,
+            lambda: kdense.make_dense_flow_kernels(
+                self._shape,
+                tuple(r.kind for r in regs),
+                tuple(r.penalty for r in regs),
+                tuple(r.penalty_grad for r in regs),
+                tuple(r.hinge for r in regs),
+                objective=obj,
+                events=kcommon.EventLayout(self._weighted, self._split, self._atomic),
+            ),
+        )
+        return kernel, tier
 
     def _take_window(self, setup: ProblemSetup) -> None:
         """Load a window: its events, constants and G0."""
@@ -458,12 +488,12 @@ class DenseFlowProblem:
         else:
             nodes.array[:] = self._nodes_buf
 
-    def _launch(self, U: np.ndarray, grad: int, maps: bool = True) -> np.ndarray:
+    def _launch(self, U: np.ndarray, grad: int, maps: bool = True, exact: bool = False) -> np.ndarray:
         self._check_alive()
         self._load(U)
         arrays = {**self._ws.arrays, **self._node_ws.arrays}
-        kernel = workspace.compiled((*self._kernels_key, self.tier), self._build_kernel)
-        with backend.hand_written_gradient_kernels(self.tier):  # one slice per thread; the tier
+        kernel, tier = self._kernel(exact)
+        with backend.hand_written_gradient_kernels(tier):  # one slice per thread; the tier
             kernel(
                 self.n_events,
                 self._event_buffer.array,
@@ -492,16 +522,19 @@ class DenseFlowProblem:
         return total, g, values
 
     def value(self, nodes, maps: bool = True) -> float:
-        """J at node flow ``nodes`` (px/s, shape ``grid.shape`` or flat). ``maps=False`` leaves out the
-        event-map regularizers (exact for a constant flow, whose divergence is 0 and determinant 1 at every
-        event, so that every map has its neutral value; the global search evaluates such flows)."""
+        """J at node flow ``nodes`` (px/s, shape ``grid.shape`` or flat), with the regularizers' kinks
+        rounded over ``kink_width`` (exact where it is 0; :meth:`evaluate` gives both). ``maps=False``
+        leaves out the event-map regularizers: the exact J of a constant flow, whose divergence is 0 and
+        determinant 1 at every event, so that every map has its neutral value and every exact penalty
+        is 0 (the global search evaluates such flows)."""
         U = self.grid.check_nodes(nodes)
         out = self._launch(U, 0, maps)
         penalty, _, _ = self._smoothness(U, False)
         return float(out[0]) - penalty
 
     def value_and_grad(self, nodes) -> tuple[float, np.ndarray]:
-        """``(J, dJ/dU)`` at node flow ``nodes``; the gradient has the shape ``grid.shape`` (1/(px/s))."""
+        """``(J, dJ/dU)`` at node flow ``nodes``, J as :meth:`value` gives it; the gradient has the shape
+        ``grid.shape`` (1/(px/s))."""
         U = self.grid.check_nodes(nodes)
         out = self._launch(U, 1)
         g = self._gout[: self.grid.n_params].reshape(self.grid.shape).copy()
@@ -509,14 +542,18 @@ class DenseFlowProblem:
         return float(out[0]) - penalty, g - gs
 
     def evaluate(self, nodes) -> DenseEvaluation:
-        """J and its terms at node flow ``nodes``."""
+        """J and its terms at node flow ``nodes``, with the exact penalties (and ``J_rounded``, the value
+        of :meth:`value` with its rounded kinks)."""
         U = self.grid.check_nodes(nodes)
-        out = self._launch(U, 0).copy()
+        rounded = None if self._rounded == self._variants[True] else float(self._launch(U, 0)[0])
+        out = self._launch(U, 0, exact=True).copy()
         penalty, _, smooth = self._smoothness(U, False)
         R, Q = len(self.fractions), len(self.regularizers)
         names = [r.name for r in self.regularizers]
+        exact = float(out[0]) - penalty
         return DenseEvaluation(
-            J=float(out[0]) - penalty,
+            J=exact,
+            J_rounded=exact if rounded is None else rounded - penalty,
             data=float(out[1]),
             G=tuple(float(v) for v in out[2 : 2 + R]),
             penalties={n: float(out[2 + R + q]) for q, n in enumerate(names)},

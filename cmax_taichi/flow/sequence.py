@@ -160,6 +160,7 @@ def summary(windows: list[FlowWindow]) -> dict:
     if not windows:
         return out
     out["seconds"] = float(sum(w.result.seconds for w in windows))
+    out["stalled_windows"] = sum(w.result.status == "stalled" for w in windows)
     out["mean_seconds_after_first"] = (
         float(np.mean([w.result.seconds for w in windows[1:]])) if len(windows) > 1 else out["seconds"]
     )

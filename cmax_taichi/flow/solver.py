@@ -13,20 +13,26 @@ of a recording) and solves one window with :meth:`DenseFlowEstimator.estimate`:
    the events' coordinates are scaled so that the grid's nodes keep their places, and the divergence,
    the determinant and the strain of the smoothness terms are the same at every scale.
 
-Everything is deterministic on one machine: the kernels add their per-thread partial sums in a fixed
-order and L-BFGS-B is a deterministic algorithm, so the same window gives the same flow to the last
-bit. :func:`estimate_flow` is the one-call form.
+Everything is deterministic on one machine at a given number of CPU threads: the kernels add their
+per-thread partial sums in a fixed order and L-BFGS-B is a deterministic algorithm, so the same window
+gives the same flow to the last bit. Another thread count groups the sums differently, and the flow moves
+by up to about 0.02 px with the defaults (docs/flow.md, "Deterministic at a given thread count"). The
+levels maximise J with the regularizers' kinks rounded (:data:`KINK_WIDTH`) and report what their
+optimizer did (:class:`LevelReport`); a level that L-BFGS-B leaves where it started gets a fallback.
+:func:`estimate_flow` is the one-call form.
 """
 
 from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from cmax_taichi.core.checks import OptimizerStallWarning
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.flow.grid import FlowGrid
 from cmax_taichi.flow.problem import DenseEvaluation, DenseFlowProblem, resolve_references
@@ -36,15 +42,22 @@ __all__ = [
     "DEFAULT_REGULARIZERS",
     "DenseFlowEstimator",
     "FlowResult",
+    "KINK_WIDTH",
+    "LEVEL_STATUSES",
     "LevelReport",
     "auto_iterations",
     "auto_scales",
     "estimate_flow",
 ]
 
-#: the weights of :class:`DenseFlowEstimator` unless given (docs/flow.md, "Choosing the weights"): the
-#: paper's two penalties against a global collapse, the curvature prior against a local one
+#: the weights of :class:`DenseFlowEstimator` unless given (docs/flow.md, "What each regularizer does",
+#: the ablation of ``python -m benchmarks.flow_ablation``): the curvature prior against local collapse
+#: and for accuracy, the paper's two penalties as the guard when the reference time or the weights move
 DEFAULT_REGULARIZERS = {"divergence": 1.0, "deformation": 1.0, "curvature": 0.1}
+#: the width of the regularizers' rounded kinks in the optimizer's objective by default (``kink_width``;
+#: docs/flow.md, "Kinks of the penalties"): the divergence's hinge at R = 0 and the deformation's
+#: ``max(D, 1/D)`` at D = 1, where every event of a constant flow sits
+KINK_WIDTH = 0.001
 #: the share of the larger sensor side that pads the IWEs by default (``padding=None``)
 AUTO_PADDING = 0.03
 #: the options of :class:`DenseFlowEstimator` that are not its grid and levels, as it defaults them
@@ -55,6 +68,7 @@ DEFAULT_OPTIONS = {
     "blur_sigma": 1.0,
     "padding": None,
     "dither": True,
+    "kink_width": KINK_WIDTH,
 }
 #: the seed of the sub-pixel dither of integer event coordinates (``dither=True``): fixed, so the same
 #: window gives the same flow to the last bit
@@ -74,6 +88,17 @@ def auto_scales(levels: int) -> tuple[int, ...]:
     return tuple(min(4, 2 ** (levels - 1 - k)) for k in range(levels))
 
 
+#: what a level's optimizer did (:attr:`LevelReport.status`): L-BFGS-B converged; it used its
+#: iterations or evaluations (``max_iter``); it failed or did not move and the fallback moved the flow;
+#: neither moved it (the level's flow is its start, and the run warns)
+LEVEL_STATUSES = ("converged", "limit", "fallback", "stalled")
+#: the fallback of a level whose L-BFGS-B failed or did not move: gradient ascent with an Armijo line
+#: search (:func:`cmax_taichi.solve.local.armijo`) from the best point, its first trial step this many px
+#: of node displacement, stopping at a step below FALLBACK_XTOL px or after the level's ``max_iter``
+FALLBACK_STEP = 0.5
+FALLBACK_XTOL = 1e-3
+
+
 @dataclass(frozen=True)
 class LevelReport:
     """One level of a coarse-to-fine run.
@@ -85,13 +110,19 @@ class LevelReport:
     scale : int
         Image downsampling of the level (1 = full resolution).
     iterations, evaluations : int
-        L-BFGS-B iterations and J evaluations (each with its gradient).
+        Iterations (L-BFGS-B's, plus the fallback's) and J evaluations.
     value_start, value : float
-        J at the level's start and end (on the level's image).
+        J at the level's start and end (on the level's image, with the regularizers' rounded kinks:
+        the value the optimizer maximises).
     seconds : float
         Wall time of the level.
     message : str
-        Why L-BFGS-B stopped.
+        Why L-BFGS-B stopped (and the fallback, where it ran).
+    status : str
+        One of :data:`LEVEL_STATUSES`.
+    change : float
+        The largest change of a node's displacement over the window that the level made, px of the
+        full-resolution image (0: the level ended at its start).
     """
 
     grid: FlowGrid
@@ -102,6 +133,12 @@ class LevelReport:
     value: float
     seconds: float
     message: str
+    status: str = "converged"
+    change: float = 0.0
+
+    def summary(self) -> str:
+        """``"16x16 limit 30 it 1.52 px"``: cells, status, iterations and change, for tables."""
+        return f"{self.grid.nx}x{self.grid.ny} {self.status} {self.iterations} it {self.change:.3g} px"
 
 
 @dataclass
@@ -149,6 +186,16 @@ class FlowResult:
         return self.t_end - self.t_start
 
     @property
+    def stalled_levels(self) -> list[int]:
+        """Indices (coarsest first) of the levels whose optimizer and fallback did not move the flow."""
+        return [k for k, lv in enumerate(self.levels) if lv.status == "stalled"]
+
+    @property
+    def status(self) -> str:
+        """``"ok"``, or ``"stalled"`` when a level did not move (:attr:`stalled_levels`)."""
+        return "stalled" if self.stalled_levels else "ok"
+
+    @property
     def sensor_size(self) -> tuple[int, int]:
         return (self.grid.width, self.grid.height)
 
@@ -185,6 +232,8 @@ class FlowResult:
             "n_events": self.n_events,
             "grid": [self.grid.nx, self.grid.ny],
             "value": self.value,
+            "value_rounded": self.evaluation.J_rounded,
+            "status": self.status,
             "data": self.evaluation.data,
             "penalties": self.evaluation.penalties,
             "smoothness": self.evaluation.smoothness,
@@ -197,8 +246,11 @@ class FlowResult:
                     "scale": lv.scale,
                     "iterations": lv.iterations,
                     "evaluations": lv.evaluations,
+                    "value_start": lv.value_start,
                     "value": lv.value,
                     "seconds": lv.seconds,
+                    "status": lv.status,
+                    "change_px": lv.change,
                     "message": lv.message,
                 }
                 for lv in self.levels
@@ -306,6 +358,11 @@ class DenseFlowEstimator:
         level (default True): without it, flow components under about a pixel over the window are
         pulled towards 0. The downsampled levels take the events undithered (their pixels are 2-4 times
         the grid's spacing).
+    kink_width : float
+        Width of the rounded kinks of the event-map regularizers in the objective the levels maximise
+        (:class:`~cmax_taichi.flow.DenseFlowProblem`; default :data:`KINK_WIDTH`, 0: the exact
+        penalties, whose kinks stall L-BFGS-B at a constant flow). The result's ``value`` and terms
+        are the exact ones.
     """
 
     def __init__(
@@ -327,6 +384,7 @@ class DenseFlowEstimator:
         padding: int | None = None,
         subsample: bool = True,
         dither: bool = True,
+        kink_width: float = KINK_WIDTH,
     ) -> None:
         self._grid_arg = grid
         self.levels = levels
@@ -354,6 +412,7 @@ class DenseFlowEstimator:
             blur_sigma=blur_sigma,
             normalize=normalize,
             polarity=polarity,
+            kink_width=kink_width,
         )
         self.camera = camera
         if search_range is not None and not (math.isfinite(search_range) and search_range > 0):
@@ -497,6 +556,17 @@ class DenseFlowEstimator:
         prob = self.problem(events, 1)
         prob.set_grid(self.pyramid[-1])
         evaluation = prob.evaluate(U)
+        stalled = [lv for lv in levels if lv.status == "stalled"]
+        if stalled:
+            warnings.warn(
+                OptimizerStallWarning(
+                    f"dense flow of the window at t = {float(events.t[0]):.6f} s: "
+                    + "; ".join(f"the {lv.grid.nx}x{lv.grid.ny}-cell level ({lv.message})" for lv in stalled)
+                    + " ended at its start, and the fallback did not move it either: the flow there is "
+                    "the level's start"
+                ),
+                stacklevel=2,
+            )
         return FlowResult(
             grid=self.pyramid[-1],
             nodes=U,
@@ -512,8 +582,11 @@ class DenseFlowEstimator:
         )
 
     def _level(self, events: Events, grid: FlowGrid, scale: int, U: np.ndarray, max_iter: int):
-        """One level: L-BFGS-B from ``U`` (px/s, full-resolution units); ``(U, LevelReport)``."""
+        """One level: L-BFGS-B from ``U`` (px/s, full-resolution units), the fallback where it failed or
+        did not move (:data:`FALLBACK_STEP`); ``(U, LevelReport)``."""
         from scipy.optimize import minimize
+
+        from cmax_taichi.solve.local import Recorder, armijo
 
         t0 = time.perf_counter()
         prob = self.problem(events, scale)
@@ -524,16 +597,13 @@ class DenseFlowEstimator:
         T = prob.duration
         # variables: node displacements over the window in the level's px (about 1 unit = 1 px)
         d0 = (U * k * T).reshape(-1)
-        best = {"J": -math.inf, "d": d0.copy(), "n": 0}
+        obj = _LevelObjective(prob, sgrid.shape, T, d0)
+        j_start = obj.value(d0)
 
         def fun(d):
-            value, g = prob.value_and_grad(d.reshape(sgrid.shape) / T)
-            best["n"] += 1
-            if value > best["J"]:
-                best["J"], best["d"] = value, d.copy()
-            return -value, -g.reshape(-1) / T
+            value, g = obj.value_and_grad(d)
+            return -value, -g
 
-        j_start = -fun(d0)[0]
         res = minimize(
             fun,
             d0,
@@ -541,20 +611,43 @@ class DenseFlowEstimator:
             method="L-BFGS-B",
             options={"maxiter": max_iter, "maxfun": 2 * max_iter + 10, "ftol": 1e-10, "gtol": 1e-8},
         )
-        d = best["d"]  # the best point evaluated (L-BFGS-B returns its last accepted iterate)
-        U_out = d.reshape(sgrid.shape) / (k * T)
-        message = res.message if isinstance(res.message, str) else str(res.message)
+        message = f"L-BFGS-B: {res.message}"
+        iterations = int(res.nit)
+        status = "converged" if res.success else "limit" if res.status == 1 else "failed"
+        if status == "failed" or (status == "limit" and not obj.best_value > j_start):
+            j_before = obj.best_value
+            run = armijo(
+                obj,
+                obj.best_d,
+                -math.inf,
+                math.inf,
+                lr=FALLBACK_STEP,
+                max_iter=max_iter,
+                gtol=1e-8,
+                xtol=FALLBACK_XTOL,
+                rtol=1e-10,
+                rec=Recorder(None, obj),
+            )
+            iterations += run.n_iterations
+            message += f"; fallback (gradient ascent): {run.message}, {run.n_iterations} iterations"
+            status = "fallback" if obj.best_value > j_before else "converged"
+        d = obj.best_d  # the best point evaluated (L-BFGS-B returns its last accepted iterate)
+        change = float(np.max(np.abs((d - d0).reshape(sgrid.shape) / k), initial=0.0))
+        if change == 0.0 and not res.success:  # L-BFGS-B did not certify its start, nothing moved it
+            status = "stalled"
         report = LevelReport(
             grid=grid,
             scale=scale,
-            iterations=int(res.nit),
-            evaluations=best["n"],
+            iterations=iterations,
+            evaluations=obj.n_evaluations,
             value_start=float(j_start),
-            value=float(best["J"]),
+            value=float(obj.best_value),
             seconds=time.perf_counter() - t0,
             message=message,
+            status=status,
+            change=change,
         )
-        return U_out, report
+        return d.reshape(sgrid.shape) / (k * T), report
 
     def _search(self, events: Events, grid: FlowGrid) -> tuple[np.ndarray, int]:
         """The best constant flow (px/s) on a coarse-to-fine grid of displacements over the window:
@@ -596,6 +689,34 @@ class DenseFlowEstimator:
         U = np.zeros(grid.shape)
         U[...] = best_d / (np.array([kx, ky]) * T)
         return U, n
+
+
+class _LevelObjective:
+    """J and its gradient of one level in the optimizer's variables (node displacements over the window,
+    px of the level's image, flat), keeping the best point evaluated: the interface of the local
+    methods of :mod:`cmax_taichi.solve.local` (the fallback)."""
+
+    def __init__(self, prob: DenseFlowProblem, shape: tuple, duration: float, d0: np.ndarray) -> None:
+        self.prob, self.shape, self.duration = prob, shape, duration
+        self.best_value, self.best_d = -math.inf, d0.copy()
+        self.n_evaluations = 0
+
+    def _keep(self, value: float, d: np.ndarray) -> float:
+        self.n_evaluations += 1
+        value = value if math.isfinite(value) else -math.inf
+        if value > self.best_value:
+            self.best_value, self.best_d = value, np.array(d, dtype=np.float64)
+        return value
+
+    def value(self, d: np.ndarray) -> float:
+        return self._keep(self.prob.value(np.reshape(d, self.shape) / self.duration), d)
+
+    def value_and_grad(self, d: np.ndarray) -> tuple[float, np.ndarray]:
+        value, g = self.prob.value_and_grad(np.reshape(d, self.shape) / self.duration)
+        return self._keep(value, d), g.reshape(-1) / self.duration
+
+    def theta(self, d: np.ndarray) -> np.ndarray:
+        return np.asarray(d)
 
 
 def estimate_flow(

@@ -9,6 +9,9 @@ Built-ins: ``divergence`` (R_Div) and ``deformation`` (R_Def), registered explic
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -70,6 +73,12 @@ class Regularizer:
         ``d penalty / d map_value`` as a Taichi function, for the fused pipeline's hand-written backward
         (at a kink, the side Taichi's autodiff of ``penalty`` takes). Without it (or with a callable
         ``quantity``) problems using this regularizer run on the generic autodiff chain.
+    rounded_penalty : callable, optional
+        ``rounded_penalty(width) -> (penalty, penalty_grad)``: the pixel penalty with its kinks rounded
+        over a band of ``width`` (for gradient-based optimizers, :meth:`with_rounded_kinks`); None when
+        the pixel penalty has no kink.
+    kink_width : float
+        The width of the rounded kinks (0: the exact penalty); set by :meth:`with_rounded_kinks`.
     """
 
     name: str
@@ -81,6 +90,8 @@ class Regularizer:
     neutral: float = 0.0
     description: str = ""
     penalty_grad: Callable | None = None
+    rounded_penalty: Callable[[float], tuple[Callable, Callable]] | None = None
+    kink_width: float = 0.0
 
     def __post_init__(self) -> None:
         if isinstance(self.quantity, str):
@@ -97,6 +108,23 @@ class Regularizer:
         """The declared quantity kind ("div" or "absdet"), or None for a user quantity function."""
         return self.quantity if isinstance(self.quantity, str) else None
 
+    @property
+    def hinge(self) -> bool | float:
+        """The hinge flag the kernels take (``blocks.scaled_penalty``): False (none), True (the exact
+        ``max(0, R)``) or the width of its rounded kink."""
+        if not self.one_sided:
+            return False
+        return self.kink_width if self.kink_width > 0 else True
+
+    def with_rounded_kinks(self, width: float) -> Regularizer:
+        """This regularizer with the kinks of its penalty rounded over a band of ``width``
+        (dimensionless, > 0; 0 returns it unchanged): the hinge of a one-sided one
+        (``blocks.scaled_penalty``) and the pixel penalty's own (:attr:`rounded_penalty`). The rounded
+        penalty equals the exact one outside the band and exceeds it by at most ``width / 4`` inside
+        (docs/FORMULAS.md, "Rounded kinks"). One instance per ``(regularizer, width)``: compiled
+        kernels are keyed by it."""
+        return _rounded(self, float(width))
+
     def quantity_fn(self, model: WarpModel) -> Callable:
         """The per-event Taichi function ``q(p, dt, th, ctx)`` of this regularizer for ``model``."""
         if isinstance(self.quantity, str):
@@ -105,6 +133,22 @@ class Regularizer:
 
 
 REGULARIZERS: Registry[Regularizer] = Registry("regularizer")
+
+
+@functools.cache
+def _rounded(reg: Regularizer, width: float) -> Regularizer:
+    if not (math.isfinite(width) and width >= 0.0):
+        raise ValueError(f"the width of the rounded kinks must be finite and >= 0, got {width!r}")
+    if reg.kink_width == width:
+        return reg
+    if reg.kink_width > 0.0:
+        raise ValueError(f"regularizer {reg.name!r} has its kinks rounded already: round the exact one")
+    if width == 0.0:
+        return reg
+    changes: dict = {"kink_width": width}
+    if reg.rounded_penalty is not None:
+        changes["penalty"], changes["penalty_grad"] = reg.rounded_penalty(width)
+    return dataclasses.replace(reg, **changes)
 
 
 def penalty_value(reg: Regularizer, support_mean: float, duration: float, orientation: float) -> float:
@@ -157,6 +201,7 @@ def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
             neutral=1.0,
             description="mean of max(DEF, 1/DEF) - 1 of the area deformation map (R_Def)",
             penalty_grad=km.deformation_penalty_grad,
+            rounded_penalty=km.rounded_deformation_penalty,
         ),
     )
 

@@ -88,6 +88,8 @@ class KernelConfig:
         CPU threads of the event passes (1 on a GPU).
     atomic : bool
         The event passes add atomically (a GPU; on a CPU only where a test forces it).
+    kink_width : float
+        The regularizers' kinks rounded over this width (the dense flow's optimizer; 0: exact).
     """
 
     kind: str
@@ -103,6 +105,7 @@ class KernelConfig:
     precision: str = "f64"
     slices: int = 1
     atomic: bool = False
+    kink_width: float = 0.0
     rebuildable: bool = field(default=True, compare=False)
 
     def describe(self) -> str:
@@ -183,22 +186,35 @@ def fused_config(problem, regs: Sequence, weighted: bool, slices: int, atomic: b
     functions = [model.warp, objective.fused.pixel] + [r.penalty for r in regs]
     rebuildable, plugins = reproducible(functions)
     return KernelConfig(
-        "fused", model.name, objective.name, tuple(r.name for r in regs), int(problem.setup.radius),
-        problem.polarity, bool(weighted), 1, plugins, info.arch, info.precision, int(slices), bool(atomic),
-        rebuildable,
+        kind="fused", warp=model.name, objective=objective.name, regularizers=tuple(r.name for r in regs),
+        radius=int(problem.setup.radius), polarity=problem.polarity, weighted=bool(weighted), plugins=plugins,
+        arch=info.arch, precision=info.precision, slices=int(slices), atomic=bool(atomic),
+        rebuildable=rebuildable,
     )  # fmt: skip
 
 
-def dense_config(problem, setup, weighted: bool, slices: int, atomic: bool) -> KernelConfig:
+def effective_kink_width(regs: Sequence, width: float) -> float:
+    """``width``, or 0 where no regularizer of ``regs`` has a kink to round (the kernels are the exact
+    ones)."""
+    width = float(width)
+    return width if any(r.with_rounded_kinks(width) is not r for r in regs) else 0.0
+
+
+def dense_config(
+    problem, setup, weighted: bool, slices: int, atomic: bool, kink_width: float = 0.0
+) -> KernelConfig:
     """The :class:`KernelConfig` of a :class:`~cmax_taichi.flow.DenseFlowProblem` (``setup``: its
     ``ProblemSetup``)."""
     info = backend.info()
     regs = problem.regularizers
     rebuildable, plugins = reproducible([problem.objective.fused.pixel] + [r.penalty for r in regs])
     return KernelConfig(
-        "dense_flow", "", problem.objective.name, tuple(r.name for r in regs), int(setup.radius),
-        setup.polarity, bool(weighted), len(problem.fractions), plugins, info.arch, info.precision,
-        int(slices), bool(atomic), rebuildable,
+        kind="dense_flow", warp="", objective=problem.objective.name,
+        regularizers=tuple(r.name for r in regs),
+        radius=int(setup.radius), polarity=setup.polarity, weighted=bool(weighted),
+        references=len(problem.fractions), plugins=plugins, arch=info.arch, precision=info.precision,
+        slices=int(slices), atomic=bool(atomic), kink_width=effective_kink_width(regs, kink_width),
+        rebuildable=rebuildable,
     )  # fmt: skip
 
 
@@ -211,10 +227,13 @@ def config_for(
     polarity: str = "ignore",
     weighted: bool = False,
     references: int = 1,
+    kink_width: float | None = None,
 ) -> KernelConfig:
     """The :class:`KernelConfig` of problems of these options on the running backend: a
     :class:`~cmax_taichi.ContrastMaximization` with ``warp``, or, with ``warp=None``, a dense flow of
-    ``references`` reference times. Unknown names raise ValueError listing the valid ones."""
+    ``references`` reference times whose optimizer rounds the regularizers' kinks over ``kink_width``
+    (default the dense flow's, ``flow.solver.KINK_WIDTH``). Unknown names raise ValueError listing the
+    valid ones."""
     from cmax_taichi.models.objectives import OBJECTIVES
     from cmax_taichi.models.regularizers import REGULARIZERS
     from cmax_taichi.models.warps import get_warp
@@ -238,10 +257,17 @@ def config_for(
         name = model.name
     rebuildable, plugins = reproducible(functions)
     atomic = info.arch != "cpu"
+    width = 0.0
+    if warp is None:
+        from cmax_taichi.flow.solver import KINK_WIDTH
+
+        width = effective_kink_width(regs, KINK_WIDTH if kink_width is None else kink_width)
     return KernelConfig(
-        "fused" if warp is not None else "dense_flow", name, obj.name, tuple(r.name for r in regs),
-        gaussian_taps(float(blur_sigma))[0], polarity, bool(weighted), int(references), plugins, info.arch,
-        info.precision, 1 if atomic else n_slices(), atomic, rebuildable,
+        kind="fused" if warp is not None else "dense_flow", warp=name, objective=obj.name,
+        regularizers=tuple(r.name for r in regs), radius=gaussian_taps(float(blur_sigma))[0],
+        polarity=polarity, weighted=bool(weighted), references=int(references), plugins=plugins,
+        arch=info.arch, precision=info.precision, slices=1 if atomic else n_slices(), atomic=atomic,
+        kink_width=width, rebuildable=rebuildable,
     )  # fmt: skip
 
 
@@ -467,7 +493,7 @@ def build_kernels(config: KernelConfig) -> None:
         references = "first" if config.references == 1 else tuple(np.linspace(0, 1, config.references))
         prob = DenseFlowProblem(
             events, (2, 2), objective=config.objective, references=references, regularizers=regs,
-            blur_sigma=sigma, polarity=config.polarity, weights=weights,
+            blur_sigma=sigma, polarity=config.polarity, weights=weights, kink_width=config.kink_width,
         )  # fmt: skip
         prob.value_and_grad(np.zeros(prob.grid.shape))
 

@@ -31,6 +31,7 @@ __all__ = [
     "adam",
     "armijo",
     "bfgs",
+    "compass_probe",
     "lbfgs",
     "positive_definite",
 ]
@@ -107,7 +108,10 @@ class ScaledObjective:
 class LocalRun:
     """The outcome of one local run: its best point ``u`` (px) and ``value``, the iterates (``us``,
     ``values``, gradient norms ``gnorms`` in 1/px), whether a stopping rule ended it and why, and the
-    BFGS inverse Hessian (px^2) where the method has one."""
+    BFGS inverse Hessian (px^2) where the method has one. ``failed``: the method stopped without a
+    stopping rule or a limit (its line search found no ascent step along its direction, L-BFGS-B's
+    "ABNORMAL", a start where J is not finite): at a kink of J, where the gradient of one side points
+    across it, this happens away from any maximum (:func:`compass_probe` checks)."""
 
     u: np.ndarray
     value: float
@@ -117,6 +121,7 @@ class LocalRun:
     converged: bool
     message: str
     hess_inv: np.ndarray | None = None
+    failed: bool = False
 
     @property
     def n_iterations(self) -> int:
@@ -263,7 +268,7 @@ def armijo(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> LocalRun:
     c1, max_backtracks = 1e-4, 40
     u, val, g, gnorm, stop = recorded_start(obj, u0, lo, hi, rec)
     alpha = lr / max(gnorm, 1e-300)  # the first trial step moves lr px
-    converged, message = False, f"reached max_iter={max_iter}"
+    converged, message, failed = False, f"reached max_iter={max_iter}", False
     for _ in range(max_iter):
         if stop:
             converged, message = False, "stopped by callback"
@@ -275,7 +280,8 @@ def armijo(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> LocalRun:
             lambda u_trial: (obj.value(u_trial), None), u, val, g, g, alpha, lo, hi, c1, xtol, max_backtracks
         )
         if trial is None:
-            converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
+            converged, message = False, f"no ascent step longer than xtol={xtol:g} px along the gradient"
+            failed = True
             break
         u_new, step, alpha, (val_new, _) = trial
         gain = val_new - val
@@ -288,7 +294,9 @@ def armijo(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec) -> LocalRun:
             break
         alpha *= 2.0  # let the step grow again after a successful one
     best = int(np.argmax(rec.values))
-    return LocalRun(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
+    return LocalRun(
+        rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message, failed=failed
+    )
 
 
 def lbfgs(obj, u0, lo, hi, *, max_iter, gtol, rtol, rec) -> LocalRun:
@@ -331,10 +339,13 @@ def lbfgs(obj, u0, lo, hi, *, max_iter, gtol, rtol, rec) -> LocalRun:
             options={"maxiter": max_iter, "gtol": gtol, "ftol": rtol},
         )
         converged, message = bool(res.success), f"L-BFGS-B: {res.message}"
+        failed = res.status not in (0, 1)  # 1: the iteration or evaluation limit
     except _StopRequestError:
-        converged, message = False, "stopped by callback"
+        converged, message, failed = False, "stopped by callback", False
     best = int(np.argmax(rec.values))
-    return LocalRun(rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message)
+    return LocalRun(
+        rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message, failed=failed
+    )
 
 
 def bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=None, max_step=None) -> LocalRun:
@@ -356,13 +367,13 @@ def bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=None
     if H is None:
         H = np.eye(n) * (lr / max(gnorm, 1e-300))  # inverse curvature guess: the first step moves lr px
     frozen = np.zeros(n, dtype=bool)  # parameters held at a kink of J (see below)
-    converged, message = False, f"reached max_iter={max_iter}"
+    converged, message, failed = False, f"reached max_iter={max_iter}", False
     for _ in range(max_iter):
         if stop:
             converged, message = False, "stopped by callback"
             break
         if not math.isfinite(val):
-            message = "the objective is not finite at the start"
+            message, failed = "the objective is not finite at the start", True
             break
         if gnorm < gtol:
             converged, message = True, f"gradient norm {gnorm:.3g} < gtol={gtol:g}"
@@ -401,7 +412,11 @@ def bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=None
                 obj.value_and_grad, u, val, g, direction, 1.0, lo, hi, c1, xtol, max_backtracks, True
             )
         if trial is None:
-            converged, message = True, f"no ascent step longer than xtol={xtol:g} px (local maximum)"
+            converged, message = (
+                False,
+                f"no ascent step longer than xtol={xtol:g} px along any direction tried",
+            )
+            failed = True
             break
         u_new, step, _, (val_new, g_new) = trial
         gain = val_new - val
@@ -426,8 +441,27 @@ def bfgs(obj, u0, lo, hi, *, lr, max_iter, gtol, xtol, rtol, rec, hess_inv0=None
     best = int(np.argmax(rec.values))
     hess_inv = H.copy() if warm_curvature else None
     return LocalRun(
-        rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message, hess_inv
+        rec.us[best], rec.values[best], rec.us, rec.values, rec.gnorms, converged, message, hess_inv, failed
     )
+
+
+def compass_probe(obj, u: np.ndarray, value: float, lo, hi, step: float):
+    """One-sided steps of ``step`` px from ``u`` along each parameter, both ways: ``(u, value)`` of the
+    best one that ascends, or None when none does (``u`` is then a maximum along every parameter at
+    that step). The check of a run that ended at its start without a stopping rule: at a kink of J
+    (a regularizer's hinge, the deformation's ``max(D, 1/D)`` at D = 1) the gradient is one side's,
+    and a method that follows it can stop where a step to the other side still ascends."""
+    best = None
+    for i in range(u.size):
+        for sign in (1.0, -1.0):
+            trial = np.array(u, dtype=np.float64)
+            trial[i] = min(max(trial[i] + sign * step, lo[i]), hi[i])
+            if trial[i] == u[i]:
+                continue
+            v = obj.value(trial)
+            if v > value and (best is None or v > best[1]):
+                best = (trial, v)
+    return best
 
 
 def _capped(direction: np.ndarray, max_step: float | None) -> np.ndarray:

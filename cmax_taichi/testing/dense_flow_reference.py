@@ -144,6 +144,7 @@ def dense_evaluate(
     lambda_div: float = 0.0,
     lambda_def: float = 0.0,
     smoothness: dict | None = None,
+    kink_width: float = 0.0,
 ) -> dict:
     """J of a dense flow (docs/FORMULAS.md, "Dense flow model").
 
@@ -151,7 +152,8 @@ def dense_evaluate(
     (default equal) are normalised to sum 1. Returns ``J``, ``H`` (the weighted harmonic mean of
     ``G_r / G0``), ``G`` (per reference, raw), ``G0``, ``R_div``, ``R_def`` (weighted over the
     references), per-reference lists ``R_div_r``, ``R_def_r``, ``iwe`` (list of (C, H, W)) and
-    ``smoothness`` values.
+    ``smoothness`` values. ``kink_width`` > 0 rounds the kinks of the divergence's hinge and of the
+    deformation's ``max(D, 1/D)`` (docs/FORMULAS.md, "Rounded kinks").
     """
     W, H = (int(v) for v in sensor_size)
     x, y, t, p = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (x, y, t, p))
@@ -186,9 +188,13 @@ def dense_evaluate(
         msum = float(np.sum(m))
         div_map = np.where(support, ndiv / safe, 0.0)
         d = np.maximum(np.where(support, ndef / safe, 1.0), DEF_FLOOR)
-        alpha = np.where(support, np.maximum(d, 1.0 / d) - 1.0, 0.0)
+        alpha = np.where(support, _round_max(d, 1.0 / d, kink_width) - 1.0, 0.0)
         s_t = 1.0 if t_r <= mean_t else -1.0
-        r_div.append(max(0.0, s_t * T * float(np.sum(m * div_map)) / msum) if msum > 0 else 0.0)
+        r_div.append(
+            float(_round_max(s_t * T * float(np.sum(m * div_map)) / msum, 0.0, kink_width))
+            if msum > 0
+            else 0.0
+        )
         r_def.append(float(np.sum(m * alpha)) / msum if msum > 0 else 0.0)
     G = np.array(G)
     if np.all(G > 0):
@@ -219,6 +225,16 @@ def dense_evaluate(
         "iwe": iwes,
         "smoothness": smooth,
     }
+
+
+def _round_max(a, b, width: float):
+    """``max(a, b) = (a + b + |a - b|) / 2`` with ``|z|`` rounded to ``z^2 / (2 width) + width / 2`` where
+    ``|z| < width`` (``width`` 0: exact)."""
+    z = np.asarray(a, dtype=np.float64) - b
+    absz = np.abs(z)
+    if width > 0:
+        absz = np.where(absz < width, z * z / (2 * width) + width / 2, absz)
+    return 0.5 * (a + b + absz)
 
 
 def central_difference_grad(x, y, t, p, nodes, *, step: float, **kwargs) -> np.ndarray:
