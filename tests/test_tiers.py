@@ -111,6 +111,26 @@ def test_a_configuration_registered_in_the_script_compiles_optimized_in_process(
         cm.unregister_warp("my_shift")
 
 
+def test_a_configuration_from_a_plugin_is_rebuilt_with_its_plugin(own_cache, tmp_path):
+    from cmax_taichi.core.registry import load_plugin
+
+    own_cache("fast")
+    plugin = tmp_path / "shift_plugin.py"
+    plugin.write_text(
+        "import cmax_taichi as cm\n"
+        "m = cm.get_warp('translation2')\n"
+        "cm.register_warp(cm.WarpModel('plugin_shift', m.params, m.units, m.warp, m.flow, det=m.det,\n"
+        "                              div=m.div, param_jac=m.param_jac))\n"
+    )
+    load_plugin(str(plugin))
+    try:
+        config = tiers.config_for(warp="plugin_shift", regularizers=("divergence",))
+        assert config.rebuildable and config.plugins == (str(plugin.resolve()),)
+        assert cm.WARPS.origin("plugin_shift") == str(plugin.resolve()) and cm.WARPS.origin("zoom1") == ""
+    finally:
+        cm.unregister_warp("plugin_shift")
+
+
 def test_the_next_window_takes_the_optimized_kernels(own_cache, no_background, monkeypatch):
     """A sequence's problem starts on the fast tier; once the optimized kernels are recorded ready, its
     next window runs on them (a kernel of their own, compiled with Taichi's advanced optimizations),

@@ -33,15 +33,25 @@ class Registry(Generic[T]):
     def __init__(self, kind: str) -> None:
         self.kind = kind
         self._entries: dict[str, T] = {}
+        self._origins: dict[str, str | None] = {}
 
-    def register(self, name: str, entry: T, *, replace: bool = False) -> T:
-        """Add ``entry`` under ``name``; refuse to overwrite an existing name unless ``replace``."""
+    def register(self, name: str, entry: T, *, replace: bool = False, builtin: bool = False) -> T:
+        """Add ``entry`` under ``name``; refuse to overwrite an existing name unless ``replace``.
+        ``builtin``: the library's own entry (:meth:`origin`)."""
         if not isinstance(name, str) or not name.isidentifier():
             raise ValueError(f"{self.kind} name must be an identifier-like string, got {name!r}")
         if name in self._entries and not replace:
             raise ValueError(f"a {self.kind} named {name!r} is already registered")
         self._entries[name] = entry
+        self._origins[name] = "" if builtin else (_LOADING[-1] if _LOADING else None)
         return entry
+
+    def origin(self, name: str) -> str | None:
+        """Where the entry ``name`` was registered: ``""`` by the library, a plugin's spec (the file or
+        module :func:`load_plugin` imported), or None by the running script (which another process
+        cannot import: ``pipeline/tiers.py`` compiles such entries in the process)."""
+        self.get(name)
+        return self._origins.get(name)
 
     def get(self, name: str) -> T:
         """The entry called ``name``; ValueError listing the valid names otherwise."""
@@ -58,6 +68,7 @@ class Registry(Generic[T]):
         """Remove the entry called ``name`` and return it; KeyError naming the valid names otherwise."""
         if name not in self._entries:
             raise KeyError(f"no {self.kind} named {name!r}; registered: {', '.join(self.names())}")
+        self._origins.pop(name, None)
         return self._entries.pop(name)
 
     def names(self) -> list[str]:
@@ -76,6 +87,9 @@ class Registry(Generic[T]):
 class PluginError(ImportError):
     """A plugin could not be imported (the message names it and the reason)."""
 
+
+#: the plugins being imported by load_plugin (innermost last): what registers now comes from them
+_LOADING: list[str] = []
 
 #: plugins imported in this process, by module name or resolved path (each is imported once)
 _PLUGINS: dict[str, ModuleType] = {}
@@ -110,13 +124,20 @@ def load_plugin(spec: str) -> ModuleType:
                 raise PluginError(f"plugin {spec}: not a Python file")
             module = importlib.util.module_from_spec(module_spec)
             sys.modules[name] = module
+            _LOADING.append(key)
             try:
                 module_spec.loader.exec_module(module)
             except BaseException:
                 sys.modules.pop(name, None)
                 raise
+            finally:
+                _LOADING.pop()
         else:
-            module = importlib.import_module(spec)
+            _LOADING.append(key)
+            try:
+                module = importlib.import_module(spec)
+            finally:
+                _LOADING.pop()
     except PluginError:
         raise
     except ModuleNotFoundError as exc:

@@ -171,6 +171,7 @@ def register_builtin_objectives(registry: Registry[Objective]) -> None:
             False,
             "image variance (Gallego et al. CVPR 2018)",
         ),
+        builtin=True,
     )
     registry.register(
         "gradient_magnitude",
@@ -183,6 +184,7 @@ def register_builtin_objectives(registry: Registry[Objective]) -> None:
             True,
             "mean squared Sobel/8 gradient (Gallego et al. CVPR 2019)",
         ),
+        builtin=True,
     )
     registry.register(
         "mean_square",
@@ -195,6 +197,7 @@ def register_builtin_objectives(registry: Registry[Objective]) -> None:
             False,
             "mean of the squared IWE (Gallego et al. CVPR 2019)",
         ),
+        builtin=True,
     )
 
 

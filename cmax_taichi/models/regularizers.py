@@ -188,6 +188,7 @@ def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
             description="net flow divergence per window when events contract, else 0 (R_Div)",
             penalty_grad=km.divergence_penalty_grad,
         ),
+        builtin=True,
     )
     registry.register(
         "deformation",
@@ -203,6 +204,7 @@ def register_builtin_regularizers(registry: Registry[Regularizer]) -> None:
             penalty_grad=km.deformation_penalty_grad,
             rounded_penalty=km.rounded_deformation_penalty,
         ),
+        builtin=True,
     )
 
 

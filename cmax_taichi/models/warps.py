@@ -257,7 +257,7 @@ def register_builtin_warps(registry: Registry[WarpModel]) -> None:
     ``kernels/warps.BUILTIN_MODELS``, each with exactly what its ``MODEL`` declares."""
     for module_name in kw.BUILTIN_MODELS:
         model = WarpModel.from_module(importlib.import_module(f"{kw.__name__}.{module_name}"))
-        registry.register(model.name, model)
+        registry.register(model.name, model, builtin=True)
 
 
 register_builtin_warps(WARPS)

@@ -152,26 +152,15 @@ def code_fingerprint() -> str:
     return _FINGERPRINT[0]
 
 
-def _origin(function) -> str | None:
-    """Where a registry entry's function comes from: "" for the library, a plugin's spec for a plugin
-    (``core.registry.load_plugin``), None for code a fresh process cannot import."""
-    from cmax_taichi.core import registry
-
-    module = getattr(function, "__module__", None) or ""
-    if module.startswith("cmax_taichi.") or module == "cmax_taichi":
-        return ""
-    for spec, loaded in registry._PLUGINS.items():
-        if loaded.__name__ == module:
-            return spec
-    return None
-
-
-def reproducible(functions: Sequence) -> tuple[bool, tuple]:
-    """``(rebuildable, plugins)``: whether a fresh process can rebuild entries made of ``functions``
-    (library code, or plugins it loads first), and the plugins to load."""
+def reproducible(entries: Sequence[tuple]) -> tuple[bool, tuple]:
+    """``(rebuildable, plugins)`` of registry entries ``(registry, entry)``: whether a fresh process can
+    rebuild them by name (each registered under its name by the library, or by a plugin it loads first:
+    ``Registry.origin``), and the plugins to load."""
     plugins: list[str] = []
-    for fn in functions:
-        origin = _origin(fn)
+    for registry, entry in entries:
+        if entry.name not in registry or registry.get(entry.name) is not entry:  # not the one it holds
+            return False, ()
+        origin = registry.origin(entry.name)
         if origin is None:
             return False, ()
         if origin and origin not in plugins:
@@ -179,12 +168,28 @@ def reproducible(functions: Sequence) -> tuple[bool, tuple]:
     return True, tuple(plugins)
 
 
+def _entries(model, objective, regs) -> list:
+    """``(registry, entry)`` of a problem's warp model (None: a dense flow), objective, regularizers."""
+    from cmax_taichi.models.objectives import OBJECTIVES
+    from cmax_taichi.models.regularizers import REGULARIZERS
+    from cmax_taichi.models.warps import WARPS
+
+    base = [(REGULARIZERS, _exact(r)) for r in regs] + [(OBJECTIVES, objective)]
+    return base + ([(WARPS, model)] if model is not None else [])
+
+
+def _exact(reg):
+    """The registered regularizer of ``reg`` (a rounded one is derived from it)."""
+    from cmax_taichi.models.regularizers import REGULARIZERS
+
+    return REGULARIZERS.get(reg.name) if reg.name in REGULARIZERS else reg
+
+
 def fused_config(problem, regs: Sequence, weighted: bool, slices: int, atomic: bool) -> KernelConfig:
     """The :class:`KernelConfig` of a :class:`~cmax_taichi.ContrastMaximization`'s fused pipeline."""
     info = backend.info()
     model, objective = problem.model, problem.objective
-    functions = [model.warp, objective.fused.pixel] + [r.penalty for r in regs]
-    rebuildable, plugins = reproducible(functions)
+    rebuildable, plugins = reproducible(_entries(model, objective, regs))
     return KernelConfig(
         kind="fused", warp=model.name, objective=objective.name, regularizers=tuple(r.name for r in regs),
         radius=int(problem.setup.radius), polarity=problem.polarity, weighted=bool(weighted), plugins=plugins,
@@ -207,7 +212,7 @@ def dense_config(
     ``ProblemSetup``)."""
     info = backend.info()
     regs = problem.regularizers
-    rebuildable, plugins = reproducible([problem.objective.fused.pixel] + [r.penalty for r in regs])
+    rebuildable, plugins = reproducible(_entries(None, problem.objective, regs))
     return KernelConfig(
         kind="dense_flow", warp="", objective=problem.objective.name,
         regularizers=tuple(r.name for r in regs),
@@ -249,13 +254,9 @@ def config_for(
     if obj.fused is None:
         raise ValueError(f"objective {objective!r} declares no fused path: nothing to compile beforehand")
     regs = [REGULARIZERS.get(name) for name in regularizers]
-    functions = [obj.fused.pixel] + [r.penalty for r in regs]
-    name = ""
-    if warp is not None:
-        model = get_warp(warp)
-        functions.append(model.warp)
-        name = model.name
-    rebuildable, plugins = reproducible(functions)
+    model = get_warp(warp) if warp is not None else None
+    name = model.name if model is not None else ""
+    rebuildable, plugins = reproducible(_entries(model, obj, regs))
     atomic = info.arch != "cpu"
     width = 0.0
     if warp is None:
