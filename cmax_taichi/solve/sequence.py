@@ -21,7 +21,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, TextIO
 
@@ -29,9 +29,14 @@ import numpy as np
 from tqdm import tqdm
 
 from cmax_taichi.core import checks
-from cmax_taichi.core import windows as spans_
 from cmax_taichi.core.events import Camera, Events
-from cmax_taichi.core.windows import ESTIMATED_STATUSES, EventLedger, Span, count_spans, window_status
+from cmax_taichi.core.windows import (
+    ESTIMATED_STATUSES,
+    EventLedger,
+    Span,
+    plan_windows,
+    read_window,
+)
 from cmax_taichi.metrics import fwl_problem
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.pipeline.problem import ContrastMaximization
@@ -219,80 +224,6 @@ class ProgressBar:
             self._bar = None
 
 
-@dataclass
-class _Plan:
-    """One pass of windows over a source: its spans, how to read one, and what to say about it."""
-
-    spans: Iterator[Span]
-    read: Callable[[Span], tuple[Events, np.ndarray | None]]  # events on the sensor, and which rows
-    n_total: int  # events of the source
-    total: int | None  # spans of the pass, if known (for the progress bar)
-    camera: Camera | None
-    undistorted: bool  # coordinates already undistorted
-    desc: dict
-
-
-def _plan(source, n_events: int, duration: float | None, stride, keep_tail: bool) -> _Plan:
-    """The pass of windows over an Events or an open Recording (arguments checked, timestamps checked)."""
-    if isinstance(source, Events):
-        n = len(source)
-        if n > 1 and source.t[0] == source.t[-1]:
-            raise ValueError(
-                f"all {n} events have the same time t = {source.t[0]:.9f} s: no window spans a positive time"
-            )
-        if duration is not None:
-            ranges = checks.time_windows(
-                float(source.t[0]) if n else 0.0,
-                float(source.t[-1]) if n else 0.0,
-                n,
-                duration,
-                stride,
-                lambda t: int(np.searchsorted(source.t, t, side="left")),
-                lambda i: float(source.t[i]),
-            )
-            spans: Iterator[Span] = spans_.time_spans(ranges)
-            total = None
-            if n > 1:
-                step = duration if stride is None else float(stride)
-                total = int((source.t[-1] - source.t[0]) // step) + 1
-        else:
-            spans = count_spans(n, n_events, stride, keep_tail)
-            total = _count_spans(n, n_events, stride, keep_tail)
-        return _Plan(
-            spans, lambda span: (source[span.start : span.stop], None), n, total, None,
-            source.undistorted, {"source": f"Events(n={n})"},
-        )  # fmt: skip
-    if hasattr(source, "window_spans"):  # an open Recording
-        spans = source.window_spans(n_events=n_events, duration=duration, stride=stride, keep_tail=keep_tail)
-        total = None if duration is not None else _count_spans(source.n_events, n_events, stride, keep_tail)
-        desc = {"source": str(getattr(source, "path", source)), "format": getattr(source, "format", None)}
-        return _Plan(
-            spans, lambda span: source._span_events(span.start, span.stop), source.n_events, total,
-            getattr(source, "camera", None), bool(getattr(source, "undistorted", False)), desc,
-        )  # fmt: skip
-    raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
-
-
-def _count_spans(n_total: int, n_events: int, stride: int | None, keep_tail: bool) -> int:
-    """The windows of a count pass that may be estimated (for the progress bar): the full windows, and
-    the partial tail when ``keep_tail`` keeps it."""
-    step = n_events if stride is None else int(stride)
-    full = 0 if n_total < n_events else (n_total - n_events) // step + 1
-    tail = n_total - full * step
-    return full + (1 if keep_tail and tail >= spans_.min_tail_events(n_events) else 0)
-
-
-def _window_fate(span: Span, plan: _Plan, camera: Camera | None, lossy: checks.UndistortionTally):
-    """Read a window and decide its fate: ``(events used, on-sensor mask or None, undistortion mask or
-    None, status)``; undistorted here (once) when ``camera`` is given, so that the losses are counted."""
-    events, inside = plan.read(span)  # the events on the sensor (inside: which rows)
-    used, kept = events, None
-    if camera is not None and span.keep and len(events):
-        used, kept = events.undistort(camera, return_mask=True)
-        lossy.add(events, used)
-    return used, inside, kept, window_status(span, len(used), used.duration)
-
-
 def count_events(
     source: Events | Any | str | os.PathLike,
     *,
@@ -320,7 +251,7 @@ def count_events(
         n_events = checks.whole_number("n_events", n_events, 2)
     if max_windows is not None:
         max_windows = checks.whole_number("max_windows", max_windows, 1)
-    plan = _plan(source, n_events, duration, stride, keep_tail)
+    plan = plan_windows(source, n_events, duration, stride, keep_tail)
     camera = camera if camera is not None else plan.camera
     undistort = camera is not None and camera.has_distortion and not plan.undistorted
     ledger = EventLedger(plan.n_total)
@@ -331,7 +262,7 @@ def count_events(
             if max_windows is not None and span.index >= max_windows:
                 stopped_early = True
                 break
-            _, inside, kept, status = _window_fate(
+            _, inside, kept, status = read_window(
                 span, plan, camera if undistort else None, checks.UndistortionTally()
             )
             ledger.add(span, status, inside, kept)
@@ -512,7 +443,7 @@ def process(
     if first_window < 0:
         raise ValueError(f"first_window must be >= 0, got {first_window}")
     model = get_warp(warp)
-    plan = _plan(source, n_events, duration, stride, keep_tail)
+    plan = plan_windows(source, n_events, duration, stride, keep_tail)
     total, desc = plan.total, plan.desc
     camera = camera if camera is not None else plan.camera
     if model.needs_camera and camera is None:
@@ -564,7 +495,7 @@ def process(
                     break
                 index = span.index
                 t0 = time.perf_counter()
-                used, inside, kept, status = _window_fate(span, plan, camera if undistort else None, lossy)
+                used, inside, kept, status = read_window(span, plan, camera if undistort else None, lossy)
                 ledger.add(span, status, inside, kept)
                 if index < first_window:
                     continue  # done by an earlier, interrupted run (accounted for all the same)
