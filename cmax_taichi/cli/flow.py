@@ -416,6 +416,7 @@ def _estimate_into(args, estimator, folder, regs: dict):
     """Estimate every window into the staging folder of ``folder``; ``(windows, summary, truth)``."""
     from cmax_taichi import io
     from cmax_taichi.cli import CliError
+    from cmax_taichi.flow.grid import check_padded_sensor
     from cmax_taichi.flow.sequence import iter_flow, summary
     from cmax_taichi.io.outputs import json_text
     from cmax_taichi.solve.sequence import ProgressBar
@@ -440,6 +441,8 @@ def _estimate_into(args, estimator, folder, regs: dict):
         )
     windows, stamps, bar = [], [], None
     try:
+        if source is not None and args.padding is not None:  # iter_flow checks it too, naming no option
+            check_padded_sensor(source.sensor_size, args.padding, "--padding")
         with folder.path("results.csv").open("w", newline="") as fcsv:
             writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
             writer.writeheader()
