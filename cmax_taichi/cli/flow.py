@@ -106,6 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"{common.names(regularizer_names() + smoothness_names())}); default {defaults}",
     )
     model.add_argument("--no-reg", action="store_true", help="no regularizer at all (shows the collapse)")
+    common.add_plugin_argument(model)
     model.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the IWE, px (default 1)")
     model.add_argument(
         "--padding",

@@ -197,9 +197,9 @@ def iter_flow(
     Raises
     ------
     ValueError
-        Bad arguments, or an IWE (the sensor and the estimator's padding) above ``max_sensor_pixels``,
-        before any window is read; timestamps out of order; a ground truth that cannot be read (naming
-        its file) or of another size than the sensor.
+        Bad arguments, a grid that does not fit the sensor or the levels, or an IWE (the sensor and the
+        estimator's padding) above ``max_sensor_pixels``, before any window is read; timestamps out of
+        order; a ground truth that cannot be read (naming its file) or of another size than the sensor.
     """
     if dt is not None and not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
@@ -213,7 +213,8 @@ def iter_flow(
         max_windows = checks.whole_number("max_windows", max_windows, 1)
     estimator = estimator if estimator is not None else DenseFlowEstimator()
     sensor = getattr(source, "sensor_size", None)
-    if sensor is not None:  # the IWE's size, before any event is read
+    if sensor is not None:  # the grids and the IWE's size, before any event is read
+        estimator._finest_for(tuple(sensor)).pyramid(estimator.levels)
         padding = estimator.padding
         check_padded_sensor(sensor, auto_padding(sensor, AUTO_PADDING) if padding is None else padding)
     plan = plan_windows(source, n_events, duration, stride, keep_tail)
