@@ -112,6 +112,7 @@ def test_output_folder_refuses_inputs_and_a_second_run(tmp_path):
         (data / "rec", "is the input"),
         (data, "holds the input"),
         (tmp_path, "holds the input"),
+        (data / "rec" / "out", "is inside the input folder"),  # nothing is written into a recording
     ]:
         with pytest.raises(outputs.OutputConflictError, match=message):
             outputs.OutputFolder(out, inputs=[data / "rec"]).__enter__()

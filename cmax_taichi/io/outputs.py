@@ -5,7 +5,8 @@ result files. One implementation, used by all of them.
 Guarantees of an :class:`OutputFolder` (``OUT``):
 
 * **inputs are never touched**: ``OUT`` must not be an input (a recording's file or folder), nor a
-  folder that holds one; it is refused before anything is written (:class:`OutputConflictError`);
+  folder that holds one, nor a folder inside an input folder; it is refused before anything is
+  written (:class:`OutputConflictError`);
 * **nothing a run did not write is replaced**: a run recognises the outputs of cmax-taichi runs by the
   manifest ``OUT/.cmax-taichi-manifest.json`` (each file's path, size, modification time and the
   command that wrote it). A file that this run would write and that the manifest does not list (or
@@ -158,9 +159,9 @@ def _resolved(path: str | os.PathLike) -> Path:
 
 
 def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], option: str = "--out") -> None:
-    """OutputConflictError when the output folder ``out`` is one of ``inputs`` (files or folders) or a
-    folder that holds one (at any depth), or an existing file. Inputs that do not exist have nothing to
-    protect (the command reports them itself)."""
+    """OutputConflictError when the output folder ``out`` is one of ``inputs`` (files or folders), a
+    folder that holds one (at any depth), a folder inside an input folder, or an existing file. Inputs
+    that do not exist have nothing to protect (the command reports them itself)."""
     target = _resolved(out)
     for item in inputs:
         if not os.path.lexists(item):
@@ -175,6 +176,11 @@ def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], op
             raise OutputConflictError(
                 f"{option} {out} holds the input {item}: choose an output folder outside the recordings "
                 "(their files are never overwritten)"
+            )
+        if source.is_dir() and source in target.parents:
+            raise OutputConflictError(
+                f"{option} {out} is inside the input folder {item}: choose an output folder outside the "
+                "recordings (nothing is ever written into them)"
             )
     if target.exists() and not target.is_dir():
         raise OutputConflictError(f"{option} {out} is an existing file, not a folder")
@@ -389,9 +395,22 @@ class OutputFolder:
         run may not replace): for a command that refuses before its work and enters later."""
         check_inputs(self.out, self.inputs, self.option)
         if self.out.is_dir():
-            manifest = read_manifest(self.out)
-            for relative in self._existing(self.patterns):
-                _refuse(self.out, relative, manifest, self.option, self.command)
+            self._refuse_existing(read_manifest(self.out))
+
+    def _refuse_existing(self, manifest: dict[str, dict]) -> None:
+        """OutputConflictError for what is in ``OUT`` where this run writes: a file where it makes a
+        folder, a file of its patterns that it may not replace."""
+        for pattern in self.patterns:
+            parts = Path(pattern).parts[:-1]
+            for k in range(1, len(parts) + 1):
+                folder = self.out.joinpath(*parts[:k])
+                if (folder.exists() or folder.is_symlink()) and not folder.is_dir():
+                    raise OutputConflictError(
+                        f"{folder} is a file where this run writes a folder: not replaced; choose another "
+                        f"{self.option} or move it away"
+                    )
+        for relative in self._existing(self.patterns):
+            _refuse(self.out, relative, manifest, self.option, self.command)
 
     def __enter__(self) -> OutputFolder:
         check_inputs(self.out, self.inputs, self.option)
@@ -404,8 +423,7 @@ class OutputFolder:
         self._lock.__enter__()
         try:
             self._manifest = read_manifest(self.out)
-            for relative in self._existing(self.patterns):
-                _refuse(self.out, relative, self._manifest, self.option, self.command)
+            self._refuse_existing(self._manifest)
             try:
                 staging = tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}-", dir=self.out)
             except OSError as exc:
