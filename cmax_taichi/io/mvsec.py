@@ -161,7 +161,7 @@ class MVSECRecording(Recording):
             except KeyError:
                 raise KeyError(f"{path}: no array 'timestamps'") from None
             except (TypeError, *NPZ_ERRORS) as exc:  # a damaged file, object (pickled) or string arrays
-                raise ValueError(f"{path}: 'timestamps' is not a readable numeric array ({exc})") from None
+                raise ValueError(f"{path}: 'timestamps' is not a numeric array ({exc})") from None
             if not np.all(np.isfinite(ts)):
                 raise ValueError(f"{path}: 'timestamps' has non-finite values")
             W, H = self.sensor_size
