@@ -16,8 +16,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from test_outputs import error_line, run
 
-from cmax_taichi import cli
 from cmax_taichi.io import outputs
 from cmax_taichi.io.writers import read_flow_npz, write_flo, write_flow_npz
 
@@ -25,18 +25,6 @@ pytestmark = pytest.mark.usefixtures("cache_in_tmp")
 
 SIZE = (16, 12)
 SIZE_ARGS = ["--sensor-size", "16", "12"]
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = cli.main([str(a) for a in argv])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
-def error_line(err: str) -> str:
-    lines = [line for line in err.splitlines() if line.strip() and ": warning: " not in line]
-    assert len(lines) == 1 and "Traceback" not in err, err
-    return lines[0]
 
 
 def write_mvsec(

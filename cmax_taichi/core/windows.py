@@ -55,6 +55,7 @@ __all__ = [
     "EventLedger",
     "Span",
     "WindowPlan",
+    "check_window_options",
     "count_spans",
     "estimable_windows",
     "min_tail_events",
@@ -371,6 +372,21 @@ class WindowPlan:
     camera: Camera | None
     undistorted: bool
     desc: dict
+
+
+def check_window_options(n_events, duration, stride, max_windows):
+    """The window options of a pass, checked and normalised: ``(n_events, duration, stride,
+    max_windows)`` (count windows: whole numbers ``n_events >= 2`` and ``stride >= 1``; time windows: a
+    positive ``duration`` and ``stride`` in seconds; ``max_windows >= 1``). TypeError / ValueError."""
+    if duration is None:
+        n_events = whole_number("n_events", n_events, 2)
+        stride = None if stride is None else whole_number("stride (events)", stride, 1)
+    else:
+        duration = checks.seconds("duration", duration, positive=True)
+        stride = None if stride is None else checks.seconds("stride", stride, positive=True)
+    if max_windows is not None:
+        max_windows = whole_number("max_windows", max_windows, 1)
+    return n_events, duration, stride, max_windows
 
 
 def plan_windows(source, n_events: int, duration: float | None, stride, keep_tail: bool) -> WindowPlan:

@@ -27,7 +27,14 @@ import numpy as np
 
 from cmax_taichi.core import checks
 from cmax_taichi.core.events import Events
-from cmax_taichi.core.windows import ESTIMATED, ESTIMATED_STATUSES, EventLedger, plan_windows, read_window
+from cmax_taichi.core.windows import (
+    ESTIMATED,
+    ESTIMATED_STATUSES,
+    EventLedger,
+    check_window_options,
+    plan_windows,
+    read_window,
+)
 from cmax_taichi.flow.grid import FlowBeyondSensorError, auto_padding, check_padded_sensor
 from cmax_taichi.flow.solver import AUTO_PADDING, DenseFlowEstimator, FlowResult
 from cmax_taichi.io._flow import GroundTruthRangeError
@@ -203,14 +210,7 @@ def iter_flow(
     """
     if dt is not None and not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
-    if duration is None:
-        n_events = checks.whole_number("n_events", n_events, 2)
-        stride = None if stride is None else checks.whole_number("stride (events)", stride, 1)
-    else:
-        duration = checks.seconds("duration", duration, positive=True)
-        stride = None if stride is None else checks.seconds("stride", stride, positive=True)
-    if max_windows is not None:
-        max_windows = checks.whole_number("max_windows", max_windows, 1)
+    n_events, duration, stride, max_windows = check_window_options(n_events, duration, stride, max_windows)
     estimator = estimator if estimator is not None else DenseFlowEstimator()
     sensor = getattr(source, "sensor_size", None)
     if sensor is not None:  # the grids and the IWE's size, before any event is read

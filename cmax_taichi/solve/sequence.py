@@ -34,6 +34,7 @@ from cmax_taichi.core.windows import (
     ESTIMATED_STATUSES,
     EventLedger,
     Span,
+    check_window_options,
     plan_windows,
     read_window,
 )
@@ -247,10 +248,7 @@ def count_events(
                 rec, camera=camera, n_events=n_events, duration=duration, stride=stride,
                 max_windows=max_windows, keep_tail=keep_tail,
             )  # fmt: skip
-    if duration is None:
-        n_events = checks.whole_number("n_events", n_events, 2)
-    if max_windows is not None:
-        max_windows = checks.whole_number("max_windows", max_windows, 1)
+    n_events, duration, stride, max_windows = check_window_options(n_events, duration, stride, max_windows)
     plan = plan_windows(source, n_events, duration, stride, keep_tail)
     camera = camera if camera is not None else plan.camera
     undistort = camera is not None and camera.has_distortion and not plan.undistorted
@@ -405,14 +403,7 @@ def process(
     in them, or a still camera: :meth:`SequenceResult.identity_windows`) are counted in one
     :class:`~cmax_taichi.core.checks.IdentityEstimateWarning` at the end.
     """
-    if duration is None:
-        n_events = checks.whole_number("n_events", n_events, 2)
-        stride = None if stride is None else checks.whole_number("stride (events)", stride, 1)
-    else:
-        duration = checks.seconds("duration", duration, positive=True)
-        stride = None if stride is None else checks.seconds("stride", stride, positive=True)
-    if max_windows is not None:
-        max_windows = checks.whole_number("max_windows", max_windows, 1)
+    n_events, duration, stride, max_windows = check_window_options(n_events, duration, stride, max_windows)
     if isinstance(source, (str, os.PathLike)):
         from cmax_taichi import io
 
