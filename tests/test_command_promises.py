@@ -412,3 +412,16 @@ def test_info_lists_the_smoothness_terms_flow_accepts(capsys):
     code, out, _ = run(capsys, "info")
     assert code == 0 and "[Taichi]" not in out
     assert all(f"  {name} " in out for name in smoothness_names())
+
+
+def test_a_weight_that_drowns_the_data_term_is_refused(capsys):
+    """deformation=1e308 made the dense flow's optimizer return "nodes has non-finite values"."""
+    import cmax_taichi as cm
+    from cmax_taichi.pipeline.setup import MAX_REGULARIZER_WEIGHT, check_regularizers
+
+    for command in ("flow", "estimate", "segment"):
+        code, _, err = run(capsys, command, "/nonexistent", "--reg", "deformation=1e308")
+        assert code == 2 and "weight 1e308 is above 1e+09" in error_line(err)
+    with pytest.raises(ValueError, match="data term would vanish"):
+        check_regularizers({"deformation": 10 * MAX_REGULARIZER_WEIGHT})
+    assert check_regularizers({"divergence": cm.RECOMMENDED_LAMBDA}) == {"divergence": cm.RECOMMENDED_LAMBDA}

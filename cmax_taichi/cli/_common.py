@@ -272,6 +272,7 @@ def parse_regularizers(items: list[str], extra: tuple[str, ...] | list[str] = ()
     """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names); ``extra``:
     more valid names (the dense flow's smoothness terms)."""
     from cmax_taichi.cli import CliError
+    from cmax_taichi.pipeline.setup import MAX_REGULARIZER_WEIGHT
 
     valid = regularizer_names() + list(extra)
     out: dict[str, float] = {}
@@ -288,6 +289,11 @@ def parse_regularizers(items: list[str], extra: tuple[str, ...] | list[str] = ()
             raise CliError(f"--reg {name}: weight must be a number, got {weight!r}") from None
         if not (math.isfinite(value) and value >= 0):
             raise CliError(f"--reg {name}: weight must be finite and >= 0, got {weight!r}")
+        if value > MAX_REGULARIZER_WEIGHT:
+            raise CliError(
+                f"--reg {name}: weight {weight} is above {MAX_REGULARIZER_WEIGHT:g} (the data term would "
+                "vanish in the rounding of the penalty)"
+            )
         out[name] = value
     return out
 

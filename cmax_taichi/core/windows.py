@@ -32,6 +32,7 @@ undistortion depend on the event alone, so overlapping windows agree on them.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -452,6 +453,9 @@ def read_window(span: Span, plan: WindowPlan, camera: Camera | None, lossy: chec
     events, inside = plan.read(span)  # the events on the sensor (inside: which rows)
     used, kept = events, None
     if camera is not None and span.keep and len(events):
-        used, kept = events.undistort(camera, return_mask=True)
-        lossy.add(events, used)
+        with warnings.catch_warnings():  # the tally's filter lives for this window only: no global state
+            if lossy.windows:  # the first lossy window warned; the later ones are in the totals
+                warnings.filterwarnings("ignore", message=lossy._MESSAGE, category=EventsDroppedWarning)
+            used, kept = events.undistort(camera, return_mask=True)
+            lossy.add(events, used)
     return used, inside, kept, window_status(span, len(used), used.duration)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -229,40 +228,39 @@ def iter_flow(
         ledger = EventLedger(plan.n_total)
         previous: FlowResult | None = None
         stopped_early = False
-        with warnings.catch_warnings():  # restores the filter that the tally adds
-            for span in plan.spans:
-                if max_windows is not None and span.index >= max_windows:
-                    stopped_early = True
-                    break
-                used, inside, kept, status = read_window(span, plan, camera if undistort else None, lossy)
-                ledger.add(span, status, inside, kept)
-                row = FlowWindow(
-                    index=span.index,
-                    result=None,
-                    dt=math.nan if dt is None else float(dt),
-                    events=used,
-                    status=status,
-                    t_start=float(used.t[0]) if len(used) else math.nan,
-                    t_end=float(used.t[-1]) if len(used) else math.nan,
-                    n_events=len(used),
-                    n_dropped=len(span) - len(used),
-                )
-                if status not in ESTIMATED_STATUSES:
-                    row.events = None
-                    state.skipped.append(row)
-                    if on_skipped is not None:
-                        on_skipped(row)
-                    continue
-                row.result = estimator.estimate(used, warm=previous if warm_start else None)
-                row.dt = float(used.duration) if dt is None else float(dt)
-                previous = row.result
-                try:
-                    row.displacement = row.result.flow(row.dt)
-                except FlowBeyondSensorError as exc:
-                    row.status, row.note = BEYOND_SENSOR, str(exc)
-                if score and row.displacement is not None:
-                    _score(row, truth)
-                yield row
+        for span in plan.spans:
+            if max_windows is not None and span.index >= max_windows:
+                stopped_early = True
+                break
+            used, inside, kept, status = read_window(span, plan, camera if undistort else None, lossy)
+            ledger.add(span, status, inside, kept)
+            row = FlowWindow(
+                index=span.index,
+                result=None,
+                dt=math.nan if dt is None else float(dt),
+                events=used,
+                status=status,
+                t_start=float(used.t[0]) if len(used) else math.nan,
+                t_end=float(used.t[-1]) if len(used) else math.nan,
+                n_events=len(used),
+                n_dropped=len(span) - len(used),
+            )
+            if status not in ESTIMATED_STATUSES:
+                row.events = None
+                state.skipped.append(row)
+                if on_skipped is not None:
+                    on_skipped(row)
+                continue
+            row.result = estimator.estimate(used, warm=previous if warm_start else None)
+            row.dt = float(used.duration) if dt is None else float(dt)
+            previous = row.result
+            try:
+                row.displacement = row.result.flow(row.dt)
+            except FlowBeyondSensorError as exc:
+                row.status, row.note = BEYOND_SENSOR, str(exc)
+            if score and row.displacement is not None:
+                _score(row, truth)
+            yield row
         ledger.finish(stopped_early)
         state.events = ledger.as_dict()
         ledger.warn(plan.desc["source"], n_events if duration is None else None, max_windows, stacklevel=3)

@@ -284,7 +284,7 @@ class DenseFlowEstimator:
         search runs at the first level's scale.
     objective : str
         A registered objective with a fused declaration (default ``"gradient_magnitude"``; as for
-        :class:`~cmax_taichi.flow.DenseFlowProblem`).
+        ``DenseFlowProblem``).
     references : str, float or sequence
         Reference times of the IWEs (default ``"middle"``; ``"multi"``: the multi-reference objective).
     reference_weights : sequence of float, optional
@@ -311,8 +311,7 @@ class DenseFlowEstimator:
     padding : int, optional
         Margin of the IWEs around the sensor, px of the full-resolution image (see
         :class:`~cmax_taichi.flow.DenseFlowProblem`); default :data:`AUTO_PADDING` of the larger sensor
-        side, less where the padded image would exceed ``max_sensor_pixels``
-        (:func:`~cmax_taichi.flow.grid.auto_padding`).
+        side, less where the padded image would exceed ``max_sensor_pixels`` (``flow.grid.auto_padding``).
     dither : bool
         Spread integer event coordinates over their pixel (:func:`dithered`) on the full-resolution
         level (default True): without it, flow components under about a pixel over the window are
