@@ -47,6 +47,7 @@ from cmax_taichi.pipeline.fused import ChainPathWarning
 from cmax_taichi.pipeline.jacobians import event_jacobians
 from cmax_taichi.pipeline.parameters import NonFiniteResultError
 from cmax_taichi.pipeline.problem import POLARITY_MODES, ContrastMaximization, Evaluation
+from cmax_taichi.pipeline.tiers import warmup
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
 
 __version__ = "0.1.0"
@@ -128,5 +129,6 @@ __all__ = [
     "unregister_objective",
     "unregister_regularizer",
     "unregister_warp",
+    "warmup",
     "warp_names",
 ]

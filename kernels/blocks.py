@@ -23,9 +23,22 @@ differentiated kernels, plain stores in the fused kernel) stay with the caller, 
 vote of :func:`make_bilinear` that the autodiff chains share. Formulas: docs/FORMULAS.md.
 """
 
+from typing import NamedTuple
+
 import taichi as ti
 
 SUPPORT_KAPPA = 0.05  # soft "pixel received events" weight m = C / (C + kappa)
+
+
+class Size(NamedTuple):
+    """An image's size as the factories below read it (``size.width``, ``size.height``, px): compiled
+    in here; a kernel that takes its size as arguments binds them to an object with the same two
+    attributes (``fused_common.KernelArgs``)."""
+
+    width: int
+    height: int
+
+
 #: Sobel x kernel as a correlation, ``[row dy][column dx]``; the y kernel is its transpose
 SOBEL_X = ((-1.0, 0.0, 1.0), (-2.0, 0.0, 2.0), (-1.0, 0.0, 1.0))
 SOBEL_NORM = 64.0  # (Sobel / 8)^2 = Sobel^2 / 64
@@ -92,7 +105,7 @@ def _sample_corner(img: ti.template(), _unused: ti.template(), c, y, x, wx, wy, 
     return wx * wy * img[c, y, x]
 
 
-def make_bilinear(width: int, height: int):
+def make_bilinear(size):
     """``(vote, vote_maps, sample)`` over the in-image corners of the footprint of a warped position
     ``q`` (px); nothing happens for ``q`` outside ``(-1, W) x (-1, H)`` (or not finite).
 
@@ -103,12 +116,13 @@ def make_bilinear(width: int, height: int):
       exactly 1 (the penalties' kinks sit there);
     * ``sample(img, c, q)``: the bilinear interpolation of ``img[c]`` (0 outside the image).
 
-    All three walk one footprint, :func:`make_footprint`, with their own corner function.
+    All three walk one footprint, :func:`make_footprint`, with their own corner function; ``size`` has
+    the image's ``width`` and ``height`` (as :func:`make_sobel`).
     """
-    votes = make_footprint(_vote_corner, width, height)
-    count_numer_votes = make_footprint(_count_numer_corner, width, height)
-    numer_votes = make_footprint(_numer_corner, width, height)
-    samples = make_footprint(_sample_corner, width, height)
+    votes = make_footprint(_vote_corner, size)
+    count_numer_votes = make_footprint(_count_numer_corner, size)
+    numer_votes = make_footprint(_numer_corner, size)
+    samples = make_footprint(_sample_corner, size)
 
     @ti.func
     def vote(img: ti.template(), c, q, b):
@@ -128,16 +142,16 @@ def make_bilinear(width: int, height: int):
     return vote, vote_maps, sample
 
 
-def make_footprint(corner, width: int, height: int):
+def make_footprint(corner, size):
     """``over(dst, aux, c, q, b, vals)``: the sum of ``corner(dst, aux, c, y, x, wx, wy, b, vals)`` over
     the in-image corners ``(y, x)`` of the bilinear footprint of ``q`` (px), ``(wx, wy)`` their weights
     (:func:`corner_weights`); 0 for ``q`` outside ``(-1, W) x (-1, H)`` (or not finite). ``corner`` is a
     ``ti.func``: a vote writes (atomic adds) and returns 0, a lookup returns its term. The corners are
-    unrolled with ``ti.static``."""
-    W, H = width, height
+    unrolled with ``ti.static``; ``size`` has the image's ``width`` and ``height``."""
 
     @ti.func
     def over(dst: ti.template(), aux: ti.template(), c, q, b, vals):
+        W, H = size.width, size.height
         total = 0.0
         if in_window(q, W, H):
             ix, iy, ax, ay = bilinear_footprint(q)
@@ -152,18 +166,19 @@ def make_footprint(corner, width: int, height: int):
 
 
 # --- Gaussian blur ----------------------------------------------------------------------------------
-def make_tap_sum(read, radius: int, axis: int, width: int, height: int):
+def make_tap_sum(read, radius: int, axis: int, size):
     """``tap_sum(src, taps, c, y, x, checked) = sum_k taps[k + radius] * read(src, c, ...)`` at the
     ``2 radius + 1`` neighbours of ``(y, x)`` along ``axis`` (1 = x, 0 = y), zero padding.
 
     ``read(src, c, y, x)`` is the caller's ``ti.func`` reading one pixel of its layout. ``checked``
     (static) bounds-checks every tap; pass False where the whole footprint lies inside the image. The
-    Gaussian taps are symmetric, so the same sum is the transposed blur of the backward pass.
+    Gaussian taps are symmetric, so the same sum is the transposed blur of the backward pass. ``size``
+    has the image's ``width`` and ``height`` (as :func:`make_sobel`).
     """
-    extent = width if axis == 1 else height
 
     @ti.func
     def tap_sum(src: ti.template(), taps: ti.template(), c, y, x, checked: ti.template()):
+        extent = size.width if ti.static(axis == 1) else size.height
         acc = 0.0
         for k in ti.static(range(-radius, radius + 1)):
             yy = y + (k if ti.static(axis == 0) else 0)
@@ -266,13 +281,14 @@ def gradient_magnitude_adjoint(a, c: ti.template(), n_pixels):
     return 2.0 / (SOBEL_NORM * n_pixels), 0.0
 
 
-def make_sobel(read, width: int, height: int):
+def make_sobel(read, size):
     """``sobel(src, c, y, x) -> (gx, gy)``: the Sobel responses (unnormalised) of channel ``c`` at
-    ``(y, x)`` with zero padding; ``read(src, c, y, x)`` reads one pixel of the caller's layout."""
-    W, H = width, height
+    ``(y, x)`` with zero padding; ``read(src, c, y, x)`` reads one pixel of the caller's layout, ``size``
+    has the image's ``width`` and ``height`` (:class:`Size`, or a kernel's bound size arguments)."""
 
     @ti.func
     def sobel(src: ti.template(), c, y, x):
+        W, H = size.width, size.height
         gx = 0.0
         gy = 0.0
         for dy in ti.static(range(-1, 2)):
@@ -287,13 +303,14 @@ def make_sobel(read, width: int, height: int):
     return sobel
 
 
-def make_sobel_transpose(read_x, read_y, width: int, height: int):
+def make_sobel_transpose(read_x, read_y, size):
     """``sobel_t(src, c, y, x) = (Sobel_x^T gx + Sobel_y^T gy)(y, x)``: the transposed Sobel of the
-    response images ``gx = read_x(src, c, ., .)``, ``gy = read_y(src, c, ., .)`` (zero padding)."""
-    W, H = width, height
+    response images ``gx = read_x(src, c, ., .)``, ``gy = read_y(src, c, ., .)`` (zero padding) of an
+    image of ``size`` (as :func:`make_sobel`)."""
 
     @ti.func
     def sobel_t(src: ti.template(), c, y, x):
+        W, H = size.width, size.height
         a = 0.0
         for dy in ti.static(range(-1, 2)):
             for dx in ti.static(range(-1, 2)):

@@ -98,7 +98,7 @@ def make_cluster_mark_kernel(warp_fns: tuple, offsets: tuple, n_params: tuple, *
     """Forward only: mark in ``tiles`` the footprints that :func:`make_cluster_splat_kernel` votes (every
     cluster with a non-zero membership). Signature ``mark(n, ev, pw, tiles)``."""
     K = len(warp_fns)
-    mark = _t.make_mark_position(width, height)
+    mark = _t.mark_position
     warp_of = _ev.make_cluster_warp(warp_fns, offsets, n_params)
 
     @ti.kernel
@@ -132,7 +132,7 @@ def make_cluster_lookup_kernel(warp_fns: tuple, offsets: tuple, n_params: tuple,
     Signature: ``lookup(n, ev, img, out, pos)``.
     """
     K = len(warp_fns)
-    _, _, sample = _b.make_bilinear(width, height)
+    _, _, sample = _b.make_bilinear(_b.Size(width, height))
     warp_of = _ev.make_cluster_warp(warp_fns, offsets, n_params)
 
     @ti.kernel

@@ -1,16 +1,25 @@
 """What the one-launch pipelines with a hand-written backward share: the fused CMax kernel
 (``fused.py``) and the dense-flow kernel (``dense_flow.py``).
 
-* :class:`ImageLayout`: the image side of a pipeline shape (sensor, IWE channels, blur footprint, thread
-  slices, objective slots, Sobel images), given once to the fields and read by the kernels built on them;
+Their kernels take every array that depends on the sensor as an argument (flat Taichi ndarrays, or
+NumPy arrays read in place on the CPU) together with the image's width and height, and use no Taichi
+field: one compiled kernel serves every sensor size, and its offline-cache key depends on the kernel's
+configuration only (a kernel that reads fields is keyed by their ids too, which depend on what the
+process allocated before it: another process, or another command, would compile it again).
+
+* :class:`ImageLayout`: the compile-time image side of a pipeline shape (IWE channels, blur footprint,
+  thread slices, objective slots, Sobel images), read by the kernels;
+* :class:`KernelArgs`: a kernel's array and size arguments as its ``ti.func``s read them;
+* :class:`Planes`: a stack of ``H x W`` planes in one flat array (:func:`at`, :func:`load`, :func:`store`);
 * :class:`EventLayout`: the per-event vectors ``(x, y, dt[, w][, channel])`` of the kernels' ``ev``
   argument and how the event passes accumulate (atomics on a GPU, one slice per thread on the CPU):
   :meth:`EventLayout.reader`, :meth:`EventLayout.slices`, :meth:`EventLayout.vote`;
 * :func:`objective_blocks`: a fused objective's ``ti.func`` blocks;
-* :func:`read_gx`, :func:`read_gy`: the readers of the ``(H, W, 2 C)`` Sobel images of the backward;
-* :func:`field_bytes`: what a set of fields holds.
+* :func:`read_plane`, :func:`read_gx`, :func:`read_gy`: the readers of the image and Sobel planes;
+* :func:`real_array`: the Taichi type of a flat array of the kernels' float type.
 
-The kernels unpack both layouts with ``dataclasses.astuple`` (their fields' order is part of the API).
+The kernels unpack :class:`ImageLayout` and :class:`EventLayout` with ``dataclasses.astuple`` (their
+fields' order is part of the API).
 """
 
 from dataclasses import dataclass
@@ -20,17 +29,25 @@ import taichi as ti
 
 #: the kernels' float64 arrays (parameters, results)
 F64_ARRAY = ti.types.ndarray(dtype=ti.f64, ndim=1)
+#: the kernels' flat integer arrays (masks, pixel counts)
+U32_ARRAY = ti.types.ndarray(dtype=ti.u32, ndim=1)
+I32_ARRAY = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+def real_array(real, ndim: int = 1):
+    """The Taichi type of an ndarray of the kernels' float type (a primitive type of its own: ``real``
+    may be the default float alias, which ndarray annotations do not take)."""
+    return ti.types.ndarray(dtype=ti.f64 if real == ti.f64 else ti.f32, ndim=ndim)
 
 
 @dataclass(frozen=True)
 class ImageLayout:
-    """The image side of one pipeline shape (the kernels unpack it in this order).
+    """The compile-time image side of one pipeline shape (the kernels unpack it in this order); the
+    sensor's width and height are the kernels' arguments.
 
     Parameters
     ----------
     real : Taichi float type
-    width, height : int
-        Sensor size, px.
     n_channels : int
         IWE channels (per reference time, in the dense flow).
     radius : int
@@ -42,18 +59,93 @@ class ImageLayout:
     objective_slots : int
         Accumulator slots per channel of the objective.
     sobel : bool
-        Allocate the Sobel images (objectives whose pixel terms read the Sobel responses).
+        Keep the Sobel images (objectives whose pixel terms read the Sobel responses).
     """
 
     real: Any
-    width: int
-    height: int
     n_channels: int
     radius: int
     n_slices: int
     shared_count: bool
     objective_slots: int
     sobel: bool
+
+
+class KernelArgs:
+    """A kernel's array and size arguments, as the ``ti.func``s of its factory read them.
+
+    Taichi 1.7.4 lets a ``ti.func`` read a field through its closure, but an ndarray only as an argument
+    of the kernel being built. A kernel that takes its arrays as arguments binds them here as the first
+    statement of its body, ``ti.static(args.bind(images=images, width=width, ...))``: while Taichi
+    builds that body, the ``ti.func``s it inlines read ``args.images``, ``args.width`` (and every
+    :class:`Planes` made on ``args``) as that kernel's own arguments. Outside a build the attributes
+    are stale: nothing but a kernel's body may read them.
+    """
+
+    def bind(self, **arguments) -> None:
+        vars(self).update(arguments)
+
+
+@dataclass(frozen=True, eq=False)
+class Planes:
+    """``count`` planes of ``H x W`` pixels in the flat array ``args.<array>``, from plane ``base``:
+    pixel ``(y, x)`` of plane ``p`` at ``((base + p) H + y) W + x``, with ``W, H`` = ``args.width``,
+    ``args.height`` (row-major: the pixels of a segment of a row are contiguous, so a segment's blur
+    taps are vector loads)."""
+
+    args: KernelArgs
+    array_name: str
+    base: int
+    count: int
+
+    @property
+    def array(self):
+        """The bound array (inside a kernel's build)."""
+        return getattr(self.args, self.array_name)
+
+    @property
+    def width(self):
+        return self.args.width
+
+    @property
+    def height(self):
+        return self.args.height
+
+
+@ti.func
+def at(view: ti.template(), p, y, x):
+    """Index of pixel ``(y, x)`` of plane ``p`` of ``view`` (a :class:`Planes`) in its array."""
+    return ((view.base + p) * view.args.height + y) * view.args.width + x
+
+
+@ti.func
+def load(view: ti.template(), p, y, x):
+    """Pixel ``(y, x)`` of plane ``p`` of ``view``."""
+    return view.array[at(view, p, y, x)]
+
+
+@ti.func
+def store(view: ti.template(), p, y, x, v):
+    """Pixel ``(y, x)`` of plane ``p`` of ``view`` set to ``v``."""
+    view.array[at(view, p, y, x)] = v
+
+
+@ti.func
+def read_plane(src: ti.template(), c, y, x):
+    """Pixel ``(y, x)`` of plane ``c`` of ``src`` (the ``read`` of ``blocks.make_sobel``)."""
+    return load(src, c, y, x)
+
+
+@ti.func
+def read_gx(src: ti.template(), c, y, x):
+    """Sobel x response of channel ``c`` in Sobel planes ``(gx_0, gy_0, gx_1, ...)``."""
+    return load(src, 2 * c, y, x)
+
+
+@ti.func
+def read_gy(src: ti.template(), c, y, x):
+    """Sobel y response of channel ``c`` in Sobel planes ``(gx_0, gy_0, gx_1, ...)``."""
+    return load(src, 2 * c + 1, y, x)
 
 
 @dataclass(frozen=True)
@@ -74,10 +166,27 @@ class EventLayout:
     split_polarity: bool
     atomic: bool
 
+    @property
+    def width(self) -> int:
+        """Values per event: ``(x, y, dt[, w][, channel])``."""
+        return 3 + int(self.weighted) + int(self.split_polarity)
+
     def ndarray_type(self, real):
-        """The Taichi type of ``ev``: a 1-D array of vectors ``(x, y, dt[, w][, channel])`` (px, px, s)."""
-        width = 3 + int(self.weighted) + int(self.split_polarity)
-        return ti.types.ndarray(dtype=ti.types.vector(width, real), ndim=1)
+        """The Taichi type of ``ev``: an ``(n, width)`` array, a row ``(x, y, dt[, w][, channel])`` (px, px,
+        s) per event. Scalar, not an array of vectors: Taichi 1.7.4 keys a kernel's compiled instance by
+        its arguments' element types, and gives an external array of vectors a new type object at every
+        call, so that each new problem built the kernel again (about a second of front end)."""
+        return real_array(real, ndim=2)
+
+    def row(self):
+        """``row(ev, i)``: event ``i`` of ``ev`` as a vector (what :meth:`reader` reads)."""
+        width = self.width
+
+        @ti.func
+        def row(ev: ti.template(), i):
+            return ti.Vector([ev[i, k] for k in ti.static(range(width))])
+
+        return row
 
     def reader(self):
         """``event(e) -> (p, dt, b, ch)``: position (px), time offset (s), vote weight and IWE channel of
@@ -114,38 +223,28 @@ class EventLayout:
 
         return slice_events
 
-    def vote(self, acc):
-        """``vote(s, iy, ix, k, v)``: ``acc[s, iy, ix, k] += v``, atomic or, where slice ``s`` belongs to one
-        thread, a plain read-modify-write."""
-        atomic = self.atomic
+    def vote(self, acc: Planes, per_slice: int):
+        """``vote(s, iy, ix, k, v)``: channel ``k`` of slice ``s`` of the votes ``acc`` (``per_slice``
+        planes a slice) ``+= v`` at ``(iy, ix)``: atomic or, where slice ``s`` belongs to one thread, a
+        plain read-modify-write."""
+        atomic, K = self.atomic, int(per_slice)
 
         @ti.func
         def vote(s, iy, ix, k, v):
+            i = at(acc, s * K + k, iy, ix)
             if ti.static(atomic):
-                acc[s, iy, ix, k] += v
+                acc.array[i] += v
             else:
-                acc[s, iy, ix, k] = acc[s, iy, ix, k] + v
+                acc.array[i] = acc.array[i] + v
 
         return vote
 
 
-@ti.func
-def read_gx(src: ti.template(), c, y, x):
-    """Sobel x response of channel ``c`` in the ``(H, W, 2 C)`` Sobel images."""
-    return src[y, x, 2 * c]
-
-
-@ti.func
-def read_gy(src: ti.template(), c, y, x):
-    """Sobel y response of channel ``c`` in the ``(H, W, 2 C)`` Sobel images."""
-    return src[y, x, 2 * c + 1]
-
-
 def objective_blocks(objective, sobel: bool) -> tuple:
     """``(pixel, finalize, adjoint)`` of a fused objective (``models.objectives.FusedObjective``), checked
-    against the fields' ``sobel`` (their layout allocates the Sobel images the objective reads)."""
+    against the layout's ``sobel`` (it keeps the Sobel images the objective reads)."""
     if bool(objective.sobel) != bool(sobel):
-        raise ValueError("the objective's use of the Sobel images is not the fields' (ImageLayout.sobel)")
+        raise ValueError("the objective's use of the Sobel images is not the layout's (ImageLayout.sobel)")
     return objective.pixel, objective.finalize, objective.adjoint
 
 

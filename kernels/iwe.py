@@ -28,7 +28,7 @@ def make_warp_vote(
     ``numer[base + r]`` (and into ``count`` with ``with_count``). All flags are static.
     """
     n_q = len(quantity_fns)
-    vote_at, vote_maps, _ = _b.make_bilinear(width, height)
+    vote_at, vote_maps, _ = _b.make_bilinear(_b.Size(width, height))
 
     @ti.func
     def vote(
@@ -131,7 +131,7 @@ def make_mark_kernel(warp_fn, *, width: int, height: int, iwe: bool, maps: bool,
     compile the splat with the marks inside for some options (per-polarity images without maps).
     Signature ``(n, ev, wmom, tiles)``.
     """
-    mark = _t.make_mark_position(width, height)
+    mark = _t.mark_position
 
     @ti.kernel
     def mark_events(n: ti.i32, ev: ti.template(), wmom: ti.template(), tiles: ti.template()):
@@ -151,8 +151,8 @@ def make_blur_kernel(radius: int, axis: int, width: int, height: int, n_channels
     ``tiles.TileFields``). ``g`` holds the taps; the footprint is unrolled at compile time. The taps
     are symmetric, so ``blur(dst.grad, src.grad, g, tiles, r)`` is the kernel's own adjoint (into the
     region ``r`` where the adjoint is needed)."""
-    tap_sum = _b.make_tap_sum(_b.read_chw, radius, axis, width, height)
-    entry = _t.make_entry(width)
+    tap_sum = _b.make_tap_sum(_b.read_chw, radius, axis, _b.Size(width, height))
+    entry = _t.entry
     SEG = _t.SEG
 
     @ti.kernel

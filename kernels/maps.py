@@ -71,7 +71,7 @@ def make_maps_reduce(penalty_fns: tuple, width: int, height: int, n_clusters: in
     K = max(n_clusters, 1)
     S = 1 + n_r
     count_at = _b.read_chw if n_clusters else _count_hw
-    entry = _t.make_entry(width)
+    entry = _t.entry
 
     @ti.kernel
     def reduce(
@@ -105,7 +105,7 @@ def make_maps_image_kernel(penalty_fns: tuple, width: int, height: int):
     """Forward-only: write the maps ``N_r / C`` and penalties into ``out[2 r]`` and ``out[2 r + 1]`` at
     the touched pixels (list 0 of ``tiles``; ``out`` is read where ``C > 0`` only)."""
     n_r = len(penalty_fns)
-    entry = _t.make_entry(width)
+    entry = _t.entry
 
     @ti.kernel
     def images(count: ti.template(), numer: ti.template(), out: ti.template(), tiles: ti.template()):

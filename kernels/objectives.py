@@ -19,7 +19,7 @@ from . import tiles as _t
 def _make_pixel_terms(pixel_fn, sobel: bool, width: int, height: int):
     """``terms_at(img, c, y, x)``: ``pixel(I_c(y, x), gx, gy)`` of the ``(C, H, W)`` image, with the Sobel
     responses of ``I_c`` where ``sobel`` (static; else 0)."""
-    sobel_fn = _b.make_sobel(_b.read_chw, width, height)
+    sobel_fn = _b.make_sobel(_b.read_chw, _b.Size(width, height))
 
     @ti.func
     def terms_at(img: ti.template(), c: ti.template(), y, x):
@@ -58,7 +58,7 @@ def make_tiled_reduce(
     per-segment partial sums ``part[k, slots c + s]`` (zero before), and the other pixels' terms
     ``pixel(0, 0, 0)`` in closed form."""
     terms_at = _make_pixel_terms(pixel_fn, sobel, width, height)
-    entry = _t.make_entry(width)
+    entry = _t.entry
     n_pixels = width * height
 
     @ti.kernel

@@ -8,7 +8,7 @@ touches a few ten thousand pixels of a 1280x720 sensor. The image is cut into **
 (``words`` per row). Bit ``b`` of word ``j`` of row ``y`` is the segment of pixels
 ``x0 = SEG (32 j + b) .. x0 + 3`` of row ``y``.
 
-* The splat calls :func:`TileOps.mark` for every footprint it votes: the segments of its top-left row
+* The splat calls :meth:`TileOps.mark` for every footprint it votes: the segments of its top-left row
   ``iy`` (``-1 .. H - 1``, kept in mark row ``iy + 1``) holding its columns ``ix, ix + 1`` (clipped into
   the image; a check before the ``atomic_or``, so an already set bit costs one load). The footprint's
   second row is added when ``F0`` is built.
@@ -20,17 +20,28 @@ touches a few ten thousand pixels of a 1280x720 sensor. The image is cut into **
   ``F0`` itself.
 * Two row passes compute them (:meth:`TileOps.build_x`: ``F0`` and its x-dilations per row;
   :meth:`TileOps.build_y`: the y-dilations, the in-image pixel count of each region's row, and the
-  marks cleared for the next call). The fused kernel then loops over rows and iterates the set bits of
+  marks cleared for the next call). The fused kernels then loop over rows and iterate the set bits of
   a row's words (:func:`first_pixel`, :func:`drop_lowest`); the autodiff chains need flat loops and
   read the regions as **lists** of segments in row-major order (:meth:`TileOps.prefix`,
   :meth:`TileOps.fill`, :func:`make_entry`), and clear what the last evaluation wrote over the last
   lists before the next (:func:`make_clear_kernel`).
 
-Everything here is integer work on ``u32`` / ``i32`` fields, never differentiated; the lists and
+**Storage.** A :class:`TileLayout` (regions, history, lists: compile-time) says what is kept; the masks
+live in one flat ``u32`` array ``words`` (marks, x-dilations, regions, previous regions, in that order:
+:meth:`TileLayout.word_offsets`) and the rows' pixel counts in one flat ``i32`` array ``rowpx``. The
+functions of :class:`TileOps` take the storage ``tf`` as a template argument and read its ``width`` and
+``height`` from it: Python ints for :class:`TileFields` (the chains' fields, compiled for one sensor), or
+a kernel's size arguments (the fused kernels: one compiled kernel for every sensor, their arrays bound
+by ``fused_common.KernelArgs``). Every size below (segments, words, the last word's bits) is derived
+from the width where it is used, so that both compile from one source.
+
+Everything here is integer work on ``u32`` / ``i32`` arrays, never differentiated; the lists and
 masks are a function of the set of touched pixels only, so the order of every pass and reduction that
 follows them is fixed (the same input gives the same sums to the last bit). ``clz`` is avoided (its
 SPIR-V lowering fails in Taichi 1.7.4 on Vulkan): the lowest set bit comes from ``popcnt``.
 """
+
+from dataclasses import dataclass
 
 import taichi as ti
 
@@ -43,56 +54,130 @@ def reach(px: int) -> int:
     return -(-int(px) // SEG)
 
 
-class TileFields:
-    """The mask fields of one ``width x height`` image and its regions.
+def segments_of(width: int) -> int:
+    """Segments per row of an image ``width`` px wide (host side; :func:`n_segments` in a kernel)."""
+    return -(-int(width) // SEG)
+
+
+def words_of(width: int) -> int:
+    """Mask words per row of an image ``width`` px wide (host side; :func:`n_words` in a kernel)."""
+    return -(-int(width) // (SEG * WORD))
+
+
+@ti.func
+def n_segments(width):
+    """Segments per row (``width`` a Python int or a kernel's size argument)."""
+    return (width + SEG - 1) // SEG
+
+
+@ti.func
+def n_words(width):
+    """Mask words per row: ``ceil(n_segments / WORD)``."""
+    return (width + SEG * WORD - 1) // (SEG * WORD)
+
+
+@ti.func
+def in_image(x, width):
+    """Column ``x`` of a segment lies in the image (only a row's last segment can stick out)."""
+    return x < width
+
+
+@dataclass(frozen=True)
+class TileLayout:
+    """What a set of masks keeps (compile-time; the sizes follow the image's width and height).
 
     Parameters
     ----------
-    width, height : int
-        Image size, px.
-    regions : sequence of (int, int)
+    regions : tuple of (int, int)
         ``(kx, ry)`` of each region (segments along x, rows along y); the first must be ``(0, 0)``
         (``F0``).
-    history : sequence of int
+    history : tuple of int
         Regions whose previous masks are kept (``old``), so that a pass can clear what the previous
         call left outside the new region (:meth:`TileOps.stale`).
     lists : bool
         Also keep each region as a list of segments (the autodiff chains' flat loops).
     """
 
-    def __init__(self, width: int, height: int, regions, *, history=(), lists: bool = False) -> None:
-        regions = tuple((int(kx), int(ry)) for kx, ry in regions)
+    regions: tuple
+    history: tuple = ()
+    lists: bool = False
+
+    def __post_init__(self) -> None:
+        regions = tuple((int(kx), int(ry)) for kx, ry in self.regions)
         if not regions or regions[0] != (0, 0):
             raise ValueError("region 0 must be (0, 0): the touched segments")
         if any(kx < 0 or ry < 0 or kx >= WORD for kx, ry in regions):
             raise ValueError(f"region dilations must be 0 <= kx < {WORD} and ry >= 0, got {regions}")
+        object.__setattr__(self, "regions", regions)
+        object.__setattr__(self, "history", tuple(int(h) for h in self.history))
+
+    @property
+    def kxs(self) -> tuple:
+        """The distinct x dilations (one x-dilated mask each, :meth:`TileOps.build_x`)."""
+        return tuple(sorted({kx for kx, _ in self.regions}))
+
+    def word_planes(self) -> tuple[int, int, int]:
+        """``(x-dilated masks, regions, previous regions)``: the ``H x words`` planes after the marks."""
+        return len(self.kxs), len(self.regions), max(len(self.history), 1)
+
+    def n_words_total(self, width: int, height: int) -> int:
+        """Length of the ``words`` array of a ``width x height`` image: the marks (``H + 1`` rows) and
+        the planes of :meth:`word_planes`."""
+        return words_of(width) * ((height + 1) + height * sum(self.word_planes()))
+
+    def n_rowpx(self, height: int) -> int:
+        """Length of the ``rowpx`` array: one in-image pixel count per region and row."""
+        return len(self.regions) * height
+
+
+class TileFields:
+    """The masks of one ``width x height`` image as Taichi fields (the autodiff chains: compiled for
+    this sensor), and, with ``lists``, each region as a list of segments.
+
+    Parameters
+    ----------
+    width, height : int
+        Image size, px.
+    regions, history, lists
+        As :class:`TileLayout`.
+    """
+
+    def __init__(self, width: int, height: int, regions, *, history=(), lists: bool = False) -> None:
+        self.layout = TileLayout(tuple(regions), tuple(history), bool(lists))
         W, H = int(width), int(height)
         self.width, self.height = W, H
-        self.regions = regions
-        self.history = tuple(int(h) for h in history)
-        self.n_segments = -(-W // SEG)
-        self.n_words = -(-self.n_segments // WORD)
-        self.kxs = tuple(sorted({kx for kx, _ in regions}))  # distinct x dilations (build_x)
-        R, NW = len(regions), self.n_words
-        self.marks = ti.field(ti.u32, shape=(H + 1, NW))  # row iy + 1: set by the splat; cleared by build_y
-        self.xmask = ti.field(ti.u32, shape=(len(self.kxs), H, NW))  # F0 dilated along x
-        self.masks = ti.field(ti.u32, shape=(R, H, NW))  # the regions of the last build
-        self.old = ti.field(ti.u32, shape=(max(len(self.history), 1), H, NW))  # regions of the call before
-        self.rowpx = ti.field(ti.i32, shape=(R, H))  # in-image pixels of each region's row
-        self.pixels = ti.field(ti.i32, shape=R)  # in-image pixels of each region
+        self.regions, self.history = self.layout.regions, self.layout.history
+        self.n_segments = segments_of(W)
+        self.n_words = words_of(W)
+        R = len(self.regions)
+        self.words = ti.field(ti.u32, shape=self.layout.n_words_total(W, H))
+        self.rowpx = ti.field(ti.i32, shape=self.layout.n_rowpx(H))
         self.lists = None
         if lists:
+            self.pixels = ti.field(ti.i32, shape=R)  # in-image pixels of each region
             self.rows = ti.field(ti.i32, shape=(R, H + 1))  # list offset of each row
             self.lists = ti.field(ti.i32, shape=(R, H * self.n_segments))  # y * n_segments + segment
             self.count = ti.field(ti.i32, shape=R)  # segments per list
 
+    def masks(self):
+        """The regions of the last build, ``(R, H, words)`` NumPy ``uint32`` (tests)."""
+        return region_masks(self.layout, self.words.to_numpy(), self.width, self.height)
+
     def nbytes(self) -> int:
         """Bytes held by the mask and list fields."""
-        R, H, NW = len(self.regions), self.height, self.n_words
-        total = 4 * NW + 4 * H * NW * (1 + len(self.kxs) + R + max(len(self.history), 1)) + 4 * R * (H + 1)
+        R, H = len(self.regions), self.height
+        total = 4 * (self.layout.n_words_total(self.width, H) + self.layout.n_rowpx(H))
         if self.lists is not None:
-            total += 4 * R * (H + 1 + H * self.n_segments + 1)
+            total += 4 * R * (H + 1 + H * self.n_segments + 2)
         return total
+
+
+def region_masks(layout: TileLayout, words, width: int, height: int):
+    """The regions' masks ``(R, H, words)`` out of a ``words`` array (host side: tests, checks)."""
+    NW, H = words_of(width), int(height)
+    n_kx, R, _ = layout.word_planes()
+    start = NW * (H + 1) + n_kx * H * NW
+    return words[start : start + R * H * NW].reshape(R, H, NW)
 
 
 @ti.func
@@ -113,144 +198,151 @@ def first_pixel(j, w):
     return (j * WORD + lowest_bit(w)) * SEG
 
 
-def make_in_image(width: int):
-    """``in_image(x)``: column ``x`` of a segment lies in the image of ``width`` px (only the last segment
-    of a row can stick out; always true when the width is a multiple of :data:`SEG`)."""
-    W = int(width)
-    partial = SEG * (-(-W // SEG)) - W  # columns of a row's last segment beyond the image
-
-    @ti.func
-    def in_image(x):
-        inside = True
-        if ti.static(partial > 0):
-            inside = x < W
-        return inside
-
-    return in_image
+@ti.func
+def _mark_word(tf: ti.template(), y, j):
+    """Index in ``tf.words`` of word ``j`` of mark row ``y`` (``0 .. H``)."""
+    return y * n_words(tf.width) + j
 
 
-def make_mark(width: int, height: int):
-    """``mark(tf, ix, iy)``: mark the footprint with top-left corner ``(ix, iy)`` (px; ``-1 .. W - 1``,
-    ``-1 .. H - 1``) in ``tf.marks``: the segments of mark row ``iy + 1`` holding columns ``ix`` and
-    ``ix + 1`` clipped into the image (the footprint's second row comes with ``F0``). Atomic, after
-    a load that skips bits already set."""
-    W, H = int(width), int(height)
-
-    @ti.func
-    def set_bits(tf: ti.template(), y, j, bits):
-        if (tf.marks[y, j] & bits) != bits:
-            ti.atomic_or(tf.marks[y, j], bits)
-
-    @ti.func
-    def mark(tf: ti.template(), ix, iy):
-        y = ti.min(ti.max(iy, -1), H - 1) + 1
-        s0 = ti.max(ix, 0) // SEG
-        s1 = ti.min(ix + 1, W - 1) // SEG
-        j0 = s0 // WORD
-        b0 = ti.u32(1) << ti.cast(s0 % WORD, ti.u32)
-        b1 = ti.u32(1) << ti.cast(s1 % WORD, ti.u32)
-        if s1 // WORD == j0:
-            set_bits(tf, y, j0, b0 | b1)
-        else:
-            set_bits(tf, y, j0, b0)
-            set_bits(tf, y, j0 + 1, b1)
-
-    return mark
+@ti.func
+def _set_bits(tf: ti.template(), y, j, bits):
+    i = _mark_word(tf, y, j)
+    if (tf.words[i] & bits) != bits:
+        ti.atomic_or(tf.words[i], bits)
 
 
-def make_mark_position(width: int, height: int):
-    """``mark_position(tf, q)``: :func:`make_mark`'s mark of the footprint of a warped position ``q``
-    (px) whose footprint touches the image (nothing otherwise, NaN included)."""
-    W, H = int(width), int(height)
-    mark = make_mark(W, H)
+@ti.func
+def mark(tf: ti.template(), ix, iy):
+    """Mark the footprint with top-left corner ``(ix, iy)`` (px; ``-1 .. W - 1``, ``-1 .. H - 1``) in
+    ``tf``'s marks: the segments of mark row ``iy + 1`` holding columns ``ix`` and ``ix + 1`` clipped
+    into the image (the footprint's second row comes with ``F0``). Atomic, after a load that skips bits
+    already set."""
+    W, H = tf.width, tf.height
+    y = ti.min(ti.max(iy, -1), H - 1) + 1
+    s0 = ti.max(ix, 0) // SEG
+    s1 = ti.min(ix + 1, W - 1) // SEG
+    j0 = s0 // WORD
+    b0 = ti.u32(1) << ti.cast(s0 % WORD, ti.u32)
+    b1 = ti.u32(1) << ti.cast(s1 % WORD, ti.u32)
+    if s1 // WORD == j0:
+        _set_bits(tf, y, j0, b0 | b1)
+    else:
+        _set_bits(tf, y, j0, b0)
+        _set_bits(tf, y, j0 + 1, b1)
 
-    @ti.func
-    def mark_position(tf: ti.template(), q):
-        if q[0] > -1.0 and q[0] < W and q[1] > -1.0 and q[1] < H:
-            mark(tf, ti.cast(ti.floor(q[0]), ti.i32), ti.cast(ti.floor(q[1]), ti.i32))
 
-    return mark_position
+@ti.func
+def mark_position(tf: ti.template(), q):
+    """:func:`mark` of the footprint of a warped position ``q`` (px) whose footprint touches the image
+    (nothing otherwise, NaN included)."""
+    if q[0] > -1.0 and q[0] < tf.width and q[1] > -1.0 and q[1] < tf.height:
+        mark(tf, ti.cast(ti.floor(q[0]), ti.i32), ti.cast(ti.floor(q[1]), ti.i32))
 
 
-def make_entry(width: int):
-    """``entry(tf, ri, k) -> (y, x0)``: row and first pixel column of entry ``k`` of list ``ri``."""
-    NS = -(-int(width) // SEG)
-
-    @ti.func
-    def entry(tf: ti.template(), ri: ti.template(), k):
-        e = tf.lists[ri, k]
-        return e // NS, (e % NS) * SEG
-
-    return entry
+@ti.func
+def entry(tf: ti.template(), ri: ti.template(), k):
+    """``(y, x0)``: row and first pixel column of entry ``k`` of list ``ri`` (a :class:`TileFields`
+    with lists)."""
+    NS = n_segments(tf.width)
+    e = tf.lists[ri, k]
+    return e // NS, (e % NS) * SEG
 
 
 class TileOps:
-    """The Taichi functions over the fields of a :class:`TileFields` of one geometry (sizes, regions and
-    history compiled in). Each takes the fields as its first (template) argument, so kernels built
-    from one ``TileOps`` serve every ``TileFields`` of that geometry."""
+    """The Taichi functions over the masks of one :class:`TileLayout` (regions and history compiled in,
+    the image size read from the storage ``tf`` each takes as its first, template, argument)."""
 
-    def __init__(self, tf: TileFields) -> None:
-        self.geometry = (tf.width, tf.height, tf.regions, tf.history, tf.lists is not None)
-        W, H = tf.width, tf.height
-        NS, NW, R = tf.n_segments, tf.n_words, len(tf.regions)
-        regions, kxs, history = tf.regions, tf.kxs, tf.history
+    def __init__(self, layout: TileLayout) -> None:
+        self.layout = layout
+        regions, history = layout.regions, layout.history
+        kxs = layout.kxs
+        n_kx, R, n_old = layout.word_planes()
         kx_slot = tuple(kxs.index(kx) for kx, _ in regions)
-        tail = NS - WORD * (NW - 1)  # segments in the last word of a row
-        last_mask = (1 << tail) - 1 if tail < WORD else 0xFFFFFFFF
-        partial = SEG * NS - W  # columns of the last segment beyond the image
-        self.partial = partial
 
-        mark = make_mark(W, H)
+        @ti.func
+        def plane_word(tf: ti.template(), plane: ti.template(), y, j):
+            """Index in ``tf.words`` of word ``j`` of row ``y`` of plane ``plane`` (after the marks:
+            x-dilations ``0 .. n_kx - 1``, regions, previous regions)."""
+            NW = n_words(tf.width)
+            return NW * (tf.height + 1 + plane * tf.height + y) + j
+
+        @ti.func
+        def region_word(tf: ti.template(), ri: ti.template(), y, j):
+            return plane_word(tf, n_kx + ri, y, j)
+
+        @ti.func
+        def old_word(tf: ti.template(), h: ti.template(), y, j):
+            return plane_word(tf, n_kx + R + h, y, j)
 
         @ti.func
         def touched(tf: ti.template(), y, j):
             """Word ``j`` of ``F0`` in row ``y``: the footprints whose top row is ``y`` (mark row
             ``y + 1``) or ``y - 1`` (mark row ``y``)."""
             w = ti.u32(0)
-            if 0 <= j < NW:
-                w = tf.marks[y + 1, j] | tf.marks[y, j]
+            if 0 <= j < n_words(tf.width):
+                w = tf.words[_mark_word(tf, y + 1, j)] | tf.words[_mark_word(tf, y, j)]
             return w
 
         @ti.func
-        def row_pixels(w, j):
-            """In-image pixels of the segments of word ``j``'s value ``w``."""
+        def row_pixels(tf: ti.template(), w, j):
+            """In-image pixels of the segments of word ``j``'s value ``w``: 4 per segment, less the
+            columns of a row's last segment beyond the image where its bit is set."""
+            W = tf.width
+            NS = n_segments(W)
+            NW = n_words(W)
             px = ti.cast(ti.math.popcnt(w), ti.i32) * SEG
-            if ti.static(partial > 0):  # noqa: SIM102 - compile-time if
-                if j == NW - 1 and (w >> ti.u32(tail - 1)) & ti.u32(1) != ti.u32(0):
+            partial = SEG * NS - W  # columns of the last segment beyond the image
+            tail = NS - WORD * (NW - 1)  # segments in the last word
+            if partial > 0 and j == NW - 1:  # noqa: SIM102
+                if (w >> ti.cast(tail - 1, ti.u32)) & ti.u32(1) != ti.u32(0):
                     px -= partial
             return px
+
+        @ti.func
+        def last_word_mask(tf: ti.template()):
+            """The bits of the segments in the last word of a row."""
+            NW = n_words(tf.width)
+            tail = n_segments(tf.width) - WORD * (NW - 1)
+            mask = ti.u32(0xFFFFFFFF)
+            if tail < WORD:
+                mask = (ti.u32(1) << ti.cast(tail, ti.u32)) - ti.u32(1)
+            return mask
 
         @ti.func
         def build_x(tf: ti.template(), y):
             """Row ``y`` of ``F0`` (region 0), of its x-dilations and of the regions without y-dilation,
             with their in-image pixel counts (a row pass; reads the marks of rows ``y`` and ``y - 1``)."""
+            NW = n_words(tf.width)
+            last = last_word_mask(tf)
             px = ti.Vector([0 for _ in ti.static(range(R))])
             for j in range(NW):
                 w = touched(tf, y, j)
                 left = touched(tf, y, j - 1)
                 right = touched(tf, y, j + 1)
-                tf.masks[0, y, j] = w
-                px[0] += row_pixels(w, j)
-                for s in ti.static(range(len(kxs))):
+                tf.words[region_word(tf, 0, y, j)] = w
+                px[0] += row_pixels(tf, w, j)
+                for s in ti.static(range(n_kx)):
                     d = w
                     for k in ti.static(range(1, kxs[s] + 1)):
                         d |= (w << ti.u32(k)) | (w >> ti.u32(k))
                         d |= (left >> ti.u32(WORD - k)) | (right << ti.u32(WORD - k))
                     if j == NW - 1:
-                        d &= ti.u32(last_mask)
-                    tf.xmask[s, y, j] = d
+                        d &= last
+                    tf.words[plane_word(tf, s, y, j)] = d
                     for ri in ti.static(range(1, R)):
                         if ti.static(regions[ri][1] == 0 and kx_slot[ri] == s):
-                            tf.masks[ri, y, j] = d
-                            px[ri] += row_pixels(d, j)
+                            tf.words[region_word(tf, ri, y, j)] = d
+                            px[ri] += row_pixels(tf, d, j)
             for ri in ti.static(range(R)):
                 if ti.static(regions[ri][1] == 0):
-                    tf.rowpx[ri, y] = px[ri]
+                    tf.rowpx[ri * tf.height + y] = px[ri]
 
         @ti.func
         def build_y(tf: ti.template(), y):
             """Row ``y`` of the regions with y-dilation (from :meth:`build_x`'s rows ``y - ry .. y + ry``:
             a later row pass), their in-image pixel counts, and the marks of row ``y`` cleared."""
+            H = tf.height
+            NW = n_words(tf.width)
             for ri in ti.static(range(1, R)):
                 ry = ti.static(regions[ri][1])
                 if ti.static(ry > 0):
@@ -259,25 +351,24 @@ class TileOps:
                         w = ti.u32(0)
                         for dy in ti.static(range(-ry, ry + 1)):
                             if 0 <= y + dy < H:
-                                w |= tf.xmask[kx_slot[ri], y + dy, j]
-                        tf.masks[ri, y, j] = w
-                        px += row_pixels(w, j)
-                    tf.rowpx[ri, y] = px
+                                w |= tf.words[plane_word(tf, kx_slot[ri], y + dy, j)]
+                        tf.words[region_word(tf, ri, y, j)] = w
+                        px += row_pixels(tf, w, j)
+                    tf.rowpx[ri * H + y] = px
             for j in range(NW):
-                tf.marks[y + 1, j] = ti.u32(0)
+                tf.words[_mark_word(tf, y + 1, j)] = ti.u32(0)
                 if y == 0:
-                    tf.marks[0, j] = ti.u32(0)
+                    tf.words[_mark_word(tf, 0, j)] = ti.u32(0)
 
         @ti.func
         def stale(tf: ti.template(), h: ti.template(), y, j):
             """Segments of history slot ``h`` (region ``history[h]``) in the previous call's region but
             not in the new one (row ``y``, word ``j``); the new region becomes the old one."""
-            new = tf.masks[history[h], y, j]
-            w = tf.old[h, y, j] & ~new
-            tf.old[h, y, j] = new
+            new = tf.words[region_word(tf, history[h], y, j)]
+            i = old_word(tf, h, y, j)
+            w = tf.words[i] & ~new
+            tf.words[i] = new
             return w
-
-        in_image = make_in_image(W)
 
         @ti.func
         def segments_of_word(j, w, y, body: ti.template(), state: ti.template()):
@@ -292,20 +383,20 @@ class TileOps:
             """``body(y, x0, state)`` for every segment of region ``ri`` in row ``y``, left to right (``x0``:
             its first column). ``state`` reaches ``body`` by reference (a template): a local vector, a
             field, or a tuple of them, indexed in ``body`` (unpacking a tuple copies its elements)."""
-            for j in range(NW):
-                segments_of_word(j, tf.masks[ri, y, j], y, body, state)
+            for j in range(n_words(tf.width)):
+                segments_of_word(j, tf.words[region_word(tf, ri, y, j)], y, body, state)
 
         @ti.func
         def pixels_of_segment(y, x0, body_state: ti.template()):
             for p in ti.static(range(SEG)):
-                if in_image(x0 + p):
+                if in_image(x0 + p, body_state[2]):
                     body_state[0](y, x0 + p, body_state[1])
 
         @ti.func
         def each_pixel(tf: ti.template(), ri: ti.template(), y, body: ti.template(), state: ti.template()):
             """``body(y, x, state)`` at every in-image pixel of region ``ri`` in row ``y``, left to right
             (``state`` as in :meth:`each_segment`)."""
-            each_segment(tf, ri, y, pixels_of_segment, (body, state))
+            each_segment(tf, ri, y, pixels_of_segment, (body, state, tf.width))
 
         @ti.func
         def each_stale_segment(
@@ -313,23 +404,23 @@ class TileOps:
         ):
             """``body(y, x0, state)`` for every segment of row ``y`` that :meth:`stale` returns for history
             slot ``h`` (the previous call's region less the new one; the new one becomes the old)."""
-            for j in range(NW):
+            for j in range(n_words(tf.width)):
                 segments_of_word(j, stale(tf, h, y, j), y, body, state)
 
-        self.mark, self.build_x, self.build_y, self.stale, self.in_image = (
-            mark,
-            build_x,
-            build_y,
-            stale,
-            in_image,
-        )
+        @ti.func
+        def row_pixel_count(tf: ti.template(), ri: ti.template(), y):
+            """In-image pixels of region ``ri`` in row ``y`` (of the last build)."""
+            return tf.rowpx[ri * tf.height + y]
+
+        self.build_x, self.build_y, self.stale = build_x, build_y, stale
         self.each_segment, self.each_pixel, self.each_stale_segment = (
             each_segment,
             each_pixel,
             each_stale_segment,
         )
+        self.row_pixel_count = row_pixel_count
 
-        if tf.lists is not None:
+        if layout.lists:
 
             @ti.func
             def prefix(tf: ti.template()):
@@ -340,22 +431,23 @@ class TileOps:
                     tf.count[ri] = 0
                     tf.pixels[ri] = 0
                 ti.loop_config(serialize=True)
-                for y in range(H):
+                for y in range(tf.height):
                     for ri in ti.static(range(R)):
                         n = 0
-                        for j in range(NW):
-                            n += ti.cast(ti.math.popcnt(tf.masks[ri, y, j]), ti.i32)
+                        for j in range(n_words(tf.width)):
+                            n += ti.cast(ti.math.popcnt(tf.words[region_word(tf, ri, y, j)]), ti.i32)
                         tf.count[ri] += n
                         tf.rows[ri, y + 1] = tf.count[ri]
-                        tf.pixels[ri] += tf.rowpx[ri, y]
+                        tf.pixels[ri] += row_pixel_count(tf, ri, y)
 
             @ti.func
             def fill(tf: ti.template(), y):
                 """Row ``y``'s segments into every list (a row pass after :meth:`prefix`)."""
+                NS = n_segments(tf.width)
                 for ri in ti.static(range(R)):
                     pos = tf.rows[ri, y]
-                    for j in range(NW):
-                        w = tf.masks[ri, y, j]
+                    for j in range(n_words(tf.width)):
+                        w = tf.words[region_word(tf, ri, y, j)]
                         while w != ti.u32(0):
                             tf.lists[ri, pos] = y * NS + j * WORD + lowest_bit(w)
                             pos += 1
@@ -364,12 +456,12 @@ class TileOps:
             @ti.kernel
             def compact(tf: ti.template()):
                 """Regions and lists of the marks the splats left (and the marks cleared)."""
-                for y in range(H):
+                for y in range(tf.height):
                     build_x(tf, y)
-                for y in range(H):
+                for y in range(tf.height):
                     build_y(tf, y)
                 prefix(tf)
-                for y in range(H):
+                for y in range(tf.height):
                     fill(tf, y)
 
             self.prefix, self.fill, self.compact = prefix, fill, compact
@@ -378,12 +470,13 @@ class TileOps:
 _OPS: dict = {}
 
 
-def ops_for(tf: TileFields) -> TileOps:
-    """The (cached) :class:`TileOps` of ``tf``'s geometry."""
-    key = (tf.width, tf.height, tf.regions, tf.history, tf.lists is not None)
-    ops = _OPS.get(key)
+def ops_for(layout: TileLayout) -> TileOps:
+    """The (cached) :class:`TileOps` of ``layout`` (a :class:`TileLayout`, or a :class:`TileFields`:
+    its layout)."""
+    layout = getattr(layout, "layout", layout)
+    ops = _OPS.get(layout)
     if ops is None:
-        ops = _OPS[key] = TileOps(tf)
+        ops = _OPS[layout] = TileOps(layout)
     return ops
 
 
@@ -394,8 +487,6 @@ def make_clear_kernel(tf: TileFields, region: int, images=(), rows=(), scalars=(
     in), ``rows`` (pairs ``(field, list)``: per-entry ``(n, k)`` partial sums, the first
     ``count[list]`` rows) and ``scalars`` (0-D fields). Built per set of fields (they are closed
     over)."""
-    entry = make_entry(tf.width)
-    in_image = make_in_image(tf.width)
 
     @ti.kernel
     def clear():
@@ -403,7 +494,7 @@ def make_clear_kernel(tf: TileFields, region: int, images=(), rows=(), scalars=(
             y, x0 = entry(tf, region, k)
             for p in ti.static(range(SEG)):
                 x = x0 + p
-                if in_image(x):
+                if in_image(x, tf.width):
                     for img in ti.static(images):
                         if ti.static(len(img.shape) == 2):
                             img[y, x] = 0.0
@@ -422,135 +513,3 @@ def make_clear_kernel(tf: TileFields, region: int, images=(), rows=(), scalars=(
                 f[None] = 0.0
 
     return clear
-
-
-class SegmentPasses:
-    """The per-segment image operations of the fused kernel's row passes over ``(H, W, C)`` plane fields
-    (``fused._planes``): the separable blur's two 1-D passes, the blur along y applied twice (the
-    backward's ``B_y^T B_y``), stores and clears, at the :data:`SEG` pixels ``x0 .. x0 + SEG - 1`` of
-    row ``y``, with zero padding at the image's borders. Away from the borders the taps read whole
-    segments without bounds checks (vector loads).
-
-    Parameters
-    ----------
-    width, height : int
-        Image size, px.
-    radius : int
-        Blur footprint radius, px (0: no blur, one tap of 1).
-    """
-
-    def __init__(self, width: int, height: int, radius: int) -> None:
-        W, H, r_ = int(width), int(height), int(radius)
-        partial = SEG * (-(-W // SEG)) - W  # columns of a row's last segment beyond the image
-        in_image = make_in_image(W)
-
-        @ti.func
-        def whole(x0):
-            """All pixels of the segment at ``x0`` are in the image (always, when the width is a multiple
-            of the segment)."""
-            inside = True
-            if ti.static(partial > 0):
-                inside = x0 + SEG <= W
-            return inside
-
-        @ti.func
-        def load_taps(taps: ti.template()):
-            """The blur taps as a local vector (a field is loaded again after every store: LLVM cannot
-            tell the fields apart)."""
-            tv = ti.Vector([1.0 for _ in ti.static(range(2 * r_ + 1))])
-            if ti.static(r_ > 0):
-                for k in ti.static(range(2 * r_ + 1)):
-                    tv[k] = taps[k]
-            return tv
-
-        @ti.func
-        def pixel_of(src: ti.template(), votes: ti.template(), c: ti.template(), y, x):
-            v = 0.0
-            if ti.static(votes):  # slice 0 of the vote field
-                v = src[0, y, x, c]
-            else:
-                v = src[y, x, c]
-            return v
-
-        @ti.func
-        def blur_x(src: ti.template(), votes: ti.template(), c: ti.template(), y, x0, tv):
-            """``sum_k taps_k src[y, x + k, c]`` at the segment's pixels (``votes``: ``src`` is the
-            vote field, read in its slice 0)."""
-            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-            if whole(x0) and x0 >= r_ and x0 + SEG - 1 + r_ < W:
-                for k in ti.static(range(-r_, r_ + 1)):
-                    for p in ti.static(range(SEG)):
-                        v[p] += tv[k + r_] * pixel_of(src, votes, c, y, x0 + p + k)
-            else:
-                for k in ti.static(range(-r_, r_ + 1)):
-                    for p in ti.static(range(SEG)):
-                        if 0 <= x0 + p + k < W and in_image(x0 + p):
-                            v[p] += tv[k + r_] * pixel_of(src, votes, c, y, x0 + p + k)
-            return v
-
-        @ti.func
-        def blur_y(src: ti.template(), c: ti.template(), y, x0, tv):
-            """``sum_k taps_k src[y + k, x, c]`` at the segment's pixels."""
-            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-            if whole(x0) and y >= r_ and y < H - r_:
-                for k in ti.static(range(-r_, r_ + 1)):
-                    for p in ti.static(range(SEG)):
-                        v[p] += tv[k + r_] * src[y + k, x0 + p, c]
-            else:
-                for k in ti.static(range(-r_, r_ + 1)):
-                    if 0 <= y + k < H:
-                        for p in ti.static(range(SEG)):
-                            if in_image(x0 + p):
-                                v[p] += tv[k + r_] * src[y + k, x0 + p, c]
-            return v
-
-        @ti.func
-        def store(dst: ti.template(), c: ti.template(), y, x0, v):
-            if whole(x0):
-                for p in ti.static(range(SEG)):
-                    dst[y, x0 + p, c] = v[p]
-            else:
-                for p in ti.static(range(SEG)):
-                    if in_image(x0 + p):
-                        dst[y, x0 + p, c] = v[p]
-
-        @ti.func
-        def twice_taps(y, tv):
-            """The taps of ``B_y^T B_y`` at row ``y`` (offsets ``-2 r .. 2 r``): the Gaussian convolved
-            with itself, less the products of the first blur's taps that fall outside the image."""
-            wide = ti.Vector([0.0 for _ in ti.static(range(4 * r_ + 1))])
-            if ti.static(r_ > 0):
-                for k1 in ti.static(range(-r_, r_ + 1)):
-                    if 0 <= y + k1 < H:
-                        for k2 in ti.static(range(-r_, r_ + 1)):
-                            wide[k1 + k2 + 2 * r_] += tv[k1 + r_] * tv[k2 + r_]
-            else:
-                wide[0] = 1.0
-            return wide
-
-        @ti.func
-        def twice_blur_y(src: ti.template(), wide, c: ti.template(), y, x0):
-            """``(B_y^T B_y src)[y, x, c]`` at the segment's pixels, with the taps of :func:`twice_taps`."""
-            v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-            if whole(x0) and y >= 2 * r_ and y < H - 2 * r_:
-                for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
-                    for p in ti.static(range(SEG)):
-                        v[p] += wide[k + 2 * r_] * src[y + k, x0 + p, c]
-            else:
-                for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
-                    if 0 <= y + k < H:
-                        for p in ti.static(range(SEG)):
-                            if in_image(x0 + p):
-                                v[p] += wide[k + 2 * r_] * src[y + k, x0 + p, c]
-            return v
-
-        @ti.func
-        def clear(y, x0, dst: ti.template()):
-            """``dst`` zeroed at the segment (the argument order of a :meth:`TileOps.each_segment` body)."""
-            for p in ti.static(range(SEG)):
-                if in_image(x0 + p):
-                    for c in ti.static(range(dst.shape[2])):
-                        dst[y, x0 + p, c] = 0.0
-
-        self.load_taps, self.blur_x, self.blur_y, self.store = load_taps, blur_x, blur_y, store
-        self.twice_taps, self.twice_blur_y, self.clear = twice_taps, twice_blur_y, clear

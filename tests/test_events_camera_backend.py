@@ -92,22 +92,26 @@ def test_unknown_arch_and_precision():
         cm.init(arch="tpu")
     with pytest.raises(ValueError, match="unknown precision"):
         cm.init(precision="f16")
-    with pytest.raises(ValueError, match="unknown compile mode 'quick'; valid modes are full, fast"):
+    with pytest.raises(ValueError, match="unknown compile mode 'quick'; valid modes are auto, full, fast"):
         cm.init(compile_mode="quick")
 
 
 def test_compile_mode_from_the_argument_and_the_environment(monkeypatch):
-    """The mode reaches Taichi where the kernels with hand-written gradients compile (its advanced
-    optimizations off there in "fast" only, on everywhere else in both modes), the environment variable
-    sets the default, and a recovery keeps the mode."""
+    """The mode and the tier reach Taichi where the kernels with hand-written gradients compile (its
+    advanced optimizations off there in tier "fast" and in mode "fast" only, on everywhere else), the
+    environment variable sets the default ("auto" without it), and a recovery keeps the mode."""
     from taichi.lang import impl
 
-    def optimized_inside_and_outside() -> tuple[bool, bool]:
-        with backend.hand_written_gradient_kernels():
+    def optimized_inside_and_outside(tier: str = "full") -> tuple[bool, bool]:
+        with backend.hand_written_gradient_kernels(tier):
             inside = impl.current_cfg().advanced_optimization
         return inside, impl.current_cfg().advanced_optimization
 
     try:
+        monkeypatch.delenv("CMAX_TAICHI_COMPILE", raising=False)
+        info = cm.init(precision="f64")
+        assert info.compile_mode == "auto" and optimized_inside_and_outside() == (True, True)
+        assert optimized_inside_and_outside("fast") == (False, True)
         monkeypatch.setenv("CMAX_TAICHI_COMPILE", "full")
         info = cm.init(precision="f64")
         assert info.compile_mode == "full" and optimized_inside_and_outside() == (True, True)
@@ -116,6 +120,8 @@ def test_compile_mode_from_the_argument_and_the_environment(monkeypatch):
         assert backend.recover().compile_mode == "fast"
         monkeypatch.setenv("CMAX_TAICHI_COMPILE", "fast")
         assert cm.init(precision="f64").compile_mode == "fast"
+        with pytest.raises(ValueError, match="unknown kernel tier"):
+            optimized_inside_and_outside("quick")
     finally:
         monkeypatch.undo()
         cm.init(precision="f64")

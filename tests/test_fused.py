@@ -9,11 +9,12 @@ import warnings
 import numpy as np
 import pytest
 import taichi as ti
-from conftest import CAMERA, SENSOR, THETAS, edge_events
+from conftest import CAMERA, DURATION, SENSOR, THETAS, edge_events
 
 import cmax_taichi as cm
 from cmax_taichi.pipeline import problem as problem_module
 from cmax_taichi.pipeline.fused import FusedPipeline
+from cmax_taichi.testing import reference
 
 pytestmark = pytest.mark.usefixtures("f64")
 
@@ -84,11 +85,11 @@ def test_atomic_splat_equals_thread_slices(warp):
         np.testing.assert_allclose(g1, g2, rtol=1e-8, atol=1e-10 * np.max(np.abs(g2)))
 
 
-def test_no_allocation_per_call_and_fields_reused(monkeypatch):
+def test_no_allocation_per_call_and_kernels_reused(monkeypatch):
     """Repeated evaluations create no Taichi field or ndarray; a window of another size reuses the
-    shared fields (and compiled kernels) and both problems keep evaluating correctly."""
+    shared arrays and compiled kernels, and both problems keep evaluating correctly."""
     prob = _problem("mitrokhin4", regularizers=BOTH)
-    fields = prob._fused.fields
+    arrays, kernels = prob._fused._ws, prob._fused._schedules
     theta = np.asarray(THETAS["mitrokhin4"])
     prob.value_and_grad(theta)
     created = []
@@ -109,11 +110,49 @@ def test_no_allocation_per_call_and_fields_reused(monkeypatch):
     assert created == []
     monkeypatch.undo()
     other = _problem("mitrokhin4", n=300, seed=3, regularizers=BOTH)
-    assert other._fused.fields is fields
+    assert other._fused._ws is arrays and other._fused._schedules is kernels
     assert np.isfinite(other.value(theta))
     v1, _ = prob.value_and_grad(theta)
     chain = _problem("mitrokhin4", "chain", regularizers=BOTH)
     assert v1 == pytest.approx(chain.value(theta), rel=1e-11)
+
+
+@pytest.mark.parametrize("warp", ["translation2", "rotation3"])
+def test_another_sensor_compiles_nothing(monkeypatch, warp):
+    """The fused kernels take the sensor's size as arguments: problems on three other sensors (one
+    larger than the first, one with a width that is not a multiple of the segment) reuse the compiled
+    kernels (Taichi builds no kernel again) and agree with the float64 reference."""
+    from taichi.lang import kernel_impl
+
+    options = dict(regularizers=BOTH, camera=CAMERA)
+    theta = np.asarray(THETAS[warp])
+    first = cm.ContrastMaximization(cm.Events(*edge_events(n=500, seed=1), SENSOR), warp=warp, **options)
+    first.value_and_grad(theta)
+    first.value(theta)
+    built = []
+    materialize = kernel_impl.Kernel.materialize
+
+    def counted(self, key=None, args=None, arg_features=None):
+        if key not in self.compiled_kernels:  # (Taichi calls it before every launch)
+            built.append(self)
+        return materialize(self, key=key, args=args, arg_features=arg_features)
+
+    monkeypatch.setattr(kernel_impl.Kernel, "materialize", counted)
+    for size in ((96, 70), (203, 151), (37, 29)):
+        rng = np.random.default_rng(size[0])
+        n = 600
+        x, y = rng.uniform(0, size[0] - 1, n), rng.uniform(0, size[1] - 1, n)
+        t = np.sort(rng.uniform(0, DURATION, n))
+        events = cm.Events(x, y, t, rng.integers(0, 2, n), size)
+        camera = cm.Camera(fx=CAMERA.fx, fy=CAMERA.fy, cx=(size[0] - 1) / 2, cy=(size[1] - 1) / 2)
+        prob = cm.ContrastMaximization(events, warp=warp, regularizers=BOTH, camera=camera)
+        assert prob._fused._schedules is first._fused._schedules
+        value, grad = prob.value_and_grad(theta)
+        weights = dict(lambda_div=BOTH["divergence"], lambda_def=BOTH["deformation"])
+        ref = reference.evaluate_window(events, theta, warp=warp, camera=camera, **weights)
+        assert value == pytest.approx(ref["J"], rel=1e-10)
+        assert prob.value(theta) == pytest.approx(value, rel=1e-12)
+    assert built == [], f"kernels built again for another sensor: {[k.func.__name__ for k in built]}"
 
 
 def test_user_objective_and_whitening_take_the_generic_chain():

@@ -19,6 +19,7 @@ import argparse
 import atexit
 import contextlib
 import importlib
+import logging
 import os
 import signal
 import sys
@@ -27,7 +28,7 @@ import warnings
 from typing import NoReturn
 
 #: explicit list of sub-command modules (cmax_taichi.cli.<name>)
-COMMAND_MODULES = ("info", "estimate", "flow", "evaluate", "segment", "reproduce", "bench")
+COMMAND_MODULES = ("info", "estimate", "flow", "evaluate", "segment", "reproduce", "bench", "warmup")
 
 
 class CliError(Exception):
@@ -42,9 +43,28 @@ def _raise_terminated(signum, frame) -> None:
     raise Terminated()
 
 
+class _StatusLines(logging.Handler):
+    """The library's status messages (``cmax_taichi.compile``: which kernels compile, for how long) as
+    lines ``cmax-taichi COMMAND: ...`` on stderr, above a progress bar if one is drawn."""
+
+    def __init__(self, command: str) -> None:
+        super().__init__(logging.INFO)
+        self.command = command
+
+    def emit(self, record: logging.LogRecord) -> None:
+        line = f"cmax-taichi {self.command}: {record.getMessage()}"
+        if "tqdm" in sys.modules:  # a bar may be on the line: tqdm clears and redraws it
+            from tqdm import tqdm
+
+            tqdm.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr, flush=True)
+
+
 @contextlib.contextmanager
 def _command_signals_and_warnings(command: str):
-    """For the length of a command: SIGTERM handled as SIGINT is, and each warning as one line."""
+    """For the length of a command: SIGTERM handled as SIGINT is, each warning as one line, and the
+    library's status messages as lines of their own."""
     previous_term = None
     with contextlib.suppress(ValueError):  # not the main thread: leave the signals alone
         previous_term = signal.signal(signal.SIGTERM, _raise_terminated)
@@ -55,9 +75,15 @@ def _command_signals_and_warnings(command: str):
         print(f"cmax-taichi {command}: warning: {text}", file=file or sys.stderr)
 
     warnings.showwarning = show
+    status = logging.getLogger("cmax_taichi.compile")
+    handler, previous_level = _StatusLines(command), status.level
+    status.addHandler(handler)
+    status.setLevel(logging.INFO)
     try:
         yield
     finally:
+        status.removeHandler(handler)
+        status.setLevel(previous_level)
         warnings.showwarning = previous_show
         if previous_term is not None:
             signal.signal(signal.SIGTERM, previous_term)

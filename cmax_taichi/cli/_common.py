@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from cmax_taichi.core.backend import ARCHS
+from cmax_taichi.core.backend import ARCHS, COMPILE_MODES
 from cmax_taichi.io import FORMATS
 from cmax_taichi.models.objectives import objective_names
 from cmax_taichi.models.regularizers import regularizer_names
@@ -252,20 +252,30 @@ def add_t_ref_argument(parser) -> None:
     )
 
 
-def add_backend_arguments(parser, *, precision: bool = True) -> None:
-    """``--arch`` (and ``--precision``) of the Taichi backend, on a parser or an argument group."""
+COMPILE_HELP = (
+    "how the kernels compile on first use: auto (quick kernels at once, the optimized ones compiled in "
+    "the background and taken over when ready), full (wait for the optimized kernels: benchmarks), fast "
+    "(quick kernels only) (default $CMAX_TAICHI_COMPILE or auto)"
+)
+
+
+def add_backend_arguments(parser, *, precision: bool = True, compile_mode: bool = True) -> None:
+    """``--arch`` (and ``--precision``, ``--compile``) of the Taichi backend, on a parser or an argument
+    group."""
     parser.add_argument("--arch", default=None, help=f"{names(ARCHS)} (default $CMAX_TAICHI_ARCH or cpu)")
     if precision:
         parser.add_argument(
             "--precision", default=None, choices=["f32", "f64"], help="default f64 on cpu, f32 on gpu"
         )
+    if compile_mode:
+        parser.add_argument("--compile", default=None, choices=COMPILE_MODES, help=COMPILE_HELP)
 
 
-def init_backend(arch: str | None, precision: str | None):
+def init_backend(arch: str | None, precision: str | None, compile_mode: str | None = None):
     """:func:`cmax_taichi.core.backend.init_if_needed` (kept under this name for the commands)."""
     from cmax_taichi.core import backend
 
-    return backend.init_if_needed(arch, precision)
+    return backend.init_if_needed(arch, precision, compile_mode)
 
 
 def parse_regularizers(items: list[str], extra: tuple[str, ...] | list[str] = ()) -> dict[str, float]:

@@ -34,6 +34,7 @@ import importlib.util
 import math
 import signal
 import sys
+import time
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
@@ -505,7 +506,7 @@ def run(args: argparse.Namespace) -> int:
     out_folders = _output_folders(args, inputs)  # refuses, before any work, an OUT that would touch inputs
     figures = FigureWriter()  # before the backend starts: see FigureWriter
     try:
-        common.init_backend(args.arch, args.precision)
+        common.init_backend(args.arch, args.precision, args.compile)
         unique = list(dict.fromkeys(out_folders))  # the flow folder may be OUT itself
         with contextlib.ExitStack() as stack:
             for f in unique:
@@ -586,8 +587,12 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
             raise CliError(f"warp {args.warp!r} needs a calibration, and {path} has none (calib.txt)")
         figures_left = [max(0, args.figures)]
         fingerprint = rec.fingerprint() if flow_folder is not None and example is None else None
+        first, started = [True], time.perf_counter()
 
         def on_window(row, prob, res):
+            if first[0]:  # the first result as soon as it is there
+                first[0] = False
+                _print_first_window(row, prob, started)
             if example is not None:
                 area_scales.append((area_scale(prob, res.theta), area_scale(prob, truth)))
             if figures_left[0] > 0:
@@ -634,6 +639,22 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
         _report_example(example, result, area_scales, regs, folder.path("truth.json"))
     figures.close()
     return {"flows": flows[0]}
+
+
+def _print_first_window(row, prob, started: float) -> None:
+    """The first window's estimate, as soon as it is done (above a progress bar, if one is drawn)."""
+    from tqdm import tqdm
+
+    model = prob.model
+    values = zip(model.params, row.theta, model.units, strict=True)
+    params = ", ".join(f"{name} {value:.4g} {unit}" for name, value, unit in values)
+    kernels = {"fast": "quick kernels", "full": "optimized kernels", "chain": "generic kernels"}[prob.kernels]
+    tqdm.write(
+        f"first window ({row.n_events} events, {row.t_start:.4f}-{row.t_end:.4f} s): {params} "
+        f"({time.perf_counter() - started:.1f} s, {kernels})",
+        file=sys.stdout,
+    )
+    sys.stdout.flush()
 
 
 def _report_example(example, result, area_scales: list[tuple[float, float]], regs: dict, path: Path) -> Path:

@@ -88,7 +88,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="score against --data even when it is not the recording the results were estimated on",
     )
-    add_backend_arguments(parser, precision=False)
+    add_backend_arguments(parser, precision=False, compile_mode=False)
     add_plugin_argument(parser)  # results of a user's model: its plugin names its flow
 
 

@@ -29,6 +29,7 @@ import argparse
 import csv
 import math
 import sys
+import time
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
@@ -345,7 +346,7 @@ def run(args: argparse.Namespace) -> int:
     patterns.append("figures/window_*.png")
     folder = OutputFolder(args.out, inputs=inputs, patterns=patterns, command="flow")
     folder.check()  # an OUT that is an input, or holds files this run may not replace: before any work
-    common.init_backend(args.arch, args.precision)
+    common.init_backend(args.arch, args.precision, args.compile)
     estimator = DenseFlowEstimator(
         tuple(args.grid),
         levels=args.levels,
@@ -441,6 +442,7 @@ def _estimate_into(args, estimator, folder, regs: dict):
             keep_tail=args.keep_tail,
         )
     windows, stamps, bar = [], [], None
+    started = time.perf_counter()
     try:
         if source is not None and args.padding is not None:  # iter_flow checks it too, naming no option
             check_padded_sensor(source.sensor_size, args.padding, "--padding")
@@ -455,6 +457,8 @@ def _estimate_into(args, estimator, folder, regs: dict):
                     _write_window(args, folder, window, estimator, flows.source)
                     stamps.append((window.result.t_start, window.result.t_start + window.dt))
                 writer.writerow(_row(window))
+                if not windows:  # the first result as soon as it is there
+                    _print_first_window(window, started)
                 window.events = window.displacement = None  # nothing of a window is kept but its summary
                 windows.append(window)
                 if bar is not None:
@@ -490,6 +494,26 @@ def _estimate_into(args, estimator, folder, regs: dict):
     }
     folder.path("summary.json").write_text(json_text(info, indent=2))
     return windows, info, truth
+
+
+def _print_first_window(window, started: float) -> None:
+    """The first window's flow in brief, as soon as it is done (above a progress bar, if one is drawn)."""
+    import numpy as np
+    from tqdm import tqdm
+
+    res = window.result
+    if window.displacement is None:  # its flow over dt leaves the sensor (status beyond_sensor)
+        shown = f"no displacement over dt: {window.note}"
+    else:
+        u, v = (float(np.median(c)) for c in window.displacement)
+        shown = f"median displacement ({u:.2f}, {v:.2f}) px"
+    aee = f", AEE {window.metrics['AEE']:.3f} px" if window.metrics is not None else ""
+    tqdm.write(
+        f"first window ({res.t_start:.4f} s + {window.dt:.4f} s): {shown}{aee} "
+        f"({time.perf_counter() - started:.1f} s)",
+        file=sys.stdout,
+    )
+    sys.stdout.flush()
 
 
 def _write_window(args, folder, window, estimator, source: dict) -> None:

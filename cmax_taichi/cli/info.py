@@ -19,10 +19,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import cmax_taichi as cm
     from cmax_taichi.flow.smoothness import SMOOTHNESS, smoothness_names
+    from cmax_taichi.pipeline import tiers
 
-    info = cm.init(arch=args.arch, precision=args.precision)
+    info = cm.init(arch=args.arch, precision=args.precision, compile_mode=args.compile)
     print(f"cmax-taichi {cm.__version__}")
     print(f"backend: arch={info.arch} (requested {info.requested_arch}), precision={info.precision}")
+    print(f"kernels: compile mode {info.compile_mode}; {tiers.cache_summary()}")
     print("warps:")
     for name in cm.warp_names():
         m = cm.get_warp(name)

@@ -78,6 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", default="cmax_segment", metavar="DIR", help="output folder (default ./cmax_segment)"
     )
     run.add_argument("--no-figures", action="store_true", help="labels and JSON only")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def _read_window(rec, args):
@@ -234,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
         from cmax_taichi.sim.examples import make_example
 
         folder.check()
-        common.init_backend(args.arch, args.precision)
+        common.init_backend(args.arch, args.precision, args.compile)
         path = Path(f"example:{args.example}")
         example = make_example(args.example)
         events, camera = example.events, example.camera
@@ -243,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
         if not path.exists():
             raise CliError(f"{path}: no such file or folder")
         folder.check()  # an OUT that is an input, or holds files this run may not replace: before any work
-        common.init_backend(args.arch, args.precision)
+        common.init_backend(args.arch, args.precision, args.compile)
         options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
         with io.open_recording(path, format=args.format, **options) as rec:
             if any(cm.get_warp(w).needs_camera for w in warps) and rec.camera is None:
@@ -265,6 +266,7 @@ def run(args: argparse.Namespace) -> int:
         hard=args.hard,
         max_iterations=args.max_iterations,
         seed=args.seed,
+        progress=not args.quiet,
     )
 
     with folder:

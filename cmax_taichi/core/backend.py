@@ -23,13 +23,14 @@ PRECISION_ENV = "CMAX_TAICHI_PRECISION"
 COMPILE_ENV = "CMAX_TAICHI_COMPILE"
 ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal")
 PRECISIONS = ("f32", "f64")
-# "full": Taichi's advanced IR optimizations on every kernel (the default: the fastest kernels); "fast":
-# off for the kernels with hand-written gradients (the fused kernels, the dense flow's), which then
-# compile 10-23x faster (mitrokhin4 + both regularizers, blur 1 px: 11.7 s -> 1.2 s) and run 1.4-3.7x
-# slower (docs/performance.md, "Compile time"). The kernels that Taichi's autodiff differentiates keep
-# the optimizations: without them its reverse mode is wrong (hand_written_gradient_kernels). The
-# offline cache keeps the two apart (the option is part of Taichi's cache key).
-COMPILE_MODES = ("full", "fast")
+# How the kernels with hand-written gradients (the fused kernels, the dense flow's) compile
+# (pipeline/tiers.py): "full" with Taichi's advanced IR optimizations (the fastest kernels, 10-60 s to
+# compile a configuration), "fast" without them (1-5 s, kernels 1.4-3.7x slower), "auto" (the default)
+# fast kernels at once and the optimized ones compiled by a background process, taken over when ready.
+# The kernels that Taichi's autodiff differentiates keep the optimizations in every mode: without them
+# its reverse mode is wrong (hand_written_gradient_kernels). The offline cache keeps the tiers apart (the
+# option is part of Taichi's cache key).
+COMPILE_MODES = ("auto", "full", "fast")
 
 
 @dataclass(frozen=True)
@@ -47,14 +48,15 @@ class BackendInfo:
     generation : int
         Incremented at every (re-)initialisation; problems remember the generation they were built in.
     compile_mode : str
-        ``"full"`` (optimized kernels) or ``"fast"`` (quick compiles, slower kernels); see :func:`init`.
+        ``"auto"``, ``"full"`` or ``"fast"``: how the kernels with hand-written gradients compile; see
+        :func:`init`.
     """
 
     requested_arch: str
     arch: str
     precision: str
     generation: int
-    compile_mode: str = "full"
+    compile_mode: str = "auto"
 
 
 _state: BackendInfo | None = None
@@ -102,15 +104,16 @@ def init(
         Show only Taichi's errors (not its info logs and compiler warnings).
     kernel_profiler : bool
         Time every task of every kernel launch (``ti.profiler``; used by ``benchmarks/profile_stages.py``).
-    compile_mode : {"full", "fast"}, optional
-        ``"full"`` (default; ``CMAX_TAICHI_COMPILE`` sets it when the argument is omitted) runs Taichi's
-        advanced IR optimizations on every kernel: the fastest kernels, and 10-60 s to compile a fused
-        kernel with both regularizers on this project's 2-core reference machine (blur 1-3 px; once:
-        the offline cache keeps it). ``"fast"`` skips them for the kernels with hand-written
-        gradients (the fused kernels and the dense flow's): those compile 10-23x faster and run
-        1.4-3.7x slower, with the same values and gradients to rounding. Kernels that Taichi's
-        autodiff differentiates (the generic chain, clusters, whitening) are optimized in both modes.
-        For short runs on a cold cache, and the test suite.
+    compile_mode : {"auto", "full", "fast"}, optional
+        How the kernels with hand-written gradients (the fused kernels and the dense flow's) compile;
+        ``CMAX_TAICHI_COMPILE`` sets it when the argument is omitted. ``"auto"`` (default): a configuration
+        whose optimized kernels are in Taichi's offline cache runs on them; otherwise it starts at once on
+        kernels compiled without Taichi's advanced IR optimizations (1-5 s; 1.4-3.7x slower) while a
+        background process compiles the optimized ones (10-60 s on this project's 2-core reference
+        machine), which the next windows take over (``pipeline/tiers.py``). ``"full"``: the optimized
+        kernels, compiled in this process where the cache lacks them (benchmarks). ``"fast"``: the quick
+        kernels only (short runs on a cold cache, the test suite). Kernels that Taichi's autodiff
+        differentiates (the generic chain, clusters, whitening) are optimized in every mode.
 
     Returns
     -------
@@ -128,7 +131,7 @@ def init(
         raise ValueError(f"unknown precision {precision!r}; valid precisions are f32, f64")
     if arch in ("vulkan", "metal") and precision == "f64":
         raise ValueError(f"arch {arch!r} has no f64 support; use precision='f32'")
-    compile_mode = (compile_mode or os.environ.get(COMPILE_ENV) or "full").strip().lower()
+    compile_mode = (compile_mode or os.environ.get(COMPILE_ENV) or "auto").strip().lower()
     if compile_mode not in COMPILE_MODES:
         raise ValueError(f"unknown compile mode {compile_mode!r}; valid modes are {', '.join(COMPILE_MODES)}")
 
@@ -195,8 +198,11 @@ def is_broken() -> bool:
         return True
 
 
-def init_if_needed(arch: str | None = None, precision: str | None = None) -> BackendInfo:
-    """Initialise Taichi unless it already runs with the requested arch and precision (None: any).
+def init_if_needed(
+    arch: str | None = None, precision: str | None = None, compile_mode: str | None = None
+) -> BackendInfo:
+    """Initialise Taichi unless it already runs with the requested arch, precision and compile mode
+    (None: any).
 
     A reset would throw away every compiled kernel of the process, so drivers that may run several
     times in one process (the command line, batch workers) call this instead of :func:`init`.
@@ -206,9 +212,10 @@ def init_if_needed(arch: str | None = None, precision: str | None = None) -> Bac
         current is not None
         and arch in (None, current.requested_arch)
         and precision in (None, current.precision)
+        and compile_mode in (None, current.compile_mode)
     ):
         return current
-    return init(arch=arch, precision=precision)
+    return init(arch=arch, precision=precision, compile_mode=compile_mode)
 
 
 def _end_program() -> None:
@@ -300,19 +307,22 @@ def per_thread_loops() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def hand_written_gradient_kernels() -> Iterator[None]:
+def hand_written_gradient_kernels(tier: str = "full") -> Iterator[None]:
     """Compile the kernels launched inside (kernels whose gradient is written by hand, never
     differentiated by Taichi's autodiff: the fused kernels, the dense flow's) as they need:
-    :func:`per_thread_loops`, and in compile mode ``"fast"`` without Taichi's advanced IR optimizations.
+    :func:`per_thread_loops`, and in ``tier`` ``"fast"`` (``pipeline/tiers.py``; any tier in compile mode
+    ``"fast"``) without Taichi's advanced IR optimizations.
 
     Only these kernels may skip the optimizations: Taichi 1.7.4's reverse mode depends on them. Without
     them (or with ``cfg_optimization`` alone off) a local accumulated in a differentiated kernel
     (``t = 0.0; t += 2 x``) got a zero adjoint in f32, and the whitening kernels got gradients of
     1e+200 in f64 (taichi-dev/taichi#1384 is the same family). Read when a kernel compiles.
     """
+    if tier not in ("fast", "full"):
+        raise ValueError(f"unknown kernel tier {tier!r}; valid tiers are fast, full")
     cfg = ti.lang.impl.current_cfg()
     previous = cfg.advanced_optimization
-    if _state is not None and _state.compile_mode == "fast":
+    if tier == "fast" or (_state is not None and _state.compile_mode == "fast"):
         cfg.advanced_optimization = False
     try:
         with per_thread_loops():

@@ -1,10 +1,13 @@
-"""Pooled Taichi fields shared by problems of the same shapes.
+"""Pooled Taichi fields and arrays shared by problems of the same shapes, and compiled kernels.
 
-Kernels take fields as template arguments, so every new field instance means compiling the kernels
-again (about a second each on a CPU). Problems with the same static shape (event capacity, sensor,
-channels, parameters, regularizers, blur footprint, ...) therefore share one :class:`Workspace`; the
-events and constants of a problem are uploaded again only when another problem used the workspace in
-between. A sequence of windows solved one after the other compiles once.
+The generic chains' kernels take fields as template arguments, so every new field instance means
+compiling them again (about a second each on a CPU). Problems with the same static shape (event
+capacity, sensor, channels, parameters, regularizers, blur footprint, ...) therefore share one
+:class:`Workspace`; the events and constants of a problem are uploaded again only when another problem
+used the workspace in between. A sequence of windows solved one after the other compiles once. The
+fused kernels take their arrays as arguments: their workspaces hold the arrays of one sensor, and
+their kernels are kept apart (:func:`compiled`), keyed by the configuration alone, so that a problem
+on another sensor reuses them.
 """
 
 from __future__ import annotations
@@ -18,7 +21,9 @@ import taichi as ti
 from cmax_taichi.core import backend
 
 _POOL: dict = {}
+_COMPILED: dict = {}
 backend.on_reset(_POOL.clear)
+backend.on_reset(_COMPILED.clear)
 
 MIN_CAPACITY = 1024
 
@@ -74,6 +79,15 @@ def allocating(what: str) -> Iterator[None]:
         ) from None
 
 
+def compiled(key: tuple, build: Callable[[], object]):
+    """The kernels of ``key`` (a configuration: model, objective, regularizers, layout; never a sensor
+    size), built by ``build()`` on first use and kept for the life of the Taichi program."""
+    found = _COMPILED.get(key)
+    if found is None:
+        found = _COMPILED[key] = build()
+    return found
+
+
 def acquire(key: tuple, build: Callable[[Workspace], None], what: str = "") -> Workspace:
     """The pooled workspace for ``key``, built by ``build(ws)`` on first use inside :func:`allocating`
     (``what`` names it in the error)."""
@@ -95,7 +109,7 @@ class EventBuffer:
     """
 
     def __init__(self, dtype, n_columns: int, capacity: int) -> None:
-        self.array = ti.ndarray(ti.types.vector(n_columns, dtype), shape=capacity)
+        self.array = ti.ndarray(dtype, shape=(capacity, n_columns))
         self.capacity = capacity
         self._owner = None
 

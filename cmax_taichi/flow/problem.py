@@ -29,7 +29,9 @@ from cmax_taichi.flow.smoothness import SMOOTHNESS
 from cmax_taichi.kernels import dense_flow as kdense
 from cmax_taichi.kernels import fused_common as kcommon
 from cmax_taichi.models.regularizers import REGULARIZERS
+from cmax_taichi.pipeline import tiers
 from cmax_taichi.pipeline.footprint import image_layout, kernels_key
+from cmax_taichi.pipeline.launch import HostArray, array_bytes, kernel_arrays
 from cmax_taichi.pipeline.setup import POLARITY_MODES, ProblemSetup, SetupOptions, check_regularizers
 
 __all__ = ["DenseEvaluation", "DenseFlowProblem", "MULTI_REFERENCE", "resolve_references"]
@@ -276,8 +278,6 @@ class DenseFlowProblem:
         weighted = setup.vote_weights is not None
         split = setup.polarity == "split"
         layout = image_layout(
-            width=W,
-            height=H,
             n_channels=C,
             radius=setup.radius,
             shared_count=Q > 0 and not weighted and not split,
@@ -301,36 +301,52 @@ class DenseFlowProblem:
             "the dense flow problem",
             f"sensor {W}x{H}, {R} reference(s), {Q} regularizer(s), {setup.n_events:,} events",
         )
-        key = ("dense_flow", backend.info().generation, layout, R, Q, cap)
-
-        def build(ws):
-            ws.fields = kdense.DenseFlowFields(layout, n_refs=R, n_regs=Q, max_nodes=cap, atomic=self._atomic)
-            ws.kernels = {}
-
-        self._ws = workspace.acquire(key, build, f"a {W}x{H} dense flow problem")
-        self.fields = self._ws.fields
-        kkey = kernels_key(self.objective.name, obj, self.regularizers, weighted, split, self._atomic)
-        if kkey not in self._ws.kernels:
-            regs = self.regularizers
-            self._ws.kernels[kkey] = kdense.make_dense_flow_kernels(
-                self.fields,
-                tuple(r.kind for r in regs),
-                tuple(r.penalty for r in regs),
-                tuple(r.penalty_grad for r in regs),
-                tuple(bool(r.one_sided) for r in regs),
-                objective=obj,
-                events=kcommon.EventLayout(weighted, split, self._atomic),
-            )
-        self._run_k = self._ws.kernels[kkey]
+        shape = self._shape = kdense.DenseFlowShape(layout, R, Q, self._atomic)
+        self._image = (W, H)
+        # the arrays of this image (shared by the problems of this shape and image) and of this grid capacity
+        self._ws = workspace.acquire(
+            ("dense_flow", backend.info().generation, shape, W, H),
+            lambda ws: setattr(ws, "arrays", kernel_arrays(shape.array_sizes(W, H), self._atomic)),
+            f"a {W}x{H} dense flow problem",
+        )
+        self._node_ws = workspace.acquire(
+            ("dense_flow_nodes", backend.info().generation, shape, cap),
+            lambda ws: setattr(ws, "arrays", kernel_arrays(shape.node_sizes(cap), self._atomic)),
+            f"the nodes of a {cap}-node dense flow problem",
+        )
+        self.max_nodes = cap
+        regs = self.regularizers
+        kkey = (
+            "dense_flow",
+            backend.info().generation,
+            shape,
+            *kernels_key(self.objective.name, obj, regs, weighted, split, self._atomic),
+        )
+        # one Taichi kernel per tier (Taichi compiles a kernel object once, with the options of then)
+        self._kernels_key = kkey
+        self._build_kernel = lambda: kdense.make_dense_flow_kernels(
+            shape,
+            tuple(r.kind for r in regs),
+            tuple(r.penalty for r in regs),
+            tuple(r.penalty_grad for r in regs),
+            tuple(bool(r.one_sided) for r in regs),
+            objective=obj,
+            events=kcommon.EventLayout(weighted, split, self._atomic),
+        )
+        self.kernel_config = tiers.dense_config(self, setup, weighted, slices, self._atomic)
+        self.tier = "full"  # the compiled tier of the current window's kernel (_take_window)
+        self._params_at = shape.params_layout()
+        self._params = np.zeros(self._params_at["size"])
         self._out = np.zeros(2 + R + Q + Q * R)
         self._gout = np.zeros(2 * cap)
-        self._nodes_buf = np.zeros((cap, 2), dtype=backend.numpy_real())
+        self._nodes_buf = np.zeros(2 * cap, dtype=backend.numpy_real())
         self._event_buffer = None
         self._generation = backend.info().generation
 
     def _take_window(self, setup: ProblemSetup) -> None:
         """Load a window: its events, constants and G0."""
         self.setup = setup
+        self.tier = tiers.current_tier(self.kernel_config)  # (the optimized kernel from when it is ready)
         self.events = setup.events
         self.n_events = setup.n_events
         self.duration = setup.duration
@@ -342,9 +358,13 @@ class DenseFlowProblem:
         self._lam = [self.regularizer_weights[r.name] for r in regs] + [
             r.scale(self.duration, o) for r in regs for o in self.orientations
         ]
-        self._ref_off = np.array([fr * self.duration for fr in self.fractions], dtype=backend.numpy_real())
-        self._ref_w = np.array(self.reference_weights, dtype=backend.numpy_real())
-        self._taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
+        at, params = self._params_at, self._params
+        R = len(self.fractions)
+        params[at["ref_off"] : at["ref_off"] + R] = [fr * self.duration for fr in self.fractions]
+        params[at["ref_w"] : at["ref_w"] + R] = self.reference_weights
+        params[at["lam"] : at["lam"] + len(self._lam)] = self._lam
+        if setup.taps is not None:  # (without blur the kernel's one tap is 1)
+            params[at["taps"] : at["taps"] + len(setup.taps)] = setup.taps
         ev = setup.events
         cols = [ev.x + self.padding, ev.y + self.padding, ev.t - self.t_first]
         if self._weighted:
@@ -367,7 +387,6 @@ class DenseFlowProblem:
         for j, col in enumerate(cols):
             self._packed[: self.n_events, j] = col[order]
         self._event_buffer.release()
-        self._ws.release()
         self._g0 = 1.0
         if setup.normalize:
             g0 = self._raw_identity()
@@ -377,13 +396,11 @@ class DenseFlowProblem:
                     "events, or all of them outside the sensor)"
                 )
             self._g0 = g0
-            self._ws.release()
 
     def _raw_identity(self) -> float:
         """Raw G of the unwarped events (any reference: they coincide)."""
         saved = self._g0
         self._g0 = 1.0
-        self._ws.release()
         out = self._launch(np.zeros(self.grid.shape), grad=0, maps=False)
         self._g0 = saved
         return float(out[2])
@@ -412,23 +429,16 @@ class DenseFlowProblem:
             raise ValueError(
                 f"grid is for a {grid.width}x{grid.height} sensor, the problem for {self.width}x{self.height}"
             )
-        if grid.n_nodes > self.fields.max_nodes:
+        if grid.n_nodes > self.max_nodes:
             raise ValueError(
                 f"a {grid.nx}x{grid.ny}-cell grid has {grid.n_nodes} nodes; this problem holds "
-                f"{self.fields.max_nodes} "
+                f"{self.max_nodes} "
                 "(build it with the finest grid of the run)"
             )
         self.grid = grid
         sx, sy = grid.spacing
-        self._grid_vec = [
-            float(grid.nx),
-            float(grid.ny),
-            1.0 / sx,
-            1.0 / sy,
-            float(self.padding),
-            float(self.padding),
-        ]
-        self._ws.release()
+        at = self._params_at["grid"]
+        self._params[at : at + 6] = [grid.nx, grid.ny, 1.0 / sx, 1.0 / sy, self.padding, self.padding]
 
     def _check_alive(self) -> None:
         if backend.info().generation != self._generation:
@@ -439,27 +449,22 @@ class DenseFlowProblem:
     # --- evaluation ------------------------------------------------------------------------------------
     def _load(self, U: np.ndarray) -> None:
         self._event_buffer.load(self, self._packed)
-        f = self.fields
-        self._nodes_buf[: self.grid.n_nodes] = U.reshape(-1, 2)
-        self._nodes_buf[self.grid.n_nodes :] = 0.0
-        f.nodes.from_numpy(self._nodes_buf)
-        if self._ws.owned_by(self):
-            return
-        f.grid[None] = self._grid_vec
-        f.ref_off.from_numpy(self._ref_off)
-        f.ref_w.from_numpy(self._ref_w)
-        if self._lam:
-            f.lam[None] = self._lam
-        if self._taps is not None:
-            f.taps.from_numpy(self._taps)
-        f.g0[None] = self._g0
-        self._ws.take(self)
+        self._nodes_buf[: 2 * self.grid.n_nodes] = U.reshape(-1)
+        self._nodes_buf[2 * self.grid.n_nodes :] = 0.0
+        self._params[self._params_at["g0"]] = self._g0
+        nodes = self._node_ws.arrays["nodes"]
+        if not isinstance(nodes, HostArray):  # a GPU's node array: uploaded
+            nodes.from_numpy(self._nodes_buf)
+        else:
+            nodes.array[:] = self._nodes_buf
 
     def _launch(self, U: np.ndarray, grad: int, maps: bool = True) -> np.ndarray:
         self._check_alive()
         self._load(U)
-        with backend.hand_written_gradient_kernels():  # one slice per thread; the compile mode
-            self._run_k(
+        arrays = {**self._ws.arrays, **self._node_ws.arrays}
+        kernel = workspace.compiled((*self._kernels_key, self.tier), self._build_kernel)
+        with backend.hand_written_gradient_kernels(self.tier):  # one slice per thread; the tier
+            kernel(
                 self.n_events,
                 self._event_buffer.array,
                 self.grid.n_nodes,
@@ -467,6 +472,9 @@ class DenseFlowProblem:
                 int(maps),
                 self._out,
                 self._gout,
+                self._params,
+                *self._image,
+                *(a.array if isinstance(a, HostArray) else a for a in arrays.values()),
             )
         return self._out
 
@@ -531,8 +539,12 @@ class DenseFlowProblem:
         U = self.grid.check_nodes(nodes)
         self._launch(U, 0)
         C, P = self.n_channels, self.padding
-        img = self.fields.img.to_numpy().astype(np.float64)[..., reference * C : (reference + 1) * C]
-        img = np.moveaxis(img, -1, 0)
+        W, H = self._image
+        images = self._ws.arrays["images"]
+        flat = images.array if isinstance(images, HostArray) else images.to_numpy()
+        # the planes tmp, then img (DenseFlowShape.image_planes)
+        first = len(self.fractions) * C + reference * C
+        img = flat[first * W * H : (first + C) * W * H].reshape(C, H, W).astype(np.float64)
         if not padded and P:
             img = img[:, P : P + self.height, P : P + self.width]
         return img[0] if C == 1 else img
@@ -591,7 +603,7 @@ class DenseFlowProblem:
 
     def nbytes(self) -> int:
         """Bytes of the shared image fields plus this problem's event array."""
-        return self.fields.nbytes() + self._packed.nbytes
+        return array_bytes(self._ws.arrays) + array_bytes(self._node_ws.arrays) + self._packed.nbytes
 
     def __repr__(self) -> str:
         regs = {**self.regularizer_weights, **self.smoothness_weights}

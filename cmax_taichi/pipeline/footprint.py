@@ -23,8 +23,6 @@ def n_slices() -> int:
 
 def image_layout(
     *,
-    width: int,
-    height: int,
     n_channels: int,
     radius: int,
     shared_count: bool,
@@ -32,14 +30,13 @@ def image_layout(
     sobel: bool,
     atomic: bool,
 ) -> ImageLayout:
-    """The :class:`ImageLayout` of a problem's kernels (hashable: a part of workspace keys) in the
-    backend's float type, with one slice per CPU thread, or one slice when the event passes add
-    atomically (``atomic``: a GPU arch, or a forced atomic path).
+    """The :class:`ImageLayout` of a problem's kernels (hashable: a part of the kernels' and workspaces'
+    keys) in the backend's float type, with one slice per CPU thread, or one slice when the event passes
+    add atomically (``atomic``: a GPU arch, or a forced atomic path). The sensor is not in it: the
+    kernels take their image's width and height as arguments.
 
     Parameters
     ----------
-    width, height : int
-        The kernels' image, px (the sensor plus any padding).
     n_channels : int
         Images per reference (2 for split polarity).
     radius : int
@@ -55,8 +52,6 @@ def image_layout(
     """
     return ImageLayout(
         real=backend.real(),
-        width=width,
-        height=height,
         n_channels=n_channels,
         radius=radius,
         n_slices=1 if atomic else n_slices(),

@@ -38,14 +38,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
-from taichi.lang import impl as ti_impl
 
 from cmax_taichi.core import backend, workspace
 from cmax_taichi.kernels import fused as kfused
 from cmax_taichi.kernels import fused_common as kcommon
 from cmax_taichi.models.regularizers import REGULARIZERS, Regularizer
 from cmax_taichi.models.warps import WarpModel
+from cmax_taichi.pipeline import tiers
 from cmax_taichi.pipeline.footprint import image_layout, kernels_key
+from cmax_taichi.pipeline.launch import DirectLaunch, HostArray, array_bytes, kernel_arrays, plain
 
 __all__ = ["ChainPathWarning", "FusedPipeline", "PathChoice"]
 
@@ -108,62 +109,6 @@ def regularizer_gap(reg: Regularizer) -> str:
     return ""
 
 
-class _DirectLaunch:
-    """One compiled Taichi kernel launched through its C++ launch context.
-
-    ``Kernel.__call__`` of Taichi 1.7.4 spends ~60-80 us of Python per launch of the fused kernel
-    (12 arguments: template mapping, type checks and conversion of each, the compiled-kernel lookup);
-    the kernel itself runs in tens of us for a small window. After one ordinary call has compiled it,
-    this holds the compiled kernel and one launch context: a call sets the arguments that changed and
-    launches (a few us). Taichi internals (the version is pinned in pyproject.toml): where they differ,
-    :meth:`make` returns None and the ordinary call serves. Valid while Taichi runs the program it was
-    made in (:meth:`valid`: a reset or re-initialisation makes a new one).
-    """
-
-    def __init__(self, kernel, args: tuple) -> None:
-        primal = kernel._primal
-        key = primal.ensure_compiled(*args)
-        self._t_kernel = primal.compiled_kernels[key]
-        prog = self._prog = ti_impl.get_runtime().prog
-        self._data = prog.compile_kernel(prog.config(), prog.get_device_caps(), self._t_kernel)
-        self.ctx = self._t_kernel.make_launch_context()
-
-    @classmethod
-    def make(cls, kernel, args: tuple) -> _DirectLaunch | None:
-        try:
-            return cls(kernel, args)
-        except (AttributeError, KeyError, TypeError, RuntimeError):
-            return None
-
-    def valid(self) -> bool:
-        return ti_impl.get_runtime().prog is self._prog
-
-    def set_array(self, index: int, array) -> None:
-        """Array argument ``index``: a Taichi ndarray, or a :class:`_HostArray`. Before every launch: a
-        launch replaces the arrays in the context with device pointers."""
-        if isinstance(array, _HostArray):
-            self.ctx.set_arg_external_array_with_shape((index,), array.address, array.nbytes, array.shape, 0)
-        else:
-            self.ctx.set_arg_ndarray((index,), array.arr)
-
-    def launch(self) -> None:
-        self._prog.launch_kernel(self._data, self.ctx)
-
-
-class _HostArray:
-    """A C-contiguous NumPy array passed to a kernel as an external array (on the CPU, Taichi reads it in
-    place: no copy), with what the launch context needs (its address, size, shape without the vector
-    dimension)."""
-
-    def __init__(self, array: np.ndarray, vector: bool = False) -> None:
-        if not array.flags.c_contiguous:
-            raise ValueError("a kernel's host array must be C-contiguous")
-        self.array = array
-        self.address = int(array.ctypes.data)
-        self.nbytes = array.nbytes
-        self.shape = array.shape[:-1] if vector else array.shape
-
-
 LOOP_SCHEDULES = ("auto", "serial", "parallel")
 
 
@@ -179,8 +124,12 @@ def stores_terms(declared: bool, serial: bool, n_voted: int) -> bool:
 
 
 class _Schedules:
-    """The fused kernel of one kernel key in its CPU schedules, each compiled when first used, and what
-    "auto" has learnt about where the calling thread alone is slower than the thread pool.
+    """The fused kernel of one kernel key in its CPU schedules and compiled tiers, each built when first
+    used, and what "auto" has learnt about where the calling thread alone is slower than the thread pool.
+
+    Each (schedule, tier) is a Taichi kernel of its own: Taichi 1.7.4 compiles a kernel object once, with
+    the compile options in force then, and never again, so the optimized tier cannot be a recompile of
+    the fast tier's kernel.
 
     ``parallel_from``: the smallest event count whose window ran on the pool because its timed calls
     on one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`) and the same call on the pool
@@ -192,14 +141,14 @@ class _Schedules:
 
     def __init__(self, build) -> None:
         self._build = build
-        self._kernels: dict[bool, object] = {}
+        self._kernels: dict[tuple[bool, str], object] = {}
         self.parallel_from = None
         self.serial_upto = 0  # the largest window whose first serial call was under the limit
 
-    def kernel(self, serial: bool):
-        if serial not in self._kernels:
-            self._kernels[serial] = self._build(serial)
-        return self._kernels[serial]
+    def kernel(self, serial: bool, tier: str):
+        if (serial, tier) not in self._kernels:
+            self._kernels[(serial, tier)] = self._build(serial)
+        return self._kernels[(serial, tier)]
 
 
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
@@ -277,8 +226,6 @@ class FusedPipeline:
         split = problem.polarity == "split"
         atomic = backend.info().arch != "cpu" or self.force_atomic
         layout = image_layout(
-            width=problem.width,
-            height=problem.height,
             n_channels=problem.n_channels,
             radius=problem.setup.radius,
             shared_count=bool(regs) and not weighted and not split,
@@ -291,56 +238,60 @@ class FusedPipeline:
         kinds = tuple(r.kind for r in regs)
         constant = tuple(k in model.constant_quantities for k in kinds)
         n_voted = len(regs) - sum(constant)
-        key = ("fused", problem._backend.generation, layout, len(regs), n_voted, P)
-
-        def build(ws):
-            ws.fields = kfused.FusedFields(layout, n_regs=len(regs), n_voted=n_voted, n_params=P)
-            ws.kernels = {}
-
-        W, H = layout.width, layout.height
-        self._ws = workspace.acquire(key, build, f"a {W}x{H} problem (fused pipeline)")
-        self.fields = self._ws.fields
+        shape = self.shape = kfused.FusedShape(layout, len(regs), n_voted, P)
+        W, H = problem.width, problem.height
+        # the arrays of this sensor, shared by the problems of this shape and sensor (the regions the
+        # last call wrote are in them: they go together)
+        self._ws = workspace.acquire(
+            ("fused", problem._backend.generation, shape, W, H),
+            lambda ws: setattr(ws, "arrays", kernel_arrays(shape.array_sizes(W, H), atomic)),
+            f"a {W}x{H} problem (fused pipeline)",
+        )
+        # the kernels of this configuration, whatever the sensor
         kkey = (
+            "fused",
+            problem._backend.generation,
+            shape,
             model.name,
             id(model),
             *kernels_key(problem.objective.name, objective, regs, weighted, split, atomic, constant),
         )
-        if kkey not in self._ws.kernels:
 
-            def build_kernel(serial: bool, fields=self.fields):
-                return kfused.make_fused_kernels(
-                    fields,
-                    model.warp,
-                    tuple(r.quantity_fn(model) for r in regs),
-                    tuple(r.penalty for r in regs),
-                    tuple(r.penalty_grad for r in regs),
-                    tuple(bool(getattr(r, "one_sided", False)) for r in regs),
-                    objective=objective,
-                    events=kcommon.EventLayout(weighted, split, atomic),
-                    param_jac=model.param_jac,
-                    quantity_kinds=kinds,
-                    constant=constant,
-                    det_fn=model.det,
-                    warp_terms=model.warp_terms,
-                    positive_det=model.positive_det,
-                    serial=serial,
-                    store_terms=stores_terms(model.store_event_terms, serial, n_voted),
-                )
+        def build_kernel(serial: bool):
+            return kfused.make_fused_kernels(
+                shape,
+                model.warp,
+                tuple(r.quantity_fn(model) for r in regs),
+                tuple(r.penalty for r in regs),
+                tuple(r.penalty_grad for r in regs),
+                tuple(bool(getattr(r, "one_sided", False)) for r in regs),
+                objective=objective,
+                events=kcommon.EventLayout(weighted, split, atomic),
+                param_jac=model.param_jac,
+                quantity_kinds=kinds,
+                constant=constant,
+                det_fn=model.det,
+                warp_terms=model.warp_terms,
+                positive_det=model.positive_det,
+                serial=serial,
+                store_terms=stores_terms(model.store_event_terms, serial, n_voted),
+            )
 
-            self._ws.kernels[kkey] = _Schedules(build_kernel)
-        self._schedules = self._ws.kernels[kkey]
-        self._launchers: dict[bool, _DirectLaunch | None] = {}
+        self._schedules = workspace.compiled(kkey, lambda: _Schedules(build_kernel))
+        self.kernel_config = tiers.fused_config(problem, regs, weighted, layout.n_slices, atomic)
+        self.tier = "full"  # the compiled tier of the current window's kernels (load_window)
+        self._launchers: dict[tuple[bool, str], DirectLaunch | None] = {}
         self._serial = False  # the schedule of the current window (load_window)
         self._probe = False  # the window's first call on one thread is still to be timed
 
         self._weighted, self._split, self._atomic = weighted, split, atomic
         self._sensor = (W, H)
-        self._layout = kfused.params_layout(len(regs))
-        self._params = _HostArray(np.zeros(self._layout["size"]))  # theta and the window's constants
-        self._out = _HostArray(np.zeros(3 + P))  # J, G_raw, dJ/dtheta, J with G0 = G_raw
+        self._layout = kfused.params_layout(len(regs), layout.radius)
+        self._params = HostArray(np.zeros(self._layout["size"]))  # theta and the window's constants
+        self._out = HostArray(np.zeros(shape.out_size()))  # J, G_raw, dJ/dtheta, J with G0 = G_raw, slices
         self._event_buffer = None  # GPU: the pooled device buffer of the events
         self._packed = None
-        # the kernel's stored event terms (kernels/fused.py, stage 2): a (rows, capacity) host array
+        # the kernel's stored event terms (kernels/fused.py, stage 1): a (rows, capacity) host array
         # where the model declares store_event_terms on the CPU (the kernels that store, stores_terms,
         # write it); otherwise a (1, 1) placeholder
         self._terms_rows = kfused.terms_width(P, n_voted) if model.store_event_terms and not atomic else 0
@@ -350,9 +301,8 @@ class FusedPipeline:
                 self._ws.no_terms = ti.ndarray(backend.real(), shape=(1, 1))
             self._no_terms = self._ws.no_terms
         else:
-            self._no_terms = _HostArray(np.zeros((1, 1), dtype=backend.numpy_real()))
+            self._no_terms = HostArray(np.zeros((1, 1), dtype=backend.numpy_real()))
         self._terms = self._no_terms
-        self._taps = None
         self.load_window(problem, vote_w)
 
     def can_take(self, problem, vote_w: np.ndarray | None) -> bool:
@@ -381,11 +331,10 @@ class FusedPipeline:
         lam = setup.lam
         params[lay["lam"] : lay["lam"] + len(lam)] = lam
         params[lay["g0"]] = 1.0
-        taps = None if setup.taps is None else setup.taps.astype(backend.numpy_real())
-        if self._packed is None or not np.array_equal(taps, self._taps):  # the same blur: no upload
-            self._ws.release()
-        self._taps = taps
+        if setup.taps is not None:  # (without blur the kernel's one tap is 1)
+            params[lay["taps"] : lay["taps"] + len(setup.taps)] = setup.taps.astype(backend.numpy_real())
         self.n_events = n = problem.n_events
+        self.tier = tiers.current_tier(self.kernel_config)  # (the optimized kernels from when they are ready)
         self._choose_schedule(n)
 
         # the events as (x, y, dt[, w][, channel]) vectors
@@ -416,10 +365,10 @@ class FusedPipeline:
             self._event_buffer.release()
             self.events = self._event_buffer.array
         else:
-            self.events = _HostArray(self._packed[:n], vector=True)
+            self.events = HostArray(self._packed[:n])
             if self._terms_rows and self._terms.shape[1] != capacity:
                 rows = self._terms_rows
-                self._terms = _HostArray(np.zeros((rows, capacity), dtype=backend.numpy_real()))
+                self._terms = HostArray(np.zeros((rows, capacity), dtype=backend.numpy_real()))
         self.event_bytes = self._packed.nbytes + (self._terms.nbytes if self._terms_rows else 0)
 
     def _choose_schedule(self, n: int) -> None:
@@ -458,17 +407,6 @@ class FusedPipeline:
     def _load(self) -> None:
         if self._event_buffer is not None:
             self._event_buffer.load(self, self._packed)
-        ws = self._ws
-        if ws.owned_by(self):
-            return
-        # the taps are the only constants held in the fields (the rest are launch arguments): another
-        # problem of the same blur (a coarse view of the search, a window's FWL problem) finds them
-        # there already, and an upload (Taichi's from_numpy, about 0.3 ms) would only rewrite them
-        held = getattr(ws, "taps_held", None)
-        if self._taps is not None and (held is None or not np.array_equal(held, self._taps)):
-            self.fields.taps.from_numpy(self._taps)
-            ws.taps_held = self._taps.copy()
-        ws.take(self)
 
     def _run(self, theta: np.ndarray, grad: int) -> np.ndarray:
         self._load()
@@ -518,7 +456,7 @@ class FusedPipeline:
 
     def _launch(self, grad: int) -> np.ndarray:
         serial = self._serial
-        launcher = self._launchers.get(serial)
+        launcher = self._launchers.get((serial, self.tier))
         self._compiling = False
         if launcher is not None and launcher.valid():
             ctx = launcher.ctx
@@ -528,25 +466,37 @@ class FusedPipeline:
             launcher.set_array(3, self._params)
             ctx.set_arg_int((4,), grad)
             launcher.set_array(5, self._out)
+            ctx.set_arg_int((6,), self._sensor[0])
+            ctx.set_arg_int((7,), self._sensor[1])
+            for index, array in enumerate(self._ws.arrays.values(), start=8):
+                launcher.set_array(index, array)
             launcher.launch()
             return self._out.array
         self._compiling = True  # (or loading from the offline cache: not a measure of the window)
-        kernel = self._schedules.kernel(serial)
-        events = self.events.array if isinstance(self.events, _HostArray) else self.events
-        terms = self._terms.array if isinstance(self._terms, _HostArray) else self._terms
-        call = (self.n_events, events, terms, self._params.array, grad, self._out.array)
-        with backend.hand_written_gradient_kernels():  # their compile settings (read when it compiles)
+        kernel = self._schedules.kernel(serial, self.tier)
+        call = (
+            self.n_events,
+            plain(self.events),
+            plain(self._terms),
+            self._params.array,
+            grad,
+            self._out.array,
+            *self._sensor,
+            *(plain(a) for a in self._ws.arrays.values()),
+        )
+        # the tier's compile settings (read when it compiles): one Taichi kernel serves both tiers, Taichi
+        # compiles (or loads) it per configuration
+        with backend.hand_written_gradient_kernels(self.tier):
             kernel(*call)
             # the next calls launch the compiled kernel directly
-            # (inside: Taichi's look-up of the compiled kernel is keyed by the configuration too)
-            self._launchers[serial] = _DirectLaunch.make(kernel, call)
+            self._launchers[(serial, self.tier)] = DirectLaunch.make(kernel, call)
         return self._out.array
 
     # --- evaluation ------------------------------------------------------------------------------
     def launch_ready(self) -> bool:
         """Whether the next call launches the compiled kernel directly (compiled, and Taichi still runs
         the program it was compiled in)."""
-        launcher = self._launchers.get(self._serial)
+        launcher = self._launchers.get((self._serial, self.tier))
         return launcher is not None and launcher.valid()
 
     def value(self, theta: np.ndarray) -> float:
@@ -576,8 +526,13 @@ class FusedPipeline:
         """The blurred IWE of the last evaluation, (C, H, W) float64 (one more launch at its theta, which
         keeps the image: the evaluations do not store it unless the objective reads it)."""
         self._run(self._params.array[: self.n_params].copy(), 2)  # theta: the last call's
-        return np.moveaxis(self.fields.img.to_numpy().astype(np.float64), -1, 0)
+        W, H = self._sensor
+        C = self.shape.layout.n_channels
+        images = self._ws.arrays["images"]
+        flat = images.array if isinstance(images, HostArray) else images.to_numpy()
+        img = flat[2 * C * W * H : 3 * C * W * H]  # the planes tmp, tmp2, then img (FusedShape.image_planes)
+        return img.reshape(C, H, W).astype(np.float64)
 
     def nbytes(self) -> int:
-        """Bytes of the shared fields plus this problem's event array."""
-        return self.fields.nbytes() + self.event_bytes
+        """Bytes of the shared arrays plus this problem's event array."""
+        return array_bytes(self._ws.arrays) + self.event_bytes

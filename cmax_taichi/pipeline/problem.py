@@ -254,6 +254,13 @@ class ContrastMaximization(SetupView):
             "(nothing to maximise)"
         )
 
+    @property
+    def kernels(self) -> str:
+        """The kernels that compute value and gradient now: ``"full"`` (the optimized fused kernels),
+        ``"fast"`` (fused kernels compiled quickly, while the optimized ones compile in the background:
+        ``pipeline/tiers.py``) or ``"chain"`` (the generic autodiff kernels)."""
+        return "chain" if self._fused is None else self._fused.tier
+
     # --- fields and kernels ----------------------------------------------------------------------
     def _ensure_generic(self) -> None:
         """Allocate and load the generic kernel chain's fields and kernels (once)."""

@@ -64,6 +64,10 @@ class WindowResult:
     n_dropped : int
         Events of the window's index range dropped before estimation (outside the sensor, lost in
         undistortion): ``n_events + n_dropped`` is the range's size.
+    kernels : str
+        The kernels that computed the window: ``"full"`` (optimized), ``"fast"`` (quickly compiled,
+        while the optimized ones compiled in the background: ``pipeline/tiers.py``), ``"chain"`` (the
+        generic autodiff kernels), or "" (not estimated, or results of an older version).
     """
 
     index: int
@@ -80,6 +84,7 @@ class WindowResult:
     search: str = ""
     status: str = ESTIMATED
     n_dropped: int = 0
+    kernels: str = ""
 
     @classmethod
     def of_optimization(cls, res, **window) -> WindowResult:
@@ -179,6 +184,7 @@ class SequenceResult:
         "search",
         "n_dropped",
         "status",
+        "kernels",
     )
 
     def columns(self) -> list[str]:
@@ -201,6 +207,7 @@ class SequenceResult:
                 w.search,
                 w.n_dropped,
                 w.status,
+                w.kernels,
             ]
             for w in self.rows()
         ]
@@ -243,6 +250,7 @@ class SequenceResult:
                     "search": w.search,
                     "n_dropped": w.n_dropped,
                     "status": w.status,
+                    "kernels": w.kernels,
                 }
                 for w in self.rows()
             ],
@@ -259,7 +267,7 @@ class SequenceResult:
         """Write one HDF5 dataset per column (length K, every window, estimated or not): ``index``,
         ``t_start``, ``t_end`` (s), ``n_events``, each parameter by name (attribute ``unit``),
         ``value``, ``fwl``, ``iterations``, ``evaluations``, ``seconds``, ``converged``,
-        ``n_dropped``, ``status`` (strings). File attributes: ``warp``, ``params``, ``units``,
+        ``n_dropped``, ``status`` and ``kernels`` (strings). File attributes: ``warp``, ``params``, ``units``,
         ``columns`` (the dataset order), ``events_json`` (:attr:`events`) and each setting (numbers
         and strings as they are, anything else as JSON text; all of them also in ``settings_json``).
         Written through a temporary file renamed when complete; returns the path."""
@@ -268,7 +276,7 @@ class SequenceResult:
         diagnostics = (
             "index", "t_start", "t_end", "n_events", "value", "fwl", "iterations", "evaluations", "seconds"
         )  # fmt: skip
-        clash = set(self.param_names) & {*diagnostics, "converged", "n_dropped", "status"}
+        clash = set(self.param_names) & {*diagnostics, "converged", "n_dropped", "status", "kernels"}
         if clash:
             raise ValueError(f"parameter names {sorted(clash)} clash with the result columns")
         ws = self.rows()
@@ -290,6 +298,7 @@ class SequenceResult:
             converged=(np.array([w.converged for w in ws], dtype=bool), ""),
             n_dropped=(np.array([w.n_dropped for w in ws], dtype=np.int64), ""),
             status=(np.array([w.status for w in ws], dtype=h5py.string_dtype()), ""),
+            kernels=(np.array([w.kernels for w in ws], dtype=h5py.string_dtype()), ""),
         )
         path = Path(path)
         with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
@@ -374,6 +383,7 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
                 search=str(w.get("search", "")),
                 status=str(w.get("status", ESTIMATED)),
                 n_dropped=int(w.get("n_dropped", 0)),
+                kernels=str(w.get("kernels", "")),
             )
             _check_row(row)
             result.add(row)
@@ -420,6 +430,7 @@ def _read_hdf5(path: Path) -> SequenceResult:
             raise ValueError("'settings_json' or 'events_json' is not a JSON object")
         n = len(col["index"])
         status = col.get("status", np.array([ESTIMATED] * n))
+        kernels = col.get("kernels", np.array([""] * n))
         for k in range(n):
             row = WindowResult(
                 index=int(col["index"][k]),
@@ -435,6 +446,7 @@ def _read_hdf5(path: Path) -> SequenceResult:
                 evaluations=int(col["evaluations"][k]) if "evaluations" in col else 0,
                 status=status[k].decode() if isinstance(status[k], bytes) else str(status[k]),
                 n_dropped=int(col["n_dropped"][k]) if "n_dropped" in col else 0,
+                kernels=kernels[k].decode() if isinstance(kernels[k], bytes) else str(kernels[k]),
             )
             _check_row(row)
             result.add(row)

@@ -22,6 +22,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TextIO
 
 import numpy as np
 
@@ -340,6 +341,7 @@ def segment(
     min_membership: float = 0.02,
     merge_distance: float = 1.0,
     seed: int = 0,
+    progress: bool | TextIO = False,
 ) -> SegmentationResult:
     """Segment a window of events into K independently moving clusters.
 
@@ -399,6 +401,10 @@ def segment(
         and reported empty. 0 disables merging.
     seed : int
         Seed of the subsampling.
+    progress : bool or stream
+        Show progress on stderr (or on the given stream): the set-up (the first use of a configuration
+        compiles its kernels), then each iteration with its J and the share of events that changed
+        cluster (:class:`~cmax_taichi.solve.sequence.ProgressBar`).
 
     Returns
     -------
@@ -434,118 +440,131 @@ def segment(
         raise ValueError(f"merge_distance must be a finite number of px >= 0, got {merge_distance}")
     backend.ensure_initialized()
     rng = np.random.default_rng(seed)
+    bar = None
+    if progress:
+        from cmax_taichi.solve.sequence import ProgressBar
 
-    prob = MultiClusterCMax(
-        events,
-        K,
-        warp,
-        objective=objective,
-        regularizers=regularizers,
-        camera=camera,
-        t_ref=t_ref,
-        blur_sigma=blur_sigma,
-    )
-    ev = prob.events
-    W, H = ev.sensor_size
-    warps = tuple(m.name for m in prob.models)
+        stream = progress if not isinstance(progress, bool) else None
+        bar = ProgressBar(max_iterations + 1, label="segment", stream=stream, unit="step")
+    try:
+        prob = MultiClusterCMax(
+            events,
+            K,
+            warp,
+            objective=objective,
+            regularizers=regularizers,
+            camera=camera,
+            t_ref=t_ref,
+            blur_sigma=blur_sigma,
+        )
+        ev = prob.events
+        W, H = ev.sensor_size
+        warps = tuple(m.name for m in prob.models)
 
-    jac = _position_jacobian(prob)
-    rms = np.sqrt(np.mean(np.sum(jac**2, axis=2), axis=0))  # px of displacement per unit parameter
-    scale = np.where(rms > 0, 1.0 / np.maximum(rms, 1e-300), 1.0)  # parameter units per px
+        jac = _position_jacobian(prob)
+        rms = np.sqrt(np.mean(np.sum(jac**2, axis=2), axis=0))  # px of displacement per unit parameter
+        scale = np.where(rms > 0, 1.0 / np.maximum(rms, 1e-300), 1.0)  # parameter units per px
 
-    # --- initialisation --------------------------------------------------------------------------
-    if init_thetas is not None:
-        theta = prob.flatten(init_thetas)
-    else:
-        dmax = 0.15 * max(W, H) if max_displacement is None else max_displacement
-        flows = _grid_init(ev, K, max_displacement=dmax, n_sample=init_events, rng=rng, t_ref=prob.t_ref)
-        theta = np.concatenate([_translation_to_params(jac, prob, j, flows[j]) for j in range(K)])
-    active = np.ones(K, dtype=bool)
-    prob.set_memberships(np.ones((prob.n_events, K)))
-    values, _ = prob.lookup(theta, positions=False)
-    P = _memberships(values, active, temperature, hard)
+        # --- initialisation --------------------------------------------------------------------------
+        if init_thetas is not None:
+            theta = prob.flatten(init_thetas)
+        else:
+            dmax = 0.15 * max(W, H) if max_displacement is None else max_displacement
+            flows = _grid_init(ev, K, max_displacement=dmax, n_sample=init_events, rng=rng, t_ref=prob.t_ref)
+            theta = np.concatenate([_translation_to_params(jac, prob, j, flows[j]) for j in range(K)])
+        active = np.ones(K, dtype=bool)
+        prob.set_memberships(np.ones((prob.n_events, K)))
+        values, _ = prob.lookup(theta, positions=False)
+        P = _memberships(values, active, temperature, hard)
+        if bar is not None:
+            bar.update("initialised")
 
-    history: list[dict] = []
-    converged = False
-    value = float("nan")
-    for it in range(max_iterations):
-        min_mass = max(3.0, float(min_cluster_fraction) * prob.n_events)
-        emptied = active & (P.sum(axis=0) < min_mass)
-        if emptied.any():
-            active &= ~emptied
-            P = _renormalise(P, active)
+        history: list[dict] = []
+        converged = False
+        value = float("nan")
+        for it in range(max_iterations):
+            min_mass = max(3.0, float(min_cluster_fraction) * prob.n_events)
+            emptied = active & (P.sum(axis=0) < min_mass)
+            if emptied.any():
+                active &= ~emptied
+                P = _renormalise(P, active)
+            prob.set_memberships(_sparsify(P, min_membership), active)
+            active = prob.active
+
+            # (a) parameters: Adam ascent in pixel-scaled coordinates, keeping the best point seen
+            lr = learning_rate * max(0.5**it, 0.1)
+            n_steps = steps if it == 0 else max(1, (3 * steps) // 8)
+            adam = AdamStepper(theta.size)
+            best_value, best_theta = -np.inf, theta.copy()
+            for s in range(n_steps + 1):
+                value, grad = prob.value_and_grad(theta)
+                if value > best_value:
+                    best_value, best_theta = value, theta.copy()
+                if s == n_steps:
+                    break
+                theta = theta + lr * scale * adam.direction(grad * scale)
+            theta = best_theta
+            value = best_value
+
+            # (b) memberships from every cluster's IWE at the events' warped positions
+            values, positions = prob.lookup(theta, positions=merge_distance > 0)
+            P_new = _memberships(values, active, temperature, hard)
+            merged = _duplicates(P_new, positions, active, merge_distance) if merge_distance > 0 else []
+            for keep, drop in merged:
+                P_new[:, keep] += P_new[:, drop]
+                P_new[:, drop] = 0.0
+                active[drop] = False
+            changed = float(np.mean(_labels(P_new, active) != _labels(P, active)))
+            dP = float(np.mean(np.abs(P_new - P)))
+            P = P_new
+            labels = _labels(P, active)
+            done = changed < tol and dP < 10 * tol and not merged
+            history.append(
+                {
+                    "J": value,
+                    "sizes": np.bincount(labels, minlength=K).tolist(),
+                    "mass": P.sum(axis=0).round(1).tolist(),
+                    "changed": changed,
+                    "dP": dP,
+                    "active": active.tolist(),
+                    "merged": merged,
+                    "seconds": time.perf_counter() - start,
+                }
+            )
+            if bar is not None:
+                bar.update(f"J={value:.3f}, {100 * changed:.1f}% changed")
+            if done:
+                converged = True
+                break
+
+        # final images with the final memberships
         prob.set_memberships(_sparsify(P, min_membership), active)
         active = prob.active
+        P = np.where(active[None, :], P, 0.0)
+        value, iwes = prob.value_and_images(theta)
+        labels_kept = _labels(P, active)
 
-        # (a) parameters: Adam ascent in pixel-scaled coordinates, keeping the best point seen
-        lr = learning_rate * max(0.5**it, 0.1)
-        n_steps = steps if it == 0 else max(1, (3 * steps) // 8)
-        adam = AdamStepper(theta.size)
-        best_value, best_theta = -np.inf, theta.copy()
-        for s in range(n_steps + 1):
-            value, grad = prob.value_and_grad(theta)
-            if value > best_value:
-                best_value, best_theta = value, theta.copy()
-            if s == n_steps:
-                break
-            theta = theta + lr * scale * adam.direction(grad * scale)
-        theta = best_theta
-        value = best_value
-
-        # (b) memberships from every cluster's IWE at the events' warped positions
-        values, positions = prob.lookup(theta, positions=merge_distance > 0)
-        P_new = _memberships(values, active, temperature, hard)
-        merged = _duplicates(P_new, positions, active, merge_distance) if merge_distance > 0 else []
-        for keep, drop in merged:
-            P_new[:, keep] += P_new[:, drop]
-            P_new[:, drop] = 0.0
-            active[drop] = False
-        changed = float(np.mean(_labels(P_new, active) != _labels(P, active)))
-        dP = float(np.mean(np.abs(P_new - P)))
-        P = P_new
-        labels = _labels(P, active)
-        done = changed < tol and dP < 10 * tol and not merged
-        history.append(
-            {
-                "J": value,
-                "sizes": np.bincount(labels, minlength=K).tolist(),
-                "mass": P.sum(axis=0).round(1).tolist(),
-                "changed": changed,
-                "dP": dP,
-                "active": active.tolist(),
-                "merged": merged,
-                "seconds": time.perf_counter() - start,
-            }
+        n_in = len(events)
+        labels = np.full(n_in, -1, dtype=np.int64)
+        labels[prob.kept] = labels_kept
+        probabilities = np.zeros((n_in, K))
+        probabilities[prob.kept] = P
+        parts = prob.unpack(theta)
+        thetas = np.stack(parts) if len(set(prob.n_params)) == 1 else parts
+        return SegmentationResult(
+            labels=labels,
+            probabilities=probabilities,
+            thetas=thetas,
+            warps=warps,
+            iwes=iwes,
+            empty=~active,
+            history=history,
+            seconds=time.perf_counter() - start,
+            converged=converged,
+            value=value,
+            events=ev,
+            kept=prob.kept.copy(),
         )
-        if done:
-            converged = True
-            break
-
-    # final images with the final memberships
-    prob.set_memberships(_sparsify(P, min_membership), active)
-    active = prob.active
-    P = np.where(active[None, :], P, 0.0)
-    value, iwes = prob.value_and_images(theta)
-    labels_kept = _labels(P, active)
-
-    n_in = len(events)
-    labels = np.full(n_in, -1, dtype=np.int64)
-    labels[prob.kept] = labels_kept
-    probabilities = np.zeros((n_in, K))
-    probabilities[prob.kept] = P
-    parts = prob.unpack(theta)
-    thetas = np.stack(parts) if len(set(prob.n_params)) == 1 else parts
-    return SegmentationResult(
-        labels=labels,
-        probabilities=probabilities,
-        thetas=thetas,
-        warps=warps,
-        iwes=iwes,
-        empty=~active,
-        history=history,
-        seconds=time.perf_counter() - start,
-        converged=converged,
-        value=value,
-        events=ev,
-        kept=prob.kept.copy(),
-    )
+    finally:
+        if bar is not None:
+            bar.close()

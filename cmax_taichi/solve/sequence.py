@@ -535,6 +535,7 @@ def process(
                     search=search,
                     status=status,
                     n_dropped=len(span) - prob.n_events,
+                    kernels=prob.kernels,
                 )
                 result.add(row)
                 if on_window is not None:
