@@ -425,3 +425,12 @@ def test_a_weight_that_drowns_the_data_term_is_refused(capsys):
     with pytest.raises(ValueError, match="data term would vanish"):
         check_regularizers({"deformation": 10 * MAX_REGULARIZER_WEIGHT})
     assert check_regularizers({"divergence": cm.RECOMMENDED_LAMBDA}) == {"divergence": cm.RECOMMENDED_LAMBDA}
+
+
+def test_a_denormal_stride_is_refused_not_overflowed():
+    """A time stride of 5e-324 s made the window count infinite: an OverflowError escaped (found by
+    tests/test_input_properties.py)."""
+    from cmax_taichi.core import checks
+
+    with pytest.raises(ValueError, match="would be inf windows, more than the limit"):
+        list(checks.time_windows(0.0, 0.5, 600, 1.0, 5e-324, lambda t: 0, lambda i: 0.0))
