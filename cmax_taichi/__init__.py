@@ -7,8 +7,14 @@ simulator, the batch runner and segmentation are imported when first used (:data
 """
 
 import importlib
+import os
 
-from cmax_taichi.core.backend import BackendInfo, init
+# Taichi prints a "[Taichi] version ..." banner to stdout when it is imported: noise in every command's
+# output (--help included) and in a program's own; cmax_taichi.backend_info() and 'cmax-taichi info'
+# say what runs. ENABLE_TAICHI_HEADER_PRINT=1 in the environment brings it back.
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
+
+from cmax_taichi.core.backend import BackendInfo, init  # noqa: E402 - after the banner setting
 from cmax_taichi.core.backend import info as backend_info
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.core.limits import Limits, get_limits, set_limits

@@ -122,15 +122,17 @@ def flow_error(
     dict
         ``"AEE"`` (px), ``"{N}PE"`` for each N (percent, N printed with ``:g``: ``"3PE"``),
         ``"outlier"`` (%Out: EPE > 3 px and > 5% of ``|f_gt|``, percent), ``"AE_deg"`` (degrees),
-        ``"n_pixels"`` (the number evaluated) and ``"n_missing"`` (pixels that would be evaluated but
-        whose prediction is not finite, e.g. NaN for no estimate: left out, and counted here). With no
-        pixel to evaluate every value is NaN.
+        ``"n_pixels"`` (the number evaluated), ``"n_missing"`` (pixels that would be evaluated but
+        whose prediction is not finite, e.g. NaN for no estimate: left out, and counted here) and
+        ``"n_valid"`` (pixels with valid ground truth, events or not). With no pixel to evaluate every
+        value is NaN: ``n_valid = 0`` says the ground truth itself is empty there (all NaN or zero).
     """
     flow_pred = np.asarray(flow_pred, dtype=np.float64)
     flow_gt = np.asarray(flow_gt, dtype=np.float64)
     if flow_pred.shape != flow_gt.shape:
         raise ValueError(f"flow shapes differ: predicted {flow_pred.shape}, ground truth {flow_gt.shape}")
     valid = valid_flow_mask(flow_gt, zero_is_invalid)
+    n_valid = int(np.count_nonzero(valid))
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != valid.shape:
@@ -140,7 +142,7 @@ def flow_error(
     n_missing = int(np.count_nonzero(valid & ~predicted))
     valid &= predicted
     n = int(np.count_nonzero(valid))
-    out: dict[str, float] = {"n_pixels": float(n), "n_missing": float(n_missing)}
+    out: dict[str, float] = {"n_pixels": float(n), "n_missing": float(n_missing), "n_valid": float(n_valid)}
     if n == 0:
         out["AEE"] = math.nan
         for t in thresholds:

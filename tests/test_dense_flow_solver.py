@@ -4,6 +4,7 @@ starts, the image pyramid, bad options, and ``cmax-taichi flow`` end to end."""
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -177,12 +178,28 @@ def test_flow_command_end_to_end(tmp_path, f64, scene):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["windows"] == 2 and summary["stalled_windows"] == 0
     assert summary["options"]["regularizers"] == {"deformation": 1.0, "curvature": 0.1}
+    # every event accounted for as estimate does: the windows after --max-windows are counted
+    assert summary["events"]["total"] == len(ev) and summary["events"]["after_max_windows"] == len(ev) - 8000
+    assert summary["recording"]["fingerprint"] and meta["fingerprint"] == summary["recording"]["fingerprint"]
     with (out / "results.csv").open() as f:
         rows = list(csv.DictReader(f))
-    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert [r["status"] for r in rows] == ["estimated", "estimated"]
+    assert [r["optimizer"] for r in rows] == ["ok", "ok"]
     assert rows[0]["levels"].startswith("2x2 ") and rows[0]["levels"].count(" it ") == 2
+    assert not (out / ".cmax-taichi.lock").exists()
     assert main(["flow", str(path), "--reg", "smooth=1"]) == 2  # one clear error, no traceback
     assert main(["flow", "--out", str(out)]) == 2
+    # --keep-tail: the partial tail estimated as a shorter window, a row either way
+    rc = main(
+        [
+            "flow", str(path), "--out", str(out), "--window", "5000", "--grid", "2", "2", "--levels", "1",
+            "--quiet", "--keep-tail", "--figures", "0",
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    with (out / "results.csv").open() as f:
+        assert [r["status"] for r in csv.DictReader(f)] == ["estimated", "short_tail"]
+    assert len(list((out / "flow").glob("flow_*.npz"))) == 2  # the previous run's files replaced
 
 
 def test_flow_command_reports_a_stalled_level(tmp_path, f64, scene, monkeypatch, capsys):
@@ -206,7 +223,7 @@ def test_flow_command_reports_a_stalled_level(tmp_path, f64, scene, monkeypatch,
     assert "have a level whose optimizer did not move the flow" in capsys.readouterr().out
     with (out / "results.csv").open() as f:
         row = next(csv.DictReader(f))
-    assert row["status"] == "stalled" and "stalled 0 it 0 px" in row["levels"]
+    assert row["optimizer"] == "stalled" and "stalled 0 it 0 px" in row["levels"]
     assert json.loads((out / "summary.json").read_text())["stalled_windows"] == 1
 
 
@@ -259,3 +276,53 @@ def test_flow_files_are_scored_by_evaluate_as_by_flow(tmp_path, f64):
     assert main(["evaluate", str(out / "flow"), "--data", str(h5), *size, "--out", str(tmp_path / "ev")]) == 0
     rows = json.loads((tmp_path / "ev" / "metrics.json").read_text())["windows"]
     assert [r["AEE"] for r in rows] == pytest.approx(own, abs=1e-3)
+
+
+def test_iter_flow_accounts_for_every_event_and_window(f64, scene):
+    """Windows too small or of zero duration are rows with their status, the events of each reason are
+    counted (they sum to the source's), one warning gives them; a flow over a dt that carries points
+    beyond the sensor is refused up front (no integration whose cost grows with dt)."""
+    from cmax_taichi.core.checks import EventsDroppedWarning
+    from cmax_taichi.flow.sequence import BEYOND_SENSOR
+
+    ev = scene.events
+    t = np.concatenate([ev.t, [0.2], np.full(5, 0.3)])
+    x = np.concatenate([ev.x, [10.0], np.full(5, 20.0)])
+    y = np.concatenate([ev.y, [10.0], np.full(5, 20.0)])
+    events = cm.Events(x, y, t, np.concatenate([ev.p, np.ones(6)]), SENSOR)
+    est = DenseFlowEstimator((2, 2), levels=1, regularizers=REGS)
+    skipped = []
+    with pytest.warns(EventsDroppedWarning, match="6 of 8006 event"):
+        flows = iter_flow(events, est, duration=0.05, dt=1e4, on_skipped=skipped.append)
+        windows = list(flows)
+    assert [w.status for w in windows] == [BEYOND_SENSOR]  # 1e4 s of a 5 px flow: far off the sensor
+    assert windows[0].displacement is None and "beyond the 120x90 sensor" in windows[0].note
+    assert [(w.status, w.n_events) for w in skipped] == [("too_few_events", 1), ("zero_duration", 5)]
+    assert flows.skipped == skipped
+    counts = flows.events
+    assert counts["estimated"] == len(ev) and counts["too_few_events"] == 1 and counts["zero_duration"] == 5
+    assert counts["total"] == sum(v for k, v in counts.items() if k not in ("total", "windows"))
+    # count windows: the partial tail is a row, or a short window with keep_tail
+    with pytest.warns(EventsDroppedWarning, match="partial last window"):
+        rows = list(iter_flow(ev, est, n_events=5000, dt=None))
+    assert len(rows) == 1
+    tail = list(iter_flow(ev, est, n_events=5000, keep_tail=True))
+    assert [w.status for w in tail] == ["estimated", "short_tail"] and tail[1].n_events == len(ev) - 5000
+
+
+def test_trajectories_and_the_padded_image_are_bounded_up_front():
+    from cmax_taichi.core.limits import get_limits
+    from cmax_taichi.flow.grid import FlowBeyondSensorError, auto_padding, check_padded_sensor
+
+    grid = FlowGrid(120, 90, 2, 2)
+    burst = np.full(grid.shape, 1e7)  # a window of a microsecond: px/s in the millions
+    with pytest.raises(FlowBeyondSensorError, match="beyond the 120x90 sensor"):
+        grid.trajectories(burst, 0.05)
+    # the README's largest sensor runs with the automatic padding, which shrinks to fit the limit
+    side = int(np.sqrt(get_limits().max_sensor_pixels))
+    assert auto_padding((side, side), 0.03) == 0 and auto_padding((346, 260), 0.03) == 10
+    check_padded_sensor((side, side), 0)
+    with pytest.raises(ValueError, match=rf"the {side}x{side} sensor with a margin of 10 px .*at most 0 px"):
+        check_padded_sensor((side, side), 10, "--padding")
+    with pytest.raises(ValueError, match=rf"the {side + 1}x{side} sensor"):
+        check_padded_sensor((side + 1, side), 0)

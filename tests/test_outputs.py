@@ -102,7 +102,7 @@ def test_output_folder_leaves_nothing_when_the_run_fails(tmp_path):
     with pytest.raises(RuntimeError), outputs.OutputFolder(out, patterns=["a.txt"]) as folder:
         folder.path("a.txt").write_text("half")
         raise RuntimeError("the run failed")
-    assert sorted(p.name for p in out.iterdir()) == [".cmax-taichi.lock", "keep.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]  # no lock file left behind
 
 
 def test_output_folder_refuses_inputs_and_a_second_run(tmp_path):
@@ -112,6 +112,7 @@ def test_output_folder_refuses_inputs_and_a_second_run(tmp_path):
         (data / "rec", "is the input"),
         (data, "holds the input"),
         (tmp_path, "holds the input"),
+        (data / "rec" / "out", "is inside the input folder"),  # nothing is written into a recording
     ]:
         with pytest.raises(outputs.OutputConflictError, match=message):
             outputs.OutputFolder(out, inputs=[data / "rec"]).__enter__()
@@ -178,7 +179,7 @@ def test_estimate_never_replaces_a_file_it_did_not_write(recording, tmp_path, ca
     code, _, err = run(capsys, "estimate", recording, "--out", out, *FAST)
     assert code == 2 and "not written by a cmax-taichi run" in error_line(err)
     assert (out / "results.csv").read_text() == "the user's own table\n"
-    assert sorted(p.name for p in out.iterdir()) == [".cmax-taichi.lock", "results.csv"]
+    assert sorted(p.name for p in out.iterdir()) == ["results.csv"]
 
 
 def test_estimate_reruns_on_its_own_outputs_and_keeps_one_run(recording, tmp_path, capsys):
@@ -214,7 +215,6 @@ def test_segment_writes_only_when_complete(recording, tmp_path, capsys):
     assert code == 0, err
     assert sorted(p.name for p in out.iterdir()) == [
         ".cmax-taichi-manifest.json",
-        ".cmax-taichi.lock",
         "labels.csv",
         "labels.npy",
         "segmentation.json",

@@ -185,9 +185,10 @@ def test_cli_bad_input(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_cli_on_ecd_dynamic_rotation(tmp_path):
+def test_cli_on_ecd_dynamic_rotation(tmp_path, capsys):
     """The real recording (a person in front of a rotating camera, raw distorted events.txt with
-    calib.txt): the reader's camera undistorts, labels keep the file's indexing, figures are written.
+    calib.txt): the reader's camera undistorts, labels keep the file's indexing, figures are written,
+    and the command prints what it really segmented (the events dropped by undistortion said apart).
     (translation2 and a 10,000-event window keep the test short; docs/SEGMENTATION.md shows rotation3.)"""
     path = shared_data_dir("ecd_rotation", "dynamic_rotation")
     out = tmp_path / "dyn"
@@ -195,7 +196,17 @@ def test_cli_on_ecd_dynamic_rotation(tmp_path):
     assert cli_main(args + ["--max-iterations", "3", "--out", str(out)]) == 0
     labels = np.load(out / "labels.npy")
     assert labels.shape == (10000,)
-    assert 0 < (labels < 0).sum() < 3000  # undistortion drops the events it pushes off the sensor
+    dropped = int((labels < 0).sum())
+    assert 0 < dropped < 3000  # undistortion drops the events it pushes off the sensor
+    text = capsys.readouterr().out
+    assert (
+        f"segmented {10000 - dropped} of 10000 events" in text
+        and f"({dropped} dropped by undistortion)" in text
+    )
+    sizes = [
+        int(line.split("]: ")[1].split(" events")[0]) for line in text.splitlines() if "  cluster " in line
+    ]
+    assert sum(sizes) == 10000 - dropped
     assert set(np.unique(labels[labels >= 0])) <= {0, 1}
     assert (out / "figures" / "cluster_iwes.png").exists()
 

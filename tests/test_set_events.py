@@ -136,3 +136,23 @@ def test_problems_sharing_pooled_arrays_keep_their_own_blur():
         value, grad = p.value_and_grad(theta)
         assert value == first[id(p)][0]
         np.testing.assert_array_equal(grad, first[id(p)][1])
+
+
+@pytest.mark.parametrize("options", CASES)
+def test_a_dropped_problem_is_freed_at_once(options):
+    """A script that builds one problem per window must not keep the dropped ones until a cyclic
+    garbage collection: no reference cycle holds a problem (its host arrays are megabytes, and glibc
+    kept the freed blocks: ~150 MB over a hundred rotation3 windows of 30,000 events)."""
+    import gc
+    import weakref
+
+    gc.collect()
+    gc.disable()
+    try:
+        prob = cm.ContrastMaximization(window(3000, 1), **options)
+        prob.value_and_grad(np.zeros(prob.model.n_params))
+        ref = weakref.ref(prob)
+        del prob
+        assert ref() is None, "a reference cycle keeps the problem alive"
+    finally:
+        gc.enable()

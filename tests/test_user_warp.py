@@ -14,6 +14,7 @@ import warnings
 
 import numpy as np
 import pytest
+import taichi as ti
 from conftest import CAMERA, EXAMPLES_DIR, SENSOR, edge_events, use_precision
 from test_pipeline_gradients import OBJECTIVES, REGS, check_against_reference
 
@@ -123,3 +124,26 @@ def test_negative_determinant_on_both_paths():
     assert v1 == pytest.approx(v2, rel=1e-11)
     np.testing.assert_allclose(g1, g2, rtol=1e-8, atol=1e-10 * np.max(np.abs(g2)))
     check_against_reference("f64", dict(warp=NAME, regularizers=reg, camera=CAMERA, theta=theta))
+
+
+@ti.func
+def _nan_warp(p, dt, th, ctx):
+    bad = ti.sqrt(-1.0 - 0.0 * th[0])  # NaN for every event, whatever theta
+    return ti.Vector([p[0] - dt * th[0] + bad, p[1] - dt * th[1] + bad])
+
+
+@ti.func
+def _nan_flow(p, th, ctx):
+    return ti.Vector([th[0], th[1]])
+
+
+def test_a_warp_that_loses_the_events_at_the_identity_is_named():
+    """A user's warp that returns NaN put every event off the image: the error named a "flat image"
+    (the events'), not the warp."""
+    model = cm.WarpModel("test_nan_warp", ("v_x", "v_y"), ("px/s", "px/s"), _nan_warp, _nan_flow)
+    cm.register_warp(model)
+    try:
+        with pytest.raises(ValueError, match=r"warp 'test_nan_warp' at the identity .* puts 0 of 400 event"):
+            _problem("test_nan_warp")
+    finally:
+        cm.unregister_warp("test_nan_warp")

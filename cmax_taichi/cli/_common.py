@@ -30,6 +30,10 @@ __all__ = [
     "warp_listing",
     "add_recording_arguments",
     "add_t_ref_argument",
+    "add_window_arguments",
+    "check_windows",
+    "why_no_window",
+    "window_stride",
     "add_backend_arguments",
     "init_backend",
     "parse_regularizers",
@@ -170,7 +174,8 @@ def add_recording_arguments(
 
 def add_window_arguments(parser):
     """The group "windows" of a pass over a recording: ``--window`` (events, default 30000),
-    ``--duration``, ``--stride`` and ``--max-windows``; returns it for the command's own window options."""
+    ``--duration``, ``--stride``, ``--max-windows`` and ``--keep-tail``; returns it for the command's own
+    window options. :func:`check_windows` checks them."""
     win = parser.add_argument_group("windows")
     win.add_argument(
         "--window", type=int, default=30000, metavar="N", help="events per window (default 30000)"
@@ -182,7 +187,70 @@ def add_window_arguments(parser):
         "--stride", type=float, default=None, help="start-to-start step (events, or s with --duration)"
     )
     win.add_argument("--max-windows", type=int, default=None, metavar="K", help="stop after K windows")
+    win.add_argument(
+        "--keep-tail",
+        action="store_true",
+        help="also estimate the partial last window (count windows) when it holds at least half a window",
+    )
     return win
+
+
+def check_windows(args: argparse.Namespace) -> None:
+    """The options of :func:`add_window_arguments`, before any data is read (CliError)."""
+    from cmax_taichi.cli import CliError
+
+    if args.window < 2:
+        raise CliError(f"--window must be at least 2 events, got {args.window}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise CliError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.stride is not None:
+        if args.duration is not None:
+            if not (math.isfinite(args.stride) and args.stride > 0):
+                raise CliError(f"--stride must be a positive number of seconds, got {args.stride:g}")
+        elif not (math.isfinite(args.stride) and args.stride >= 1 and args.stride == math.floor(args.stride)):
+            raise CliError(
+                f"--stride must be a whole number of events >= 1 (or seconds with --duration), "
+                f"got {args.stride:g}"
+            )
+    if args.max_windows is not None and args.max_windows < 1:
+        raise CliError(f"--max-windows must be at least 1, got {args.max_windows}")
+
+
+def window_stride(args: argparse.Namespace):
+    """``--stride`` as the windows take it: events (an int) for count windows, seconds with ``--duration``."""
+    if args.stride is None:
+        return None
+    return args.stride if args.duration is not None else int(args.stride)
+
+
+def why_no_window(args: argparse.Namespace, events: dict) -> str:
+    """Why a pass estimated no window, from its event accounting (``SequenceResult.events``, or
+    ``FlowPass.events``), in the terms of the options the user gave."""
+    from cmax_taichi.core.windows import min_tail_events
+
+    total = events.get("total", 0)
+    if total == 0:
+        return "the recording has no events"
+    if getattr(args, "window_mode", None) == "adaptive":
+        from cmax_taichi.cli import _live
+
+        first = _live.window_rule(args)[0].first_events
+        return (
+            f"{total} events; no adaptive window was estimated (the first takes {first} events; --keep-tail "
+            "estimates what there is as one window)"
+        )
+    if args.duration is None and total < args.window:
+        least = min_tail_events(args.window)
+        hint = (
+            f"--keep-tail estimates a shorter window of {total} events"
+            if total >= least
+            else f"choose a smaller --window (--keep-tail needs at least {least} events)"
+        )
+        return f"{total} events, fewer than one window of --window {args.window}: {hint}"
+    windows = events.get("windows", {})
+    mode = f"--duration {args.duration:g} s" if args.duration is not None else f"--window {args.window}"
+    reasons = ", ".join(f"{n} {status.replace('_', ' ')}" for status, n in windows.items() if n)
+    return f"{total} events; no window of {mode} holds 2 events spanning a positive time ({reasons})"
 
 
 def add_t_ref_argument(parser) -> None:
@@ -222,6 +290,7 @@ def parse_regularizers(items: list[str], extra: tuple[str, ...] | list[str] = ()
     """``["divergence=1", ...]`` -> ``{"divergence": 1.0}`` (CliError on bad syntax or names); ``extra``:
     more valid names (the dense flow's smoothness terms)."""
     from cmax_taichi.cli import CliError
+    from cmax_taichi.pipeline.setup import MAX_REGULARIZER_WEIGHT
 
     valid = regularizer_names() + list(extra)
     out: dict[str, float] = {}
@@ -238,6 +307,11 @@ def parse_regularizers(items: list[str], extra: tuple[str, ...] | list[str] = ()
             raise CliError(f"--reg {name}: weight must be a number, got {weight!r}") from None
         if not (math.isfinite(value) and value >= 0):
             raise CliError(f"--reg {name}: weight must be finite and >= 0, got {weight!r}")
+        if value > MAX_REGULARIZER_WEIGHT:
+            raise CliError(
+                f"--reg {name}: weight {weight} is above {MAX_REGULARIZER_WEIGHT:g} (the data term would "
+                "vanish in the rounding of the penalty)"
+            )
         out[name] = value
     return out
 

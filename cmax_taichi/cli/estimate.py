@@ -70,12 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--whitening", action="store_true", help="whitening baseline (whitened warped events)"
     )
-    win = common.add_window_arguments(parser)
-    win.add_argument(
-        "--keep-tail",
-        action="store_true",
-        help="also estimate the partial last window (count windows) when it holds at least half a window",
-    )
+    common.add_window_arguments(parser)
     opt = parser.add_argument_group("optimizer")
     opt.add_argument("--method", default="bfgs", help=f"{common.names(METHODS)} (default bfgs)")
     opt.add_argument(
@@ -138,21 +133,7 @@ def check_choices(args: argparse.Namespace) -> None:
         raise CliError(f"--method: unknown method {args.method!r}; valid: {', '.join(METHODS)}")
     if args.init not in INITS:
         raise CliError(f"--init: unknown init {args.init!r}; valid: {', '.join(INITS)}")
-    if args.window < 2:
-        raise CliError(f"--window must be at least 2 events, got {args.window}")
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise CliError(f"--duration must be a positive number of seconds, got {args.duration}")
-    if args.stride is not None:
-        if args.duration is not None:
-            if not (math.isfinite(args.stride) and args.stride > 0):
-                raise CliError(f"--stride must be a positive number of seconds, got {args.stride:g}")
-        elif not (math.isfinite(args.stride) and args.stride >= 1 and args.stride == math.floor(args.stride)):
-            raise CliError(
-                f"--stride must be a whole number of events >= 1 (or seconds with --duration), "
-                f"got {args.stride:g}"
-            )
-    if args.max_windows is not None and args.max_windows < 1:
-        raise CliError(f"--max-windows must be at least 1, got {args.max_windows}")
+    common.check_windows(args)
     common.parse_t_ref(args.t_ref)
 
 
@@ -224,12 +205,15 @@ def _window_figure(path: Path, row, prob, res) -> None:
     _draw_window_figure(path, _window_figure_data(row, prob, res))
 
 
-def _write_window_flow(path: Path, row, prob, res) -> None:
-    """The dense flow of a window's estimate: the displacement (px) over the window's time span."""
+def _write_window_flow(path: Path, row, prob, res, fingerprint: str | None = None) -> None:
+    """The dense flow of a window's estimate: the displacement (px) over the window's time span (an .npz
+    file also carries the recording's fingerprint, which evaluate checks --data against)."""
     from cmax_taichi.io.writers import write_flow
 
     flow = prob.dense_flow(res.theta, dt=row.t_end - row.t_start)
     meta = {"t_start": row.t_start, "t_end": row.t_end, "window": row.index, "warp": prob.model.name}
+    if fingerprint:
+        meta["fingerprint"] = fingerprint
     write_flow(path, flow, unit="px", **meta)
 
 
@@ -387,9 +371,7 @@ class FigureWriter:
 def process_options(args: argparse.Namespace, regs: dict[str, float]) -> dict:
     """Keyword arguments of ``sequence.process`` (and ``solve.batch.run``) from the command line."""
     t_ref = common.parse_t_ref(args.t_ref)
-    stride = None
-    if args.stride is not None:
-        stride = args.stride if args.duration is not None else int(args.stride)
+    stride = common.window_stride(args)
     adaptive, _ = _live.window_rule(args)
     optimize_options = {}
     if args.init != "auto":
@@ -617,6 +599,7 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
         if cm.get_warp(args.warp).needs_camera and camera is None:
             raise CliError(f"warp {args.warp!r} needs a calibration, and {path} has none (calib.txt)")
         figures_left = [max(0, args.figures)]
+        fingerprint = rec.fingerprint() if flow_folder is not None and example is None else None
         first, started = [True], time.perf_counter()
 
         def on_window(row, prob, res):
@@ -631,14 +614,14 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
                 figures_left[0] -= 1
             if flow_folder is not None:
                 name = f"flow_{row.index:04d}.{args.flow_format}"
-                _write_window_flow(flow_folder.path(name), row, prob, res)
+                _write_window_flow(flow_folder.path(name), row, prob, res, fingerprint)
                 flows[0] += 1
 
         result = process(
             rec, **process_options(args, regs), camera=camera, progress=not args.quiet, on_window=on_window
         )
     if not result.windows:
-        raise CliError(f"{path}: no window to estimate: {_why_no_window(args, result)}")
+        raise CliError(f"{path}: no window to estimate: {common.why_no_window(args, result.events)}")
     result.to_csv(folder.path("results.csv"))
     result.to_json(folder.path("results.json"))
     result.to_hdf5(folder.path("results.h5"))
@@ -687,40 +670,11 @@ def _print_first_window(row, prob, started: float) -> None:
     sys.stdout.flush()
 
 
-def _why_no_window(args: argparse.Namespace, result) -> str:
-    """Why no window could be estimated, in the terms of the options the user gave."""
-    from cmax_taichi.core.windows import min_tail_events
-
-    events = result.events
-    total = events.get("total", 0)
-    if total == 0:
-        return "the recording has no events"
-    if args.window_mode == "adaptive":
-        first = _live.window_rule(args)[0].first_events
-        return (
-            f"{total} events; no adaptive window was estimated (the first takes {first} events; --keep-tail "
-            "estimates what there is as one window)"
-        )
-    if args.duration is None and total < args.window:
-        least = min_tail_events(args.window)
-        hint = (
-            f"--keep-tail estimates a shorter window of {total} events"
-            if total >= least
-            else f"choose a smaller --window (--keep-tail needs at least {least} events)"
-        )
-        return f"{total} events, fewer than one window of --window {args.window}: {hint}"
-    windows = events.get("windows", {})
-    mode = f"--duration {args.duration:g} s" if args.duration is not None else f"--window {args.window}"
-    reasons = ", ".join(f"{n} {status.replace('_', ' ')}" for status, n in windows.items() if n)
-    return f"{total} events; no window of {mode} holds 2 events spanning a positive time ({reasons})"
-
-
 def _report_example(example, result, area_scales: list[tuple[float, float]], regs: dict, path: Path) -> Path:
     """Print the estimates of a simulated example against its truth; write them to ``path`` (JSON)."""
-    import json
-
     import numpy as np
 
+    from cmax_taichi.io.outputs import json_text
     from cmax_taichi.metrics import COLLAPSE_AREA_SCALE
 
     truth = example.truth_in(result.warp)
@@ -755,7 +709,7 @@ def _report_example(example, result, area_scales: list[tuple[float, float]], reg
         "collapsed_windows": int(sum(collapsed)),
         "windows": len(collapsed),
     }
-    path.write_text(json.dumps(report, indent=2) + "\n")
+    path.write_text(json_text(report, indent=2))
     return path
 
 

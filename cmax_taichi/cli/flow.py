@@ -3,12 +3,17 @@
 The flow lives on a grid of nodes over the sensor (bilinear between nodes), estimated coarse to fine by
 L-BFGS-B on the exact gradient of the contrast objective, with the event-collapse regularizers
 (divergence, deformation) and a smoothness term; each window is warm-started from the previous one.
-Results go to OUT: flow/flow_NNNN.<format> (the displacement over --dt, px: .npz with its interval,
-Middlebury .flo, or DSEC's 16-bit submission PNG), flow_timestamps.txt (t_start t_end
-of each file, for 'cmax-taichi evaluate'), results.csv and summary.json (per window: time span, events,
-J and its terms, evaluations, seconds, what the optimizer did on each level, and AEE / NPE / %Out where
-the recording has flow ground truth),
-figures/window_NNNN.png (IWE without and with the flow, the flow in colour).
+Results go to OUT: flow/flow_NNNN.<format> (the displacement over --dt, px: .npz with its interval and
+the recording's fingerprint, Middlebury .flo, or DSEC's 16-bit submission PNG), flow_timestamps.txt
+(t_start t_end of each file, for 'cmax-taichi evaluate'), results.csv (a row per window, estimated or
+not: status, time span, events, events dropped, J and its terms, evaluations, seconds, what the optimizer
+did on each level (optimizer, levels), and AEE / NPE /
+%Out where the recording has flow ground truth), summary.json (the means, where every event went, the
+recording and the options) and figures/window_NNNN.png (IWE without and with the flow, the flow in
+colour). Events not estimated (the partial last window, outside the sensor, lost in undistortion,
+windows too small) are counted in one warning at the end. OUT is guarded as estimate's is: never an
+input nor a folder holding one, no file replaced that this command did not write, everything in place
+only when the run completes.
 
 examples:
   cmax-taichi flow --example planes               # simulated depth scene, printed against its truth
@@ -23,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 import time
@@ -39,6 +43,12 @@ def _defaults():
     from cmax_taichi.flow.solver import DEFAULT_REGULARIZERS
 
     return DEFAULT_REGULARIZERS
+
+
+def _auto_padding() -> float:
+    from cmax_taichi.flow.solver import AUTO_PADDING
+
+    return AUTO_PADDING
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -98,13 +108,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"{common.names(regularizer_names() + smoothness_names())}); default {defaults}",
     )
     model.add_argument("--no-reg", action="store_true", help="no regularizer at all (shows the collapse)")
+    common.add_plugin_argument(model)
     model.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the IWE, px (default 1)")
     model.add_argument(
         "--padding",
         type=int,
         default=None,
         metavar="PX",
-        help="margin of the IWE around the sensor, px (default 5%% of the larger sensor side)",
+        help=f"margin of the IWE around the sensor, px (default {_auto_padding() * 100:g}%% of the larger "
+        "sensor side, less where the padded image would exceed the sensor size limit)",
     )
     win = common.add_window_arguments(parser)
     win.add_argument(
@@ -167,16 +179,9 @@ def _check(args: argparse.Namespace) -> None:
         resolve_references(args.references)
     except (TypeError, ValueError) as exc:
         raise CliError(f"--references: {exc}") from None
-    if args.window < 2:
-        raise CliError(f"--window must be at least 2 events, got {args.window}")
-    for name in ("duration", "dt"):
-        value = getattr(args, name)
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise CliError(f"--{name} must be a positive number of seconds, got {value}")
-    if args.stride is not None and not (math.isfinite(args.stride) and args.stride > 0):
-        raise CliError(f"--stride must be positive, got {args.stride}")
-    if args.max_windows is not None and args.max_windows < 1:
-        raise CliError(f"--max-windows must be at least 1, got {args.max_windows}")
+    common.check_windows(args)
+    if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
+        raise CliError(f"--dt must be a positive number of seconds, got {args.dt}")
     if args.levels < 1:
         raise CliError(f"--levels must be at least 1, got {args.levels}")
     if args.padding is not None and args.padding < 0:
@@ -217,9 +222,11 @@ def _window_figure(path: Path, window, estimator) -> None:
 
 _COLUMNS = [
     "window",
+    "status",
     "t_start",
     "t_end",
     "n_events",
+    "n_dropped",
     "dt",
     "J",
     "data",
@@ -227,35 +234,47 @@ _COLUMNS = [
     "smoothness",
     "evaluations",
     "seconds",
-    "status",
+    "optimizer",
     "levels",
     "AEE",
     "3PE",
     "outlier",
+    "note",
 ]
 
 
+def _number(value: float, digits: int) -> str:
+    return f"{value:.{digits}f}" if math.isfinite(value) else ""
+
+
 def _row(window) -> dict:
+    """The results.csv row of a window, estimated or not (empty cells for what it does not have)."""
     res, m = window.result, window.metrics or {}
-    ev = res.evaluation
-    return {
+    row = {
         "window": window.index,
-        "t_start": f"{res.t_start:.6f}",
-        "t_end": f"{res.t_end:.6f}",
-        "n_events": res.n_events,
-        "dt": f"{window.dt:.6f}",
-        "J": f"{res.value:.6f}",
-        "data": f"{ev.data:.6f}",
-        "penalties": ";".join(f"{k}={v:.5g}" for k, v in ev.penalties.items()),
-        "smoothness": ";".join(f"{k}={v:.5g}" for k, v in ev.smoothness.items()),
-        "evaluations": res.n_evaluations,
-        "seconds": f"{res.seconds:.3f}",
-        "status": res.status,
-        "levels": "; ".join(lv.summary() for lv in res.levels),
-        "AEE": "" if "AEE" not in m else f"{m['AEE']:.4f}",
-        "3PE": "" if "3PE" not in m else f"{m['3PE']:.3f}",
-        "outlier": "" if "outlier" not in m else f"{m['outlier']:.3f}",
+        "status": window.status,
+        "t_start": _number(window.t_start, 6),
+        "t_end": _number(window.t_end, 6),
+        "n_events": window.n_events,
+        "n_dropped": window.n_dropped,
+        "note": window.note,
     }
+    if res is not None:
+        ev = res.evaluation
+        row.update(
+            dt=f"{window.dt:.6f}",
+            J=f"{res.value:.6f}",
+            data=f"{ev.data:.6f}",
+            penalties=";".join(f"{k}={v:.5g}" for k, v in ev.penalties.items()),
+            smoothness=";".join(f"{k}={v:.5g}" for k, v in ev.smoothness.items()),
+            evaluations=res.n_evaluations,
+            seconds=f"{res.seconds:.3f}",
+            optimizer=res.status,
+            levels="; ".join(lv.summary() for lv in res.levels),
+        )
+    for key, digits in (("AEE", 4), ("3PE", 3), ("outlier", 3)):
+        row[key] = _number(m[key], digits) if key in m else ""
+    return row
 
 
 def _open_example(name: str):
@@ -317,7 +336,6 @@ class _ExampleTruth:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cmax_taichi import io
     from cmax_taichi.cli import CliError
     from cmax_taichi.flow.solver import DenseFlowEstimator
     from cmax_taichi.io.outputs import OutputFolder
@@ -332,6 +350,7 @@ def run(args: argparse.Namespace) -> int:
     patterns = [f"flow/flow_*.{args.flow_format}", "flow_timestamps.txt", "results.csv", "summary.json"]
     patterns.append("figures/window_*.png")
     folder = OutputFolder(args.out, inputs=inputs, patterns=patterns, command="flow")
+    folder.check()  # an OUT that is an input, or holds files this run may not replace: before any work
     common.init_backend(args.arch, args.precision, args.compile)
     estimator = DenseFlowEstimator(
         tuple(args.grid),
@@ -343,35 +362,10 @@ def run(args: argparse.Namespace) -> int:
         padding=args.padding,
     )
     with folder:
-        windows, info, truth = _estimate_into(args, estimator, folder, regs, io, CliError)
+        windows, info, truth = _estimate_into(args, estimator, folder, regs)
         written = folder.commit()  # every file moved into place whole, now that the run is complete
+    _report(args, windows, info, truth)
     out = Path(args.out)
-    label = f"example {args.example}" if args.example is not None else str(args.path)
-    print(
-        f"{len(windows)} window(s) of {label}: grid {args.grid[0]}x{args.grid[1]} cells, {args.levels} levels"
-    )
-    print(
-        f"  time: {info['seconds']:.2f} s in all, {info['mean_seconds_after_first']:.3f} s per window after "
-        "the first (which compiles the kernels)"
-    )
-    if "metrics" in info:
-        m = info["metrics"]
-        print(
-            f"  against the ground truth ({info['scored_windows']} window(s)): AEE {m['AEE']:.3f} px, "
-            f"3PE {m['3PE']:.2f}%, %Out {m.get('outlier', float('nan')):.2f}%"
-        )
-        if args.example is not None:
-            zero = _zero_flow_error(truth, windows[0])
-            print(f"  (zero flow: AEE {zero:.3f} px)")
-    elif args.example is None:
-        print("  no flow ground truth in this recording: no metrics")
-    stalled = [w.index for w in windows if w.result.status == "stalled"]
-    if stalled:
-        print(
-            f"  warning: {len(stalled)} window(s) ({', '.join(map(str, stalled[:10]))}"
-            f"{', ...' if len(stalled) > 10 else ''}) have a level whose optimizer did not move the flow: "
-            "their flow there is the level's start (results.csv, columns status and levels)"
-        )
     flows = [p for p in written if p.parent == out / "flow"]
     others = [p for p in written if p.parent != out / "flow"]
     shown = [str(out / "flow" / f"flow_*.{args.flow_format}") + f" ({len(flows)} files)"] + [
@@ -382,10 +376,63 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: N803
+def _report(args, windows: list, info: dict, truth) -> None:
+    """What the run did: windows, time, the metrics (or why none), where the events went."""
+    from cmax_taichi.core.windows import ESTIMATED_STATUSES, describe_events
+    from cmax_taichi.flow.sequence import BEYOND_SENSOR
+
+    label = f"example {args.example}" if args.example is not None else str(args.path)
+    grid = f"grid {args.grid[0]}x{args.grid[1]} cells, {args.levels} levels"
+    print(f"{len(windows)} window(s) of {label}: {grid}")
+    if info["mean_seconds_after_first"] is None:
+        print(f"  time: {info['seconds']:.2f} s (one window, which compiles the kernels)")
+    else:
+        print(
+            f"  time: {info['seconds']:.2f} s in all, {info['mean_seconds_after_first']:.3f} s per window "
+            "after the first (which compiles the kernels)"
+        )
+    if "metrics" in info:
+        m = info["metrics"]
+        print(
+            f"  against the ground truth ({info['scored_windows']} window(s)): AEE {m['AEE']:.3f} px, "
+            f"3PE {m['3PE']:.2f}%, %Out {m['outlier']:.2f}%"
+        )
+        if args.example is not None:
+            zero = _zero_flow_error(truth, windows[0])
+            print(f"  (zero flow: AEE {zero:.3f} px)")
+    for note, count in info.get("unscored", {}).items():
+        print(f"  {count} window(s) not scored against the ground truth: {note}")
+    if "metrics" not in info and "unscored" not in info and args.example is None:
+        print("  no flow ground truth in this recording: no metrics")
+    beyond = [w for w in windows if w.status == BEYOND_SENSOR]
+    if beyond:
+        print(f"  {len(beyond)} window(s) without a flow file: {beyond[0].note}")
+    events = info["events"]
+    left = events["total"] - events["estimated"]
+    if left:
+        reasons = describe_events(events, args.window if args.duration is None else None, args.max_windows)
+        n_skipped = sum(n for status, n in events["windows"].items() if status not in ESTIMATED_STATUSES)
+        skipped = f"; {n_skipped} window(s) skipped" if n_skipped else ""
+        note = f"; {left} not estimated ({reasons}{skipped})"
+    else:
+        note = ""
+    print(f"  events: {events['estimated']} of {events['total']} estimated{note}")
+    stalled = [w.index for w in windows if w.result is not None and w.result.status == "stalled"]
+    if stalled:
+        print(
+            f"  warning: {len(stalled)} window(s) ({', '.join(map(str, stalled[:10]))}"
+            f"{', ...' if len(stalled) > 10 else ''}) have a level whose optimizer did not move the flow: "
+            "their flow there is the level's start (results.csv, columns optimizer and levels)"
+        )
+
+
+def _estimate_into(args, estimator, folder, regs: dict):
     """Estimate every window into the staging folder of ``folder``; ``(windows, summary, truth)``."""
+    from cmax_taichi import io
+    from cmax_taichi.cli import CliError
+    from cmax_taichi.flow.grid import check_padded_sensor
     from cmax_taichi.flow.sequence import iter_flow, summary
-    from cmax_taichi.io.writers import write_flow
+    from cmax_taichi.io.outputs import json_text
     from cmax_taichi.solve.sequence import ProgressBar
 
     truth = None
@@ -394,60 +441,40 @@ def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: 
         events, truth, preset = _open_example(args.example)
         print(f"example {args.example!r}: {preset.description}")
         print(f"  simulated: {len(events)} events over {preset.window * 1e3:.0f} ms (seed 0), one window")
-        total = 1
-        window_iter = iter_flow(
-            _OneWindow(events, truth), estimator, n_events=len(events), max_windows=1, dt=args.dt
-        )
+        options = dict(n_events=len(events), max_windows=1, truth=truth)
     else:
-        options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
-        source = io.open_recording(Path(args.path), format=args.format, **options)
-        estimator.camera = source.camera
-        total = None
-        if args.duration is None:
-            total = max(0, (source.n_events - args.window) // int(args.stride or args.window) + 1)
-        stride = None if args.stride is None else (args.stride if args.duration else int(args.stride))
-        window_iter = iter_flow(
-            source,
-            estimator,
+        size = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
+        events = source = io.open_recording(Path(args.path), format=args.format, **size)
+        options = dict(
             n_events=args.window,
             duration=args.duration,
-            stride=stride,
-            dt=args.dt,
+            stride=common.window_stride(args),
             max_windows=args.max_windows,
             warm_start=not args.no_warm_start,
+            keep_tail=args.keep_tail,
         )
-    if args.max_windows is not None:
-        total = args.max_windows if total is None else min(total, args.max_windows)
-    bar = None if args.quiet else ProgressBar(total)
-    windows, stamps = [], []
+    windows, stamps, bar = [], [], None
     started = time.perf_counter()
     try:
+        if source is not None and args.padding is not None:  # iter_flow checks it too, naming no option
+            check_padded_sensor(source.sensor_size, args.padding, "--padding")
         with folder.path("results.csv").open("w", newline="") as fcsv:
             writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
             writer.writeheader()
-            for window in window_iter:
-                res = window.result
-                meta = {
-                    "t_start": res.t_start,
-                    "t_end": res.t_start + window.dt,
-                    "unit": "px",
-                    "window": window.index,
-                }
-                write_flow(
-                    folder.path(f"flow/flow_{window.index:04d}.{args.flow_format}"),
-                    window.displacement,
-                    **meta,
-                )
-                stamps.append((res.t_start, res.t_start + window.dt))
-                if window.index < args.figures:
-                    _window_figure(folder.path(f"figures/window_{window.index:04d}.png"), window, estimator)
+            skipped_row = lambda w: writer.writerow(_row(w))  # noqa: E731 - rows in window order
+            flows = iter_flow(events, estimator, dt=args.dt, on_skipped=skipped_row, **options)
+            bar = None if args.quiet else ProgressBar(flows.total)
+            for window in flows:
+                if window.estimated:
+                    _write_window(args, folder, window, estimator, flows.source)
+                    stamps.append((window.result.t_start, window.result.t_start + window.dt))
                 writer.writerow(_row(window))
                 if not windows:  # the first result as soon as it is there
                     _print_first_window(window, started)
-                window.events = None  # nothing of a window is kept but its summary
+                window.events = window.displacement = None  # nothing of a window is kept but its summary
                 windows.append(window)
                 if bar is not None:
-                    note = f"J={res.value:.3f}"
+                    note = f"J={window.result.value:.3f}"
                     if window.metrics is not None:
                         note += f" AEE={window.metrics['AEE']:.3f}px"
                     bar.update(note)
@@ -457,9 +484,11 @@ def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: 
         if source is not None:
             source.close()
     if not windows:
-        raise CliError("no window to estimate (fewer events than --window?)")
+        raise CliError(f"{args.path}: no window to estimate: {common.why_no_window(args, flows.events)}")
     folder.path("flow_timestamps.txt").write_text("".join(f"{a:.9f} {b:.9f}\n" for a, b in stamps))
     info = summary(windows)
+    info["events"] = flows.events
+    info["recording"] = flows.source if args.example is None else {"source": f"example:{args.example}"}
     info["options"] = {
         "grid": list(args.grid),
         "levels": args.levels,
@@ -468,8 +497,14 @@ def _estimate_into(args, estimator, folder, regs: dict, io, CliError):  # noqa: 
         "regularizers": regs,
         "blur": args.blur,
         "padding": args.padding,
+        "window_events": None if args.duration is not None else args.window,
+        "window_duration": args.duration,
+        "stride": args.stride,
+        "keep_tail": args.keep_tail,
+        "dt": args.dt,
+        "flow_format": args.flow_format,
     }
-    folder.path("summary.json").write_text(json.dumps(info, indent=2) + "\n")
+    folder.path("summary.json").write_text(json_text(info, indent=2))
     return windows, info, truth
 
 
@@ -479,26 +514,31 @@ def _print_first_window(window, started: float) -> None:
     from tqdm import tqdm
 
     res = window.result
-    u, v = (float(np.median(c)) for c in window.displacement)
+    if window.displacement is None:  # its flow over dt leaves the sensor (status beyond_sensor)
+        shown = f"no displacement over dt: {window.note}"
+    else:
+        u, v = (float(np.median(c)) for c in window.displacement)
+        shown = f"median displacement ({u:.2f}, {v:.2f}) px"
     aee = f", AEE {window.metrics['AEE']:.3f} px" if window.metrics is not None else ""
     tqdm.write(
-        f"first window ({res.t_start:.4f} s + {window.dt:.4f} s): median displacement ({u:.2f}, {v:.2f}) px"
-        f"{aee} ({time.perf_counter() - started:.1f} s)",
+        f"first window ({res.t_start:.4f} s + {window.dt:.4f} s): {shown}{aee} "
+        f"({time.perf_counter() - started:.1f} s)",
         file=sys.stdout,
     )
     sys.stdout.flush()
 
 
-class _OneWindow:
-    """A single window as a source for :func:`iter_flow`, with the example's ground truth."""
+def _write_window(args, folder, window, estimator, source: dict) -> None:
+    """The flow file of an estimated window (and its figure among the first --figures)."""
+    from cmax_taichi.io.writers import write_flow
 
-    def __init__(self, events, truth) -> None:
-        self._events = events
-        self.flow = truth.flow
-        self.read_time = truth.read_time
-
-    def windows(self, n_events=None, duration=None, stride=None):
-        yield self._events
+    res = window.result
+    meta = {"t_start": res.t_start, "t_end": res.t_start + window.dt, "unit": "px", "window": window.index}
+    if args.flow_format == "npz" and source.get("fingerprint"):
+        meta["fingerprint"] = source["fingerprint"]  # evaluate checks --data against it
+    write_flow(folder.path(f"flow/flow_{window.index:04d}.{args.flow_format}"), window.displacement, **meta)
+    if window.index < args.figures:
+        _window_figure(folder.path(f"figures/window_{window.index:04d}.png"), window, estimator)
 
 
 def _zero_flow_error(truth, window) -> float:

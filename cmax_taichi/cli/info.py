@@ -1,4 +1,5 @@
-"""Show the backend in use and the registered warps, objectives and regularizers."""
+"""Show the backend in use and the registered warps, objectives, regularizers and the dense flow's
+smoothness terms."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import cmax_taichi as cm
+    from cmax_taichi.flow.smoothness import SMOOTHNESS, smoothness_names
     from cmax_taichi.pipeline import tiers
 
     info = cm.init(arch=args.arch, precision=args.precision, compile_mode=args.compile)
@@ -35,4 +37,7 @@ def run(args: argparse.Namespace) -> int:
     print("regularizers:")
     for name in cm.regularizer_names():
         print(f"  {name:14s} {cm.REGULARIZERS.get(name).description}")
+    print("smoothness terms of the dense flow (cmax-taichi flow --reg NAME=WEIGHT, beside the regularizers):")
+    for name in smoothness_names():
+        print(f"  {name:16s} {SMOOTHNESS.get(name).description}")
     return 0

@@ -19,7 +19,6 @@ examples:
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -223,12 +222,19 @@ def run(args: argparse.Namespace) -> int:
 
         check_example(args.example, warps)
     from cmax_taichi import io
-    from cmax_taichi.io.outputs import OutputFolder, check_inputs
+    from cmax_taichi.io.outputs import OutputFolder
 
+    folder = OutputFolder(
+        args.out,
+        inputs=[] if args.example is not None else [Path(args.path)],
+        patterns=OUTPUT_PATTERNS,
+        command="segment",
+    )
     example = None
     if args.example is not None:
         from cmax_taichi.sim.examples import make_example
 
+        folder.check()
         common.init_backend(args.arch, args.precision, args.compile)
         path = Path(f"example:{args.example}")
         example = make_example(args.example)
@@ -237,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
         path = Path(args.path)
         if not path.exists():
             raise CliError(f"{path}: no such file or folder")
-        check_inputs(args.out, [path], "--out")  # before any work
+        folder.check()  # an OUT that is an input, or holds files this run may not replace: before any work
         common.init_backend(args.arch, args.precision, args.compile)
         options = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
         with io.open_recording(path, format=args.format, **options) as rec:
@@ -263,9 +269,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
 
-    with OutputFolder(
-        args.out, inputs=[] if example is not None else [path], patterns=OUTPUT_PATTERNS, command="segment"
-    ) as folder:
+    with folder:
         _write_outputs(folder, args, path, events, res, regs, t_ref, warps, example)
         written = folder.commit()  # every file moved into place whole, now that all are written
     print("wrote: " + ", ".join(str(p) for p in written))
@@ -278,6 +282,7 @@ def _write_outputs(folder, args, path, events, res, regs, t_ref, warps, example)
     import numpy as np
 
     import cmax_taichi as cm
+    from cmax_taichi.io.outputs import json_text
     from cmax_taichi.testing.reference import bilinear_votes, gaussian_blur
 
     with folder.path("labels.npy").open("wb") as fh:
@@ -328,16 +333,18 @@ def _write_outputs(folder, args, path, events, res, regs, t_ref, warps, example)
         "seconds": res.seconds,
         "history": res.history,
     }
-    folder.path("segmentation.json").write_text(json.dumps(summary, indent=1))
+    folder.path("segmentation.json").write_text(json_text(summary))
     if not args.no_figures:
         _events_figure(folder.path("figures/events_by_cluster.png"), events, res)
         W, H = events.sensor_size
         used = res.events  # undistorted when a camera with distortion was given
         raw = gaussian_blur(bilinear_votes(used.x, used.y, 1.0, W, H), args.blur)
         _iwe_figure(folder.path("figures/cluster_iwes.png"), events, res, raw)
+    segmented = int(np.sum(res.labels >= 0))
+    dropped = f" ({len(events) - segmented} dropped by undistortion)" if segmented < len(events) else ""
     print(
-        f"segmented {len(events)} events of {path} into {K} clusters in {res.seconds:.2f} s "
-        f"({len(res.history)} iterations, converged={res.converged})"
+        f"segmented {segmented} of {len(events)} events of {path}{dropped} into {K} clusters in "
+        f"{res.seconds:.2f} s ({len(res.history)} iterations, converged={res.converged})"
     )
     for c in clusters:
         params = ", ".join(f"{n}={v:.4g} {c['units'][n]}" for n, v in c["parameters"].items())
@@ -357,6 +364,7 @@ def _layer_truth(example, layer: int, warp: str) -> list[float]:
 
 def _report_example(example, res, path: Path) -> Path:
     """Print a segmented example against its true labels and motions; write them to ``path`` (JSON)."""
+    from cmax_taichi.io.outputs import json_text
     from cmax_taichi.lab.segment_eval import label_accuracy, match_clusters
 
     truth = example.labels
@@ -377,5 +385,5 @@ def _report_example(example, res, path: Path) -> Path:
         objects.append({"layer": layer, "cluster": cluster, "truth": true_theta, "estimate": estimate})
     print(f"  events in the cluster matched to their true layer: {100 * accuracy:.1f}%")
     report = {"example": example.example.name, "accuracy": accuracy, "layers": objects}
-    path.write_text(json.dumps(report, indent=2) + "\n")
+    path.write_text(json_text(report, indent=2))
     return path

@@ -9,6 +9,7 @@ says so when used.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import sys
 import warnings
@@ -142,7 +143,9 @@ def init(
     # stored" lines while differentiating rotation3's matrix code, offline-cache lock notices when two
     # processes compile at once) are noise to a user; errors still show.
     log_level = ti.ERROR if quiet else ti.INFO
-    with warnings.catch_warnings():
+    # nor Taichi's "[Taichi] Starting on arch=..." line, which it prints to stdout whatever the level
+    banner = contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext()
+    with warnings.catch_warnings(), banner:
         warnings.simplefilter("ignore", DeprecationWarning)
         ti.init(
             arch=_arch_of(arch),

@@ -262,7 +262,8 @@ def time_windows(
                 f"({spacing:.3g} s over {n_events} events): nearly every window would be empty "
                 f"(seconds expected; at least {spacing * MIN_EVENTS_PER_WINDOW:.3g} s)"
             )
-    count = math.floor(span / step) + 1
+    ratio = span / step  # infinite for a stride of a few denormals: more windows than any limit
+    count = math.floor(ratio) + 1 if math.isfinite(ratio) else math.inf
     if count > limit:
         raise ValueError(
             f"windows of {duration:g} s starting every {step:g} s over the events' {span:.6g} s would be "

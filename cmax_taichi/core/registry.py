@@ -4,7 +4,9 @@ One :class:`Registry` each for warp models (``warps.py``), objectives (``objecti
 regularizers (``regularizers.py``). Each of those modules registers its built-in entries by one explicit
 call at its bottom; users add their own with :func:`register_warp` and friends, in their own code or in
 a plugin: a module or a Python file that registers entries when it is imported (:func:`load_plugin`,
-``cmax-taichi ... --plugin FILE.py``).
+``cmax-taichi ... --plugin FILE.py``). Loading a plugin is all or nothing: a plugin that fails half-way
+(an error, or ``sys.exit`` while it is imported) leaves every registry as it was, so the fixed plugin
+loads in the same session.
 """
 
 from __future__ import annotations
@@ -13,12 +15,23 @@ import hashlib
 import importlib
 import importlib.util
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, MutableMapping
 from pathlib import Path
 from types import ModuleType
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
+
+#: every registry's mapping (and the other name -> entry tables a plugin may fill, see :func:`track`):
+#: what :func:`load_plugin` restores when a plugin fails
+_TRACKED: list[MutableMapping] = []
+
+
+def track(mapping: MutableMapping) -> MutableMapping:
+    """Put a name -> entry table that plugins may fill (beside the registries, e.g. the NumPy twins of
+    the warps) under :func:`load_plugin`'s all-or-nothing rule; returns it."""
+    _TRACKED.append(mapping)
+    return mapping
 
 
 class Registry(Generic[T]):
@@ -32,8 +45,8 @@ class Registry(Generic[T]):
 
     def __init__(self, kind: str) -> None:
         self.kind = kind
-        self._entries: dict[str, T] = {}
-        self._origins: dict[str, str | None] = {}
+        self._entries: dict[str, T] = track({})
+        self._origins: dict[str, str | None] = track({})
 
     def register(self, name: str, entry: T, *, replace: bool = False, builtin: bool = False) -> T:
         """Add ``entry`` under ``name``; refuse to overwrite an existing name unless ``replace``.
@@ -98,13 +111,26 @@ _PLUGINS: dict[str, ModuleType] = {}
 def load_plugin(spec: str) -> ModuleType:
     """Import a plugin: a Python file (``path/to/file.py``) or an importable module (``package.module``)
     that registers warps, objectives or regularizers when it is imported. Each plugin is imported once
-    per process; loading it again returns the module.
+    per process; loading it again returns the module. All or nothing: when the import fails, whatever
+    the plugin registered before it failed is removed again (and what it replaced put back).
 
     Raises
     ------
     PluginError
-        (an ImportError) naming the plugin: no such file or module, or the exception its code raised.
+        (an ImportError) naming the plugin: no such file or module, the exception its code raised, or
+        its call of ``sys.exit`` while it was imported.
     """
+    snapshot = [(mapping, dict(mapping)) for mapping in _TRACKED]
+    try:
+        return _import_plugin(spec)
+    except BaseException:
+        for mapping, before in snapshot:  # the registries as they were before the plugin ran
+            mapping.clear()
+            mapping.update(before)
+        raise
+
+
+def _import_plugin(spec: str) -> ModuleType:
     if not isinstance(spec, str) or not spec.strip():
         raise PluginError(f"a plugin is a module name or a .py file, got {spec!r}")
     spec = spec.strip()
@@ -140,6 +166,8 @@ def load_plugin(spec: str) -> ModuleType:
                 _LOADING.pop()
     except PluginError:
         raise
+    except SystemExit as exc:  # the plugin ended the import, not the process: the command must not exit 0
+        raise PluginError(f"plugin {spec}: called sys.exit({exc.code!r}) while being imported") from None
     except ModuleNotFoundError as exc:
         if not is_file and exc.name is not None and spec.startswith(exc.name):
             raise PluginError(f"plugin {spec}: no such module (nor a file of that name)") from None

@@ -44,12 +44,16 @@ undistortion depend on the event alone, so overlapping windows agree on them.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from cmax_taichi.core import checks
 from cmax_taichi.core.checks import EventsDroppedWarning, whole_number
+from cmax_taichi.core.events import Camera, Events
 
 __all__ = [
     "CATEGORIES",
@@ -66,8 +70,13 @@ __all__ = [
     "ZERO_DURATION",
     "EventLedger",
     "Span",
+    "WindowPlan",
+    "check_window_options",
     "count_spans",
+    "estimable_windows",
     "min_tail_events",
+    "plan_windows",
+    "read_window",
     "time_spans",
     "window_status",
 ]
@@ -381,3 +390,124 @@ class EventLedger:
                 EventsDroppedWarning,
                 stacklevel=stacklevel + 1,
             )
+
+
+# --- a pass of windows over a source ---------------------------------------------------------------
+@dataclass
+class WindowPlan:
+    """One pass of windows over a source: its spans, how to read one, and what to say about it.
+
+    Attributes
+    ----------
+    spans : iterator of Span
+    read : callable
+        ``read(span) -> (events on the sensor, which rows of the span they are or None)``.
+    n_total : int
+        Events of the source.
+    total : int or None
+        Windows of the pass that may be estimated, if known (for a progress bar).
+    camera : Camera or None
+        The source's calibration.
+    undistorted : bool
+        Whether its coordinates are undistorted already.
+    desc : dict
+        ``source`` (a name for messages), and for a recording its ``format`` and ``fingerprint``.
+    planner : object or None
+        What plans each next span of motion-adaptive windows
+        (:class:`cmax_taichi.solve.adaptive.AdaptivePlanner`); None for count and time windows.
+    """
+
+    spans: Iterator[Span]
+    read: Callable[[Span], tuple[Events, np.ndarray | None]]
+    n_total: int
+    total: int | None
+    camera: Camera | None
+    undistorted: bool
+    desc: dict
+    planner: Any = None
+
+
+def check_window_options(n_events, duration, stride, max_windows):
+    """The window options of a pass, checked and normalised: ``(n_events, duration, stride,
+    max_windows)`` (count windows: whole numbers ``n_events >= 2`` and ``stride >= 1``; time windows: a
+    positive ``duration`` and ``stride`` in seconds; ``max_windows >= 1``). TypeError / ValueError."""
+    if duration is None:
+        n_events = whole_number("n_events", n_events, 2)
+        stride = None if stride is None else whole_number("stride (events)", stride, 1)
+    else:
+        duration = checks.seconds("duration", duration, positive=True)
+        stride = None if stride is None else checks.seconds("stride", stride, positive=True)
+    if max_windows is not None:
+        max_windows = whole_number("max_windows", max_windows, 1)
+    return n_events, duration, stride, max_windows
+
+
+def plan_windows(source, n_events: int, duration: float | None, stride, keep_tail: bool) -> WindowPlan:
+    """The pass of windows over an :class:`~cmax_taichi.Events` or an open recording (what
+    :func:`cmax_taichi.solve.sequence.process` and :func:`cmax_taichi.flow.iter_flow` both walk):
+    arguments and timestamps checked now."""
+    if isinstance(source, Events):
+        n = len(source)
+        if n > 1 and source.t[0] == source.t[-1]:
+            raise ValueError(
+                f"all {n} events have the same time t = {source.t[0]:.9f} s: no window spans a positive time"
+            )
+        if duration is not None:
+            ranges = checks.time_windows(
+                float(source.t[0]) if n else 0.0,
+                float(source.t[-1]) if n else 0.0,
+                n,
+                duration,
+                stride,
+                lambda t: int(np.searchsorted(source.t, t, side="left")),
+                lambda i: float(source.t[i]),
+            )
+            spans: Iterator[Span] = time_spans(ranges)
+            total = None
+            if n > 1:
+                step = duration if stride is None else float(stride)
+                total = int((source.t[-1] - source.t[0]) // step) + 1
+        else:
+            spans = count_spans(n, n_events, stride, keep_tail)
+            total = estimable_windows(n, n_events, stride, keep_tail)
+        return WindowPlan(
+            spans, lambda span: (source[span.start : span.stop], None), n, total, None,
+            source.undistorted, {"source": f"Events(n={n})"},
+        )  # fmt: skip
+    if hasattr(source, "window_spans"):  # an open Recording
+        spans = source.window_spans(n_events=n_events, duration=duration, stride=stride, keep_tail=keep_tail)
+        total = None
+        if duration is None:
+            total = estimable_windows(source.n_events, n_events, stride, keep_tail)
+        desc = {"source": str(getattr(source, "path", source)), "format": getattr(source, "format", None)}
+        fingerprint = getattr(source, "fingerprint", None)
+        if callable(fingerprint):
+            desc["fingerprint"] = fingerprint()
+        return WindowPlan(
+            spans, lambda span: source._span_events(span.start, span.stop), source.n_events, total,
+            getattr(source, "camera", None), bool(getattr(source, "undistorted", False)), desc,
+        )  # fmt: skip
+    raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
+
+
+def estimable_windows(n_total: int, n_events: int, stride: int | None, keep_tail: bool) -> int:
+    """The windows of a count pass that may be estimated (for a progress bar): the full windows, and the
+    partial tail when ``keep_tail`` keeps it."""
+    step = n_events if stride is None else int(stride)
+    full = 0 if n_total < n_events else (n_total - n_events) // step + 1
+    tail = n_total - full * step
+    return full + (1 if keep_tail and tail >= min_tail_events(n_events) else 0)
+
+
+def read_window(span: Span, plan: WindowPlan, camera: Camera | None, lossy: checks.UndistortionTally):
+    """Read a window and decide its fate: ``(events used, on-sensor mask or None, undistortion mask or
+    None, status)``; undistorted here (once) when ``camera`` is given, so that the losses are counted."""
+    events, inside = plan.read(span)  # the events on the sensor (inside: which rows)
+    used, kept = events, None
+    if camera is not None and span.keep and len(events):
+        with warnings.catch_warnings():  # the tally's filter lives for this window only: no global state
+            if lossy.windows:  # the first lossy window warned; the later ones are in the totals
+                warnings.filterwarnings("ignore", message=lossy._MESSAGE, category=EventsDroppedWarning)
+            used, kept = events.undistort(camera, return_mask=True)
+            lossy.add(events, used)
+    return used, inside, kept, window_status(span, len(used), used.duration)

@@ -17,7 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FlowGrid", "grid_for_cell_size"]
+__all__ = ["FlowBeyondSensorError", "FlowGrid", "auto_padding", "check_padded_sensor", "grid_for_cell_size"]
+
+
+class FlowBeyondSensorError(ValueError):
+    """A displacement asked over an interval that carries the flow beyond the sensor."""
 
 
 @dataclass(frozen=True)
@@ -174,10 +178,23 @@ class FlowGrid:
         ``dt u(x)`` (the straight line at the start's velocity) differs from it by about
         ``dt^2 / 2 (Du) u`` wherever the flow varies: 0.2 px on the simulator's ``room`` window,
         whose ground truth (MVSEC's convention too) is the displacement of the scene point seen at
-        each pixel at the start."""
+        each pixel at the start.
+
+        FlowBeyondSensorError (a ValueError), before any step, when the flow over ``dt`` would carry
+        points farther than the sensor's diagonal: the integration's cost grows with that distance,
+        and past it every path has left the sensor (e.g. the flow of a window of a microsecond
+        extrapolated over 50 ms)."""
         U = self.check_nodes(nodes)
         dt = float(dt)
-        peak = float(np.abs(U).max(initial=0.0)) * abs(dt)
+        speed = float(np.abs(U).max(initial=0.0))
+        peak = speed * abs(dt)
+        reach = math.hypot(self.width, self.height)
+        if not peak <= reach:  # the work grows with the reach: bounded by the sensor's diagonal
+            raise FlowBeyondSensorError(
+                f"the flow over dt = {dt:g} s moves points by up to {peak:.3g} px (peak {speed:.3g} px/s), "
+                f"beyond the {self.width}x{self.height} sensor (diagonal {reach:.0f} px): the displacement "
+                "is not defined that far (every path leaves the sensor); choose a shorter dt"
+            )
         steps = max(1, math.ceil(peak / max_step_px))
         h = dt / steps
         yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
@@ -241,3 +258,42 @@ def grid_for_cell_size(sensor_size: tuple[int, int], cell_px: float, levels: int
     nx = max(step, step * round((W - 1) / cell_px / step))
     ny = max(step, step * round((H - 1) / cell_px / step))
     return FlowGrid(W, H, nx, ny)
+
+
+def auto_padding(sensor_size: tuple[int, int], share: float) -> int:
+    """The automatic margin of a dense flow's IWE, px: ``share`` of the larger sensor side, less where
+    the padded image would exceed ``max_sensor_pixels`` (:func:`cmax_taichi.get_limits`), so that every
+    sensor within the limit (4096 x 4096 by default) can be estimated without choosing a padding."""
+    from cmax_taichi.core.limits import get_limits
+
+    W, H = (int(v) for v in sensor_size)
+    pad = round(share * max(W, H))
+    limit = get_limits().max_sensor_pixels
+    if (W + 2 * pad) * (H + 2 * pad) > limit:  # the largest p with (W + 2p)(H + 2p) <= limit
+        pad = max(0, math.floor((-(W + H) + math.sqrt((W - H) ** 2 + 4 * limit)) / 4))
+        while pad > 0 and (W + 2 * pad) * (H + 2 * pad) > limit:  # rounding of the square root
+            pad -= 1
+    return pad
+
+
+def check_padded_sensor(sensor_size: tuple[int, int], padding: int, option: str = "padding") -> None:
+    """ValueError, naming the sensor and the margin, when the IWE of a dense flow (the sensor with
+    ``padding`` px on every side) exceeds ``max_sensor_pixels``: checked before any work."""
+    from cmax_taichi.core.limits import ENV_VARS, get_limits
+
+    width, height = (int(v) for v in sensor_size)
+    limit = get_limits().max_sensor_pixels
+    how = "raise the limit with cmax_taichi.set_limits(max_sensor_pixels=...) or "
+    how += ENV_VARS["max_sensor_pixels"]
+    if width * height > limit:
+        raise ValueError(
+            f"the {width}x{height} sensor ({width * height:,} px) exceeds max_sensor_pixels = {limit:,}: "
+            + how
+        )
+    padded_w, padded_h = width + 2 * padding, height + 2 * padding
+    if padded_w * padded_h > limit:
+        raise ValueError(
+            f"the {width}x{height} sensor with a margin of {padding} px on every side ({option}) makes an "
+            f"image of {padded_w}x{padded_h} = {padded_w * padded_h:,} pixels, above max_sensor_pixels = "
+            f"{limit:,}: choose a {option} of at most {auto_padding((width, height), 1.0)} px, or {how}"
+        )

@@ -34,7 +34,7 @@ import numpy as np
 
 from cmax_taichi.core.checks import OptimizerStallWarning
 from cmax_taichi.core.events import Camera, Events
-from cmax_taichi.flow.grid import FlowGrid
+from cmax_taichi.flow.grid import FlowGrid, auto_padding
 from cmax_taichi.flow.problem import DenseEvaluation, DenseFlowProblem, resolve_references
 
 __all__ = [
@@ -334,8 +334,19 @@ class DenseFlowEstimator:
     scales : sequence of int, optional
         Image downsampling per level (coarsest first, each >= 1); default :func:`auto_scales`. The global
         search runs at the first level's scale.
-    objective, references, reference_weights, blur_sigma, normalize, polarity
-        As for :class:`~cmax_taichi.flow.DenseFlowProblem`.
+    objective : str
+        A registered objective with a fused declaration (default ``"gradient_magnitude"``; as for
+        ``DenseFlowProblem``).
+    references : str, float or sequence
+        Reference times of the IWEs (default ``"middle"``; ``"multi"``: the multi-reference objective).
+    reference_weights : sequence of float, optional
+        One positive weight per reference.
+    blur_sigma : float
+        Gaussian blur of the IWEs, px (default 1; 0 = none).
+    normalize : bool
+        Divide each objective by that of the unwarped events (default True).
+    polarity : {"ignore", "signed", "split"}
+        How polarities vote (default ``"ignore"``).
     regularizers : mapping, optional
         ``{name: lambda}``, event-collapse regularizers and smoothness terms; default
         :data:`DEFAULT_REGULARIZERS`; ``{}`` for none.
@@ -352,7 +363,7 @@ class DenseFlowEstimator:
     padding : int, optional
         Margin of the IWEs around the sensor, px of the full-resolution image (see
         :class:`~cmax_taichi.flow.DenseFlowProblem`); default :data:`AUTO_PADDING` of the larger sensor
-        side.
+        side, less where the padded image would exceed ``max_sensor_pixels`` (``flow.grid.auto_padding``).
     dither : bool
         Spread integer event coordinates over their pixel (:func:`dithered`) on the full-resolution
         level (default True): without it, flow components under about a pixel over the window are
@@ -491,7 +502,7 @@ class DenseFlowEstimator:
             )
             full = self.padding
             if full is None:
-                full = round(AUTO_PADDING * max(events.sensor_size))
+                full = auto_padding(events.sensor_size, AUTO_PADDING)
             pad = math.ceil(full / scale)
             prob = DenseFlowProblem(scaled, finest, camera=None, padding=pad, **self.problem_options)
             self._problems[scale] = prob

@@ -13,6 +13,7 @@ same path are removed.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import math
@@ -139,8 +140,9 @@ def cached_table(
     ``build(out)`` decodes the source, writes the rows to the binary stream ``out`` (row-major
     float64) and returns a JSON-able dict with at least ``"n"`` (the row count). It runs once per
     version of the source; later calls map the stored table. With ``use_cache=False``, or when the
-    cache directory cannot be written (a warning says so), the table goes to a temporary file that
-    is deleted when the returned array is garbage-collected (on POSIX).
+    cache directory cannot be written or its disk is full (a warning says so), the table goes to a
+    temporary file that is deleted when the returned array is garbage-collected (on POSIX); with no
+    space there either, one OSError names the source, the cache and the temporary folder.
     """
     if sort:
         options = dict(options, sorted_by_time=True)
@@ -160,18 +162,50 @@ def cached_table(
             root.mkdir(parents=True, exist_ok=True)
             fd, tmp_name = tempfile.mkstemp(prefix=f".{path_key}-", suffix=".tmp", dir=root)
         except OSError as exc:
-            warnings.warn(
-                f"cannot write the event cache in {root} ({exc}); decoding {source} into a temporary "
-                f"file instead (set {CACHE_ENV} or cache_dir= to a writable folder)",
-                RuntimeWarning,
-                stacklevel=3,
-            )
+            _fallback_warning(root, source, exc)
             use_cache = False
-    if not use_cache:
-        fd, tmp_name = tempfile.mkstemp(prefix="cmax_taichi-", suffix=".f64")
-    tmp = Path(tmp_name)
+        else:
+            try:
+                tmp = Path(tmp_name)
+                return _store(source, kind, build, sort, fd, tmp, table_path, meta_path, root, path_key)
+            except OSError as exc:
+                if exc.errno not in _NO_SPACE:
+                    raise
+                _fallback_warning(root, source, exc)  # a full disk under the cache: as if it were not there
     try:
-        with os.fdopen(fd, "wb") as out:
+        fd, tmp_name = tempfile.mkstemp(prefix="cmax_taichi-", suffix=".f64")
+        return _store(source, kind, build, sort, fd, Path(tmp_name), None, None, root, path_key)
+    except OSError as exc:
+        if exc.errno not in _NO_SPACE:
+            raise
+        raise OSError(
+            f"{source}: no space to decode its events ({exc.strerror}), neither in the event cache {root} "
+            f"nor in the temporary folder {tempfile.gettempdir()}: free some space, or set {CACHE_ENV} to "
+            "a folder on another disk"
+        ) from None
+
+
+#: the errors of a full disk (or quota, or file-size limit)
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def _fallback_warning(root: Path, source: Path, exc: OSError) -> None:
+    warnings.warn(
+        f"cannot write the event cache in {root} ({exc.strerror or exc}); decoding {source} into a "
+        f"temporary file instead (set {CACHE_ENV} or cache_dir= to a writable folder with space)",
+        RuntimeWarning,
+        stacklevel=4,
+    )
+
+
+def _store(source, kind, build, sort, fd, tmp: Path, table_path, meta_path, root, path_key):
+    """Decode ``source`` with ``build`` into the open temporary file ``fd`` (``tmp``), then move it to
+    ``table_path`` in the cache (with its metadata), or, without ``table_path``, map the temporary file
+    itself (removed once mapped); ``(table, metadata)``."""
+    use_cache = table_path is not None
+    out = os.fdopen(fd, "wb")
+    try:
+        with out:
             meta = build(out)
         meta = dict(meta, source=str(source.resolve()), kind=kind, version=CACHE_VERSION)
         if tmp.stat().st_size != meta["n"] * COLUMNS * 8:
@@ -191,7 +225,12 @@ def cached_table(
         meta_tmp.write_text(json.dumps(meta))
         os.replace(meta_tmp, meta_path)
     except BaseException:
+        with contextlib.suppress(OSError):
+            out.close()
         tmp.unlink(missing_ok=True)
+        if use_cache:  # no table stands in the cache without its metadata
+            table_path.unlink(missing_ok=True)
+            meta_path.with_suffix(".json.tmp").unlink(missing_ok=True)
         raise
     # entries of earlier versions of the same file are stale now
     for old in root.glob(f"{path_key}-*"):

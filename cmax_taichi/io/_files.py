@@ -6,7 +6,13 @@ from __future__ import annotations
 
 import os
 import stat
+import zipfile
+import zlib
 from pathlib import Path
+
+#: what reading a damaged .npz raises (a truncated archive, a bad CRC, a broken compressed stream, a
+#: header that promises more than the file holds): each reader turns it into a ValueError naming the file
+NPZ_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError)
 
 _KINDS = (
     (stat.S_ISFIFO, "a FIFO (named pipe)"),

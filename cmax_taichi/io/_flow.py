@@ -24,9 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax_taichi.io._files import check_regular
+from cmax_taichi.io._files import NPZ_ERRORS, check_regular
 
 Frame = Callable[[int], tuple[np.ndarray, np.ndarray]]
+
+
+class GroundTruthRangeError(ValueError):
+    """The interval asked for lies outside what the ground-truth flow covers (not an error of the
+    file: a window there has no ground truth)."""
 
 
 def _sample_nearest(fx: np.ndarray, fy: np.ndarray, xs: np.ndarray, ys: np.ndarray):
@@ -67,7 +72,9 @@ def accumulate_flow(
         raise ValueError(f"flow needs t1 > t0, got t0={t0}, t1={t1}")
     if len(ts) < 2 or t0 < ts[0] or t1 > ts[-1]:
         span = f"{ts[0]:.6f} .. {ts[-1]:.6f} s" if len(ts) else "nothing"
-        raise ValueError(f"{name}: ground-truth flow covers {span}; asked for {t0:.6f} .. {t1:.6f} s")
+        raise GroundTruthRangeError(
+            f"{name}: ground-truth flow covers {span}; asked for {t0:.6f} .. {t1:.6f} s"
+        )
     i = min(int(np.searchsorted(ts, t0, side="right")) - 1, len(ts) - 2)
     gt_dt = ts[i + 1] - ts[i]
     dt = t1 - t0
@@ -127,9 +134,12 @@ class NpzFrames:
                     else:
                         raise ValueError(f"unsupported .npy format version {version}")
                     self._data_offset = member.tell()
+                    if info.compress_type == zipfile.ZIP_STORED:
+                        while member.read(1 << 24):  # the member's CRC-32, checked once at its end
+                            pass
         except KeyError:
             raise KeyError(f"{self.path}: no array '{key}'") from None
-        except (zipfile.BadZipFile, ValueError, OSError) as exc:
+        except NPZ_ERRORS as exc:
             raise ValueError(f"{self.path}: not a readable .npz file ({exc})") from None
         if fortran:
             raise ValueError(f"{self.path}: array '{key}' is stored in Fortran order; expected C order")
@@ -147,7 +157,10 @@ class NpzFrames:
                 name_len = int.from_bytes(local[26:28], "little")
                 extra_len = int.from_bytes(local[28:30], "little")
             offset = info.header_offset + 30 + name_len + extra_len + self._data_offset
-            self._map = np.memmap(self.path, dtype=self.dtype, mode="r", offset=offset, shape=self.shape)
+            try:
+                self._map = np.memmap(self.path, dtype=self.dtype, mode="r", offset=offset, shape=self.shape)
+            except NPZ_ERRORS as exc:  # shorter than its header says
+                raise ValueError(f"{self.path}: not a readable .npz file ({exc})") from None
 
     def __len__(self) -> int:
         return self.shape[0]
@@ -157,12 +170,15 @@ class NpzFrames:
             raise IndexError(f"{self.path}: frame {i} of '{self.key}' out of range (0..{len(self) - 1})")
         if self._map is not None:
             return np.array(self._map[i])
-        if self._member is None:
-            # kept open: a forward seek decompresses only the gap (frames are asked for in time order)
-            self._zip = zipfile.ZipFile(self.path)
-            self._member = self._zip.open(f"{self.key}.npy")
-        self._member.seek(self._data_offset + i * self._frame_bytes)
-        raw = self._member.read(self._frame_bytes)
+        try:
+            if self._member is None:
+                # kept open: a forward seek decompresses only the gap (frames are asked for in time order)
+                self._zip = zipfile.ZipFile(self.path)
+                self._member = self._zip.open(f"{self.key}.npy")
+            self._member.seek(self._data_offset + i * self._frame_bytes)
+            raw = self._member.read(self._frame_bytes)
+        except NPZ_ERRORS as exc:
+            raise ValueError(f"{self.path}: '{self.key}' is not readable at frame {i} ({exc})") from None
         if len(raw) != self._frame_bytes:
             raise ValueError(f"{self.path}: array '{self.key}' is truncated at frame {i}")
         return np.frombuffer(raw, dtype=self.dtype).reshape(self.shape[1:]).copy()

@@ -188,7 +188,7 @@ class Recording:
         except ValueError as exc:
             if "must be sorted by time" not in str(exc):
                 raise
-        source = Path(getattr(self, "events_file", None) or getattr(self, "data_file", None) or self.path)
+        source = self._source_file()
         options = {"reader": type(self).__name__, "sensor_size": list(self.sensor_size)}
         table, meta = cached_table(
             source, f"{self.format}-sorted", options, self._dump_rows, cache_dir=cache_dir, sort=True
@@ -201,6 +201,24 @@ class Recording:
         self._search_time = lambda t: int(np.searchsorted(table[:, 0], t, side="left"))
         self._sorted_table = table
         self._times_checked = True
+
+    def _source_file(self) -> Path:
+        """The file that holds the events (a folder's events file, MVSEC's data file, or the path)."""
+        return Path(getattr(self, "events_file", None) or getattr(self, "data_file", None) or self.path)
+
+    def fingerprint(self) -> str | None:
+        """What identifies this recording's events wherever its file is: ``"<size>-<content>"``, the
+        file's size in bytes and the SHA-256 of its content sampled in blocks (at most 1 MiB read; the
+        event cache's key). Results and flow files carry it, and ``cmax-taichi evaluate`` checks
+        ``--data`` against it. None for a source that is not a file."""
+        from cmax_taichi.io._cache import content_fingerprint
+
+        source = self._source_file()
+        try:
+            size = source.stat().st_size
+            return f"{size}-{content_fingerprint(source, size)}" if source.is_file() else None
+        except OSError:
+            return None
 
     def _dump_rows(self, out) -> dict:
         """Every row as ``t x y p`` float64 to the binary stream ``out`` (blocks: bounded memory)."""

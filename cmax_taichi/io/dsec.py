@@ -30,7 +30,7 @@ import numpy as np
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
 from cmax_taichi.io._files import check_regular, is_present
-from cmax_taichi.io._flow import accumulate_flow
+from cmax_taichi.io._flow import GroundTruthRangeError, accumulate_flow
 from cmax_taichi.io._png import read_png
 from cmax_taichi.io.base import Recording, event_span
 from cmax_taichi.io.text import read_text_file
@@ -386,12 +386,14 @@ class DSECRecording(Recording):
             return read_flow_png(pngs[int(exact[0])])[0]
         i = int(np.searchsorted(intervals[:, 0], t0 + tol, side="right")) - 1
         if i < 0:
-            raise ValueError(f"{self._flow_dir}: no ground-truth flow interval contains t0 = {t0:.6f} s")
+            raise GroundTruthRangeError(
+                f"{self._flow_dir}: no ground-truth flow interval contains t0 = {t0:.6f} s"
+            )
         # frames i, i+1, ... must be back to back up to t1 for the accumulation
         j = i
         while intervals[j, 1] < t1 - tol:
             if j + 1 >= len(intervals) or abs(intervals[j + 1, 0] - intervals[j, 1]) > tol:
-                raise ValueError(
+                raise GroundTruthRangeError(
                     f"{self._flow_dir}: the ground-truth flow intervals do not cover {t0:.6f} .. {t1:.6f} s"
                 )
             j += 1

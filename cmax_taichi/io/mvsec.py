@@ -25,7 +25,7 @@ import numpy as np
 
 from cmax_taichi.core.events import Camera
 from cmax_taichi.io import _hdf5
-from cmax_taichi.io._files import check_regular
+from cmax_taichi.io._files import NPZ_ERRORS, check_regular
 from cmax_taichi.io._flow import NpzFrames, accumulate_flow
 from cmax_taichi.io.base import Recording, event_span
 
@@ -160,7 +160,7 @@ class MVSECRecording(Recording):
                     ts = np.asarray(npz["timestamps"], dtype=np.float64).ravel()
             except KeyError:
                 raise KeyError(f"{path}: no array 'timestamps'") from None
-            except (ValueError, TypeError, OSError) as exc:  # object (pickled) or string arrays
+            except (TypeError, *NPZ_ERRORS) as exc:  # a damaged file, object (pickled) or string arrays
                 raise ValueError(f"{path}: 'timestamps' is not a numeric array ({exc})") from None
             if not np.all(np.isfinite(ts)):
                 raise ValueError(f"{path}: 'timestamps' has non-finite values")

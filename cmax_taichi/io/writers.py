@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax_taichi.io._files import check_regular
+from cmax_taichi.io._files import NPZ_ERRORS, check_regular
 
 __all__ = [
     "DSEC_FLOW_LIMIT",
@@ -35,6 +35,7 @@ __all__ = [
     "FlowWindow",
     "dsec_submission_path",
     "read_flow_windows",
+    "timestamps_unit",
     "write_dsec_flow_png",
     "read_flo",
     "read_flow",
@@ -131,18 +132,21 @@ def read_flow_npz(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     path = check_regular(path)  # a FIFO or a device is refused, never read
     try:
         data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise ValueError(f"{path}: a single .npy array, not an .npz archive")
-    with data:
-        if "flow" not in data.files:
-            raise KeyError(f"{path}: no 'flow' array (arrays: {', '.join(data.files)})")
-        try:
-            flow = _check_flow(data["flow"])
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: {exc}") from None
-        meta = {k: data[k].item() for k in data.files if k != "flow"}
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path}: a single .npy array, not an .npz archive")
+        with data:
+            if "flow" not in data.files:
+                raise KeyError(f"{path}: no 'flow' array (arrays: {', '.join(data.files)})")
+            flow, meta = data["flow"], {k: data[k].item() for k in data.files if k != "flow"}
+    except (KeyError, TypeError):
+        raise
+    except NPZ_ERRORS as exc:  # truncated, a bad CRC, not an archive
+        message = str(exc) if str(exc).startswith(str(path)) else f"{path}: not a readable .npz file ({exc})"
+        raise ValueError(message) from None
+    try:
+        flow = _check_flow(flow)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
     return flow, meta
 
 
@@ -245,12 +249,16 @@ class FlowWindow:
         The interval, s.
     unit : str
         ``"px"`` (displacement over the interval) or ``"px/s"``.
+    fingerprint : str or None
+        The fingerprint of the recording the flow was estimated on (:meth:`Recording.fingerprint`), when
+        the file carries it (``.npz`` files of ``cmax-taichi flow``).
     """
 
     path: Path
     t_start: float
     t_end: float
     unit: str = "px"
+    fingerprint: str | None = None
 
     def displacement(self) -> np.ndarray:
         """The flow of the file as the displacement (2, H, W) px over ``[t_start, t_end]``."""
@@ -258,9 +266,10 @@ class FlowWindow:
         return flow * (self.t_end - self.t_start) if self.unit == "px/s" else flow
 
 
-def _read_times(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(intervals (K, 2) s, file indices or None)`` of a timestamps file: ``t_start t_end`` per line in
-    seconds, or integers in microseconds (DSEC's ``from_us, to_us[, file_index]``)."""
+def _read_times(path: Path) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """``(intervals (K, 2) s, file indices or None, the unit read: "s" or "us")`` of a timestamps file:
+    ``t_start t_end`` per line in seconds, or integers in microseconds (DSEC's ``from_us, to_us[,
+    file_index]``)."""
     from cmax_taichi.io.text import read_text_file
 
     rows, integer = [], True
@@ -283,7 +292,13 @@ def _read_times(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     table = np.array(rows)
     scale = 1e-6 if integer else 1.0  # whole numbers are microseconds (DSEC), else seconds
     indices = table[:, 2].astype(np.int64) if table.shape[1] == 3 else None
-    return table[:, :2] * scale, indices
+    return table[:, :2] * scale, indices, "us" if integer else "s"
+
+
+def timestamps_unit(path: str | os.PathLike) -> str:
+    """How :func:`read_flow_windows` reads the timestamps file ``path``: ``"us"`` (whole numbers,
+    DSEC's microseconds) or ``"s"``."""
+    return _read_times(Path(path))[2]
 
 
 def read_flow_windows(
@@ -312,7 +327,7 @@ def read_flow_windows(
     else:
         raise FileNotFoundError(f"{source}: no such flow file or folder")
     if timestamps is not None:
-        intervals, indices = _read_times(Path(timestamps))
+        intervals, indices, _ = _read_times(Path(timestamps))
         if indices is not None:
             by_name = {f.stem: f for f in files}
             missing = [f"{i:06d}" for i in indices if f"{i:06d}" not in by_name]
@@ -342,5 +357,6 @@ def read_flow_windows(
             raise ValueError(f"{f}: unit {unit!r}; expected 'px' (displacement) or 'px/s'")
         if not (np.isfinite(t0) and np.isfinite(t1) and t1 > t0):
             raise ValueError(f"{f}: t_end ({t1}) must exceed t_start ({t0})")
-        windows.append(FlowWindow(f, t0, t1, unit))
+        fingerprint = meta.get("fingerprint")
+        windows.append(FlowWindow(f, t0, t1, unit, None if fingerprint is None else str(fingerprint)))
     return windows

@@ -47,6 +47,7 @@ import numpy as np
 
 from cmax_taichi.core import backend
 from cmax_taichi.core.events import Events
+from cmax_taichi.io.outputs import OutputFolder
 from cmax_taichi.lab import bench_windows
 from cmax_taichi.lab.bench_impls import (
     REGS,
@@ -63,6 +64,9 @@ from cmax_taichi.lab.bench_impls import (
 )
 from cmax_taichi.lab.bench_report import machine_info, markdown_report, write_csv, write_plot
 from cmax_taichi.pipeline.problem import ContrastMaximization
+
+#: what a run of the kernel plan writes into its output folder
+BENCH_OUTPUTS = ("results.csv", "results.md", "results.png", "segmentation.csv")
 
 __all__ = [
     "BenchConfig",
@@ -465,7 +469,8 @@ def run_benchmark(
     arch: str | None = None,
 ) -> dict:
     """Run ``plan`` on ``arch`` (default: ``CMAX_TAICHI_ARCH``, else the CPU); write results.csv,
-    results.md and results.png into ``out_dir``.
+    results.md and results.png into ``out_dir`` (:class:`~cmax_taichi.io.outputs.OutputFolder`: files of
+    another run or command, or a user's, are refused before any work; all in place when complete).
 
     Returns
     -------
@@ -476,8 +481,8 @@ def run_benchmark(
     # PyTorch's OpenMP threads busy-wait between operations; on a shared (oversubscribed) machine a
     # waiting thread then holds a core another needs, and small calls took seconds here: wait passively
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    folder = OutputFolder(out_dir, patterns=BENCH_OUTPUTS, command="bench")
+    folder.check()  # files this run may not replace (another run's, a user's): before minutes of work
     t_start = time.perf_counter()
     precision = plan.configs[0].precision if plan.configs else "f64"
     backend.init(arch=arch, precision=precision)
@@ -499,18 +504,19 @@ def run_benchmark(
         seg = timing()
     wall = time.perf_counter() - t_start
     md = markdown_report(rows, machine, plan, solve, wall, seg)
-    paths = {"csv": out / "results.csv", "md": out / "results.md", "png": out / "results.png"}
-    if rows:
-        write_csv(rows, paths["csv"])
-    if seg:
-        paths["segmentation"] = out / "segmentation.csv"
-        with open(paths["segmentation"], "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(seg[0].keys()))
-            writer.writeheader()
-            writer.writerows(seg)
-    paths["md"].write_text(md)
-    if not write_plot(rows, paths["png"]):
-        paths.pop("png")
+    names = dict(zip(("csv", "md", "png", "segmentation"), BENCH_OUTPUTS, strict=True))
+    with folder:
+        if rows:
+            write_csv(rows, folder.path(names["csv"]))
+        if seg:
+            with open(folder.path(names["segmentation"]), "w", newline="") as fh:
+                writer = csv.DictWriter(fh, fieldnames=list(seg[0].keys()))
+                writer.writeheader()
+                writer.writerows(seg)
+        folder.path(names["md"]).write_text(md)
+        write_plot(rows, folder.path(names["png"]))
+        written = {p.name for p in folder.commit()}
+    paths = {key: folder.final(name) for key, name in names.items() if name in written}
     log(f"wrote {', '.join(str(p) for p in paths.values())} in {wall:.0f} s")
     return {
         "rows": rows,

@@ -39,7 +39,6 @@ CSV and plots are written by :mod:`cmax_taichi.lab.experiment_reports`.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import platform
@@ -53,6 +52,7 @@ import numpy as np
 
 from cmax_taichi import sim as sm
 from cmax_taichi.core.events import Events
+from cmax_taichi.io.outputs import json_text
 from cmax_taichi.lab.experiment_reports import (
     COMPLEXITY_CONFIGS,
     complexity_outputs,
@@ -528,7 +528,7 @@ def reproduce(
                 title += f"; sensor scaled by {settings.scale:g} (quick run, not the tables)"
             md = flow_table_markdown(result, paper, title)
             flow_table_csv(result, paper, out / f"{name}.csv", name)
-            (out / f"{name}.json").write_text(json.dumps(result[("_meta", "")], indent=1))
+            (out / f"{name}.json").write_text(json_text(result[("_meta", "")]))
             files += [out / f"{name}.md", out / f"{name}.csv", out / f"{name}.json"]
         elif name == "table3":
             if not data_dir.is_dir() and what == "all":
@@ -542,7 +542,7 @@ def reproduce(
             md = rotation_table_markdown(result)
             rotation_table_csv(result, out / "table3.csv")
             meta = {cut: v for (row, cut), v in result.items() if row == "_meta"}
-            (out / "table3.json").write_text(json.dumps(meta, indent=1))
+            (out / "table3.json").write_text(json_text(meta))
             files += [out / "table3.md", out / "table3.csv", out / "table3.json"]
         elif name == "sensitivity":
             rows = sensitivity(settings, progress)
@@ -568,5 +568,5 @@ def reproduce(
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
     }
-    (out / f"run_{what}.json").write_text(json.dumps(run, indent=1))
+    (out / f"run_{what}.json").write_text(json_text(run))
     return written

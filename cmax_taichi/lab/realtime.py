@@ -165,7 +165,7 @@ def run_realtime(
     data_dir : path
         Folder of the shared recordings (cases whose folder is absent are reported as skipped).
     out_dir : path
-        Output folder (created).
+        Output folder (created; guarded as every command's: :class:`cmax_taichi.io.outputs.OutputFolder`).
     sim_seconds : float
         Length of the simulated 240x180 stream, s (about 420,000 events per second).
     hd_seconds : float
@@ -177,8 +177,13 @@ def run_realtime(
         raise ValueError(f"--sim-seconds must be a positive number of seconds, got {sim_seconds}")
     if not (np.isfinite(hd_seconds) and hd_seconds > 0):
         raise ValueError(f"hd_seconds must be a positive number of seconds, got {hd_seconds}")
-    data_dir, out = Path(data_dir), Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from cmax_taichi.io.outputs import OutputFolder
+
+    data_dir = Path(data_dir)
+    folder = OutputFolder(
+        out_dir, inputs=[data_dir], patterns=["realtime.csv", "realtime.md"], command="bench"
+    )
+    folder.check()  # an out_dir that holds the data, or files this run may not replace: before any work
     streams: dict = {}
     rows = []
     for case in cases:
@@ -236,12 +241,14 @@ def run_realtime(
         )
         rows.append(row)
     columns = list(next((r for r in rows if r["status"] == "ok"), rows[0]).keys()) if rows else []
-    with (out / "realtime.csv").open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=columns, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
-    (out / "realtime.md").write_text(markdown(rows))
-    log(f"wrote {out / 'realtime.csv'} and {out / 'realtime.md'}")
+    with folder:
+        with folder.path("realtime.csv").open("w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=columns, restval="")
+            writer.writeheader()
+            writer.writerows(rows)
+        folder.path("realtime.md").write_text(markdown(rows))
+        written = folder.commit()
+    log(f"wrote {' and '.join(str(p) for p in written)}")
     return rows
 
 

@@ -220,7 +220,6 @@ class FusedPipeline:
         return PathChoice(cls(problem, objective, regs, vote_w))
 
     def __init__(self, problem, objective, regs: list, vote_w: np.ndarray | None) -> None:
-        self.problem = problem
         model = problem.model
         P = model.n_params
         weighted = vote_w is not None

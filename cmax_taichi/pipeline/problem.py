@@ -227,16 +227,32 @@ class ContrastMaximization(SetupView):
         self._identity_value = None
         j0, g0 = self._forward(np.zeros(self.model.n_params))
         if not (math.isfinite(g0) and g0 > 0):
-            raise ValueError(
-                f"the identity warp's {self.objective.name} is {g0}: the events give a flat image "
-                "(nothing to maximise)"
-            )
+            raise ValueError(self._flat_identity(g0))
         self.G0 = g0 if self.normalize else 1.0
         self._identity_objective = g0
         if self._fused is not None:
             # J at the identity is known now: the optimizers' evaluation of it there costs nothing
             self._identity_value = self._fused.self_normalized_value() if self.normalize else j0
             self._fused.set_g0(self.G0)
+
+    def _flat_identity(self, g0: float) -> str:
+        """Why the identity's objective is ``g0`` (0 or not finite): a warp that does not keep the
+        events on the image at theta = 0 (a user's model returning NaN), or truly a flat image."""
+        img = self._fused.image() if self._fused is not None else self._img.to_numpy()
+        weights = self.setup.vote_weights
+        expected = float(np.sum(weights)) if weights is not None else float(self.n_events)
+        votes = float(np.sum(img[np.isfinite(img)]))
+        if not np.all(np.isfinite(img)) or votes < 0.5 * expected:
+            return (
+                f"warp {self.model.name!r} at the identity (every parameter 0) puts {votes:.0f} of "
+                f"{expected:.0f} event votes in the image (the others at non-finite positions or off the "
+                f"sensor): a warp must leave the events where they are at theta = 0; check the model with "
+                f"cmax_taichi.check_model({self.model.name!r})"
+            )
+        return (
+            f"the identity warp's {self.objective.name} is {g0}: the events give a flat image "
+            "(nothing to maximise)"
+        )
 
     @property
     def kernels(self) -> str:

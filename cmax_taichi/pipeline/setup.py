@@ -65,8 +65,14 @@ def _as_float(value, what: str) -> float:
         raise TypeError(f"{what}, got {value!r}") from None
 
 
+#: the largest regularizer weight: beyond it the data term vanishes in the rounding of the penalty (the
+#: objective is the penalty alone), and near 1e308 the weighted penalty overflows to inf
+MAX_REGULARIZER_WEIGHT = 1e9
+
+
 def check_regularizers(regularizers) -> dict[str, float]:
-    """The regularizer weights as ``{name: lambda}`` (registered names, finite weights >= 0)."""
+    """The regularizer weights as ``{name: lambda}`` (registered names, weights from 0 to
+    :data:`MAX_REGULARIZER_WEIGHT`)."""
     if regularizers is None:
         return {}
     if not isinstance(regularizers, Mapping):
@@ -79,6 +85,11 @@ def check_regularizers(regularizers) -> dict[str, float]:
         w = _as_float(weight, f"weight of regularizer {name!r} must be a number")
         if not (math.isfinite(w) and w >= 0):
             raise ValueError(f"weight of regularizer {name!r} must be finite and >= 0, got {w}")
+        if w > MAX_REGULARIZER_WEIGHT:
+            raise ValueError(
+                f"weight of regularizer {name!r} is {w:g}, above {MAX_REGULARIZER_WEIGHT:g}: the data term "
+                "would vanish in the rounding of the penalty (and the weighted penalty overflows near 1e308)"
+            )
         out[name] = w
     return out
 

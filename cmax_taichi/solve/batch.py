@@ -727,7 +727,7 @@ def _check_outputs(out: Path, paths: Sequence[str | os.PathLike], names: Sequenc
 def _check_folders(out: Path, names: Sequence[str]) -> None:
     """Refuse, before any work, files the batch would replace and that no batch wrote: its tables
     (not in the folder's manifest) and recording folders with results but no checkpoint."""
-    outputs.refuse_foreign(out, TABLE_NAMES, option="output folder")
+    outputs.refuse_foreign(out, TABLE_NAMES, option="output folder", command="batch")
     for name in names:
         folder = out / name
         if folder.exists() and not folder.is_dir():
@@ -742,8 +742,9 @@ def _check_folders(out: Path, names: Sequence[str]) -> None:
 
 
 def _write_tables(out: Path, summaries: Sequence[RecordingSummary]) -> tuple[Path, Path]:
-    """OUT/summary.csv (one row per recording) and OUT/windows.csv (every window, merged), each through a
-    temporary file renamed when complete, and recorded in OUT's manifest."""
+    """OUT/summary.csv (one row per recording) and OUT/windows.csv (every window, merged from each
+    recording's results.json, read and checked), each through a temporary file renamed when complete, and
+    recorded in OUT's manifest."""
     done = {s.name: read_results(out / s.name / "results.json") for s in summaries if s.status == "done"}
     first = next(iter(done.values()), None)
     params = [f"{n} [{u}]" for n, u in zip(first.param_names, first.units, strict=True)] if first else []
@@ -771,9 +772,7 @@ def _write_tables(out: Path, summaries: Sequence[RecordingSummary]) -> tuple[Pat
         writer = csv.writer(fh)
         if first is not None:
             writer.writerow(["recording", *first.columns()])
-        for name in done:
-            with (out / name / "results.csv").open(newline="") as rf:
-                for row in list(csv.reader(rf))[1:]:
-                    writer.writerow([name, *row])
+        for name, res in done.items():  # from each results.json, checked as it was read
+            writer.writerows([name, *row] for row in res.csv_rows())
     outputs.write_manifest(out, TABLE_NAMES, "batch")
     return summary_csv, windows_csv

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from cmax_taichi.io.outputs import atomic_write_text
+from cmax_taichi.io.outputs import atomic_write_text, json_text
 from cmax_taichi.solve.results import SequenceResult, read_results
 from cmax_taichi.solve.sequence import WarmState
 
@@ -59,7 +59,7 @@ def _write_checkpoint(
         if warm_state is None or not result.windows
         else {"index": result.windows[-1].index, **warm_state.as_dict()},
     }
-    atomic_write_text(folder / CHECKPOINT_NAME, json.dumps(data, indent=1))
+    atomic_write_text(folder / CHECKPOINT_NAME, json_text(data))
 
 
 def _read_checkpoint(folder: Path) -> tuple[SequenceResult, dict] | None:

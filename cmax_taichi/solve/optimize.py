@@ -50,6 +50,9 @@ INITS = ("auto", "pyramid", "grid", "random", "tpe", "local", "warm", "none")
 
 #: default evaluation budget of the global search, per init
 _DEFAULT_N_INIT = {"pyramid": DESIGN_POINTS, "grid": 1000, "random": 1000, "tpe": 200, "local": 300}
+#: the largest ``n_init``: each point is an evaluation of J (a millisecond to tens of milliseconds at
+#: 30,000 events), so more runs for hours; refused up front
+MAX_N_INIT = 100_000
 
 #: the objective in internal units (kept under its old name for callers that import it from here)
 _Objective = ScaledObjective
@@ -286,8 +289,8 @@ def maximize(
         Points where J overflows the float type (:class:`~cmax_taichi.NonFiniteResultError`) count
         as -inf.
     n_init : int, optional
-        Evaluation budget of the global search, >= 1 (default 1000 for grid / random, 200 for TPE, 300
-        for local); for the pyramid, the points of its coarsest design (default 27).
+        Evaluation budget of the global search, 1 to :data:`MAX_N_INIT` (default 1000 for grid / random,
+        200 for TPE, 300 for local); for the pyramid, the points of its coarsest design (default 27).
     n_starts : int
         Local runs, from the best distinct candidates of the global search (the pyramid hands on at
         most two, and a runner-up only when it gains at least half as much over the identity).
@@ -345,6 +348,12 @@ def maximize(
     patience = checks.whole_number("patience", patience, minimum=1)
     if n_init is not None:
         n_init = checks.whole_number("n_init", n_init, minimum=1)
+        if n_init > MAX_N_INIT:
+            raise ValueError(
+                f"n_init = {n_init:,} evaluations of the global search is above {MAX_N_INIT:,} (each is an "
+                "evaluation of J: that many would run for hours or days); a narrower box (bounds=) or a "
+                "warm start (theta0=) needs fewer"
+            )
     if max_iter is not None:
         max_iter = checks.whole_number("max_iter", max_iter, minimum=0)
     if max_evaluations is not None:

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax_taichi.core.windows import ESTIMATED, ESTIMATED_STATUSES
+from cmax_taichi.core.windows import ESTIMATED, ESTIMATED_STATUSES, STATUSES
 from cmax_taichi.io._files import check_regular
-from cmax_taichi.io.outputs import atomic_path, atomic_write_text
+from cmax_taichi.io.outputs import atomic_path, atomic_write_text, json_text
 
 __all__ = ["WindowResult", "SequenceResult", "read_results"]
 
@@ -212,6 +212,10 @@ class SequenceResult:
             ]
         )
 
+    def csv_rows(self) -> list[list]:
+        """The CSV rows (without the header, :meth:`columns`): one per window, estimated or not."""
+        return [self.csv_row(w) for w in self.rows()]
+
     def to_csv(self, path: str | os.PathLike) -> Path:
         """Write one row per window, estimated or not (see :meth:`columns`), through a temporary file
         renamed when complete; returns the path."""
@@ -219,8 +223,7 @@ class SequenceResult:
         with atomic_path(path) as tmp, tmp.open("w", newline="") as fh:
             writer = csv.writer(fh)
             writer.writerow(self.columns())
-            for w in self.rows():
-                writer.writerow(self.csv_row(w))
+            writer.writerows(self.csv_rows())
         return path
 
     def as_dict(self) -> dict:
@@ -261,7 +264,7 @@ class SequenceResult:
         """Write :meth:`as_dict` as JSON through a temporary file renamed when complete; returns the
         path."""
         path = Path(path)
-        atomic_write_text(path, json.dumps(self.as_dict(), indent=1))
+        atomic_write_text(path, json_text(self.as_dict()))
         return path
 
     def to_hdf5(self, path: str | os.PathLike) -> Path:
@@ -352,13 +355,21 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not a results JSON file ({exc})") from None
     try:
+        if not isinstance(data, dict):
+            raise TypeError(f"a {type(data).__name__} at the top, not an object")
         names = tuple(data["params"])
+        settings, events = data.get("settings", {}), data.get("events") or {}
+        for key, value in (("settings", settings), ("events", events)):
+            if not isinstance(value, dict):
+                raise TypeError(f"'{key}' is a {type(value).__name__}, not an object")
+        if not isinstance(data["windows"], list):
+            raise TypeError("'windows' is not a list")
         result = SequenceResult(
             warp=data["warp"],
             param_names=names,
             units=tuple(data["units"]),
-            settings=data.get("settings", {}),
-            events=dict(data.get("events") or {}),
+            settings=settings,
+            events=dict(events),
         )
         for w in data["windows"]:
             row = WindowResult(
@@ -378,10 +389,26 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
                 n_dropped=int(w.get("n_dropped", 0)),
                 kernels=str(w.get("kernels", "")),
             )
+            _check_row(row)
             result.add(row)
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
     return result
+
+
+def _check_row(row: WindowResult) -> None:
+    """ValueError for a window that no run could have written: an unknown status, an estimated window
+    without a finite time span (or one that ends before it starts) or parameters."""
+    if row.status not in STATUSES:
+        raise ValueError(f"window {row.index}: unknown status {row.status!r}")
+    if row.n_events < 0 or row.n_dropped < 0:
+        raise ValueError(f"window {row.index}: negative event counts")
+    if row.estimated and not (
+        math.isfinite(row.t_start) and math.isfinite(row.t_end) and row.t_end >= row.t_start
+    ):
+        raise ValueError(f"window {row.index}: t_start {row.t_start} .. t_end {row.t_end} is not a time span")
+    if row.estimated and not np.all(np.isfinite(row.theta)):
+        raise ValueError(f"window {row.index}: non-finite parameters")
 
 
 def _read_hdf5(path: Path) -> SequenceResult:
@@ -403,28 +430,30 @@ def _read_hdf5(path: Path) -> SequenceResult:
     except (KeyError, ValueError) as exc:
         raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
     try:
+        if not (isinstance(result.settings, dict) and isinstance(result.events, dict)):
+            raise ValueError("'settings_json' or 'events_json' is not a JSON object")
         n = len(col["index"])
         status = col.get("status", np.array([ESTIMATED] * n))
         kernels = col.get("kernels", np.array([""] * n))
         for k in range(n):
-            result.add(
-                WindowResult(
-                    index=int(col["index"][k]),
-                    t_start=float(col["t_start"][k]),
-                    t_end=float(col["t_end"][k]),
-                    n_events=int(col["n_events"][k]),
-                    theta=np.array([float(col[name][k]) for name in names]),
-                    value=float(col["value"][k]),
-                    fwl=float(col["fwl"][k]),
-                    iterations=int(col["iterations"][k]),
-                    seconds=float(col["seconds"][k]),
-                    converged=bool(col["converged"][k]),
-                    evaluations=int(col["evaluations"][k]) if "evaluations" in col else 0,
-                    status=status[k].decode() if isinstance(status[k], bytes) else str(status[k]),
-                    n_dropped=int(col["n_dropped"][k]) if "n_dropped" in col else 0,
-                    kernels=kernels[k].decode() if isinstance(kernels[k], bytes) else str(kernels[k]),
-                )
+            row = WindowResult(
+                index=int(col["index"][k]),
+                t_start=float(col["t_start"][k]),
+                t_end=float(col["t_end"][k]),
+                n_events=int(col["n_events"][k]),
+                theta=np.array([float(col[name][k]) for name in names]),
+                value=float(col["value"][k]),
+                fwl=float(col["fwl"][k]),
+                iterations=int(col["iterations"][k]),
+                seconds=float(col["seconds"][k]),
+                converged=bool(col["converged"][k]),
+                evaluations=int(col["evaluations"][k]) if "evaluations" in col else 0,
+                status=status[k].decode() if isinstance(status[k], bytes) else str(status[k]),
+                n_dropped=int(col["n_dropped"][k]) if "n_dropped" in col else 0,
+                kernels=kernels[k].decode() if isinstance(kernels[k], bytes) else str(kernels[k]),
             )
+            _check_row(row)
+            result.add(row)
     except (KeyError, IndexError, ValueError) as exc:
         raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad column {exc})") from None
     return result

@@ -22,16 +22,22 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
 from typing import Any, TextIO
 
 import numpy as np
 from tqdm import tqdm
 
 from cmax_taichi.core import checks
-from cmax_taichi.core import windows as spans_
 from cmax_taichi.core.events import Camera, Events
-from cmax_taichi.core.windows import ESTIMATED_STATUSES, EventLedger, Span, count_spans, window_status
+from cmax_taichi.core.windows import (
+    ESTIMATED_STATUSES,
+    EventLedger,
+    Span,
+    WindowPlan,
+    check_window_options,
+    plan_windows,
+    read_window,
+)
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.pipeline.problem import ContrastMaximization
 from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_window
@@ -119,74 +125,25 @@ class ProgressBar:
             self._bar = None
 
 
-@dataclass
-class _Plan:
-    """One pass of windows over a source: its spans, how to read one, and what to say about it."""
-
-    spans: Iterator[Span]
-    read: Callable[[Span], tuple[Events, np.ndarray | None]]  # events on the sensor, and which rows
-    n_total: int  # events of the source
-    total: int | None  # spans of the pass, if known (for the progress bar)
-    camera: Camera | None
-    undistorted: bool  # coordinates already undistorted
-    desc: dict
-    planner: AdaptivePlanner | None = None  # motion-adaptive windows
-
-
-def _plan(source, n_events: int, duration: float | None, stride, keep_tail: bool, adaptive=None) -> _Plan:
-    """The pass of windows over an Events or an open Recording (arguments checked, timestamps checked)."""
+def _plan(source, n_events: int, duration: float | None, stride, keep_tail: bool, adaptive=None):
+    """The pass of windows over an Events or an open Recording: count or time windows
+    (:func:`~cmax_taichi.core.windows.plan_windows`) or motion-adaptive ones."""
     if adaptive is not None:
         return _adaptive_plan(source, adaptive, keep_tail)
-    if isinstance(source, Events):
-        n = len(source)
-        if n > 1 and source.t[0] == source.t[-1]:
-            raise ValueError(
-                f"all {n} events have the same time t = {source.t[0]:.9f} s: no window spans a positive time"
-            )
-        if duration is not None:
-            ranges = checks.time_windows(
-                float(source.t[0]) if n else 0.0,
-                float(source.t[-1]) if n else 0.0,
-                n,
-                duration,
-                stride,
-                lambda t: int(np.searchsorted(source.t, t, side="left")),
-                lambda i: float(source.t[i]),
-            )
-            spans: Iterator[Span] = spans_.time_spans(ranges)
-            total = None
-            if n > 1:
-                step = duration if stride is None else float(stride)
-                total = int((source.t[-1] - source.t[0]) // step) + 1
-        else:
-            spans = count_spans(n, n_events, stride, keep_tail)
-            total = _count_spans(n, n_events, stride, keep_tail)
-        return _Plan(
-            spans, lambda span: (source[span.start : span.stop], None), n, total, None,
-            source.undistorted, {"source": f"Events(n={n})"},
-        )  # fmt: skip
-    if hasattr(source, "window_spans"):  # an open Recording
-        spans = source.window_spans(n_events=n_events, duration=duration, stride=stride, keep_tail=keep_tail)
-        total = None if duration is not None else _count_spans(source.n_events, n_events, stride, keep_tail)
-        desc = {"source": str(getattr(source, "path", source)), "format": getattr(source, "format", None)}
-        return _Plan(
-            spans, lambda span: source._span_events(span.start, span.stop), source.n_events, total,
-            getattr(source, "camera", None), bool(getattr(source, "undistorted", False)), desc,
-        )  # fmt: skip
-    raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
+    return plan_windows(source, n_events, duration, stride, keep_tail)
 
 
-def _adaptive_plan(source, rule: AdaptiveWindows, keep_tail: bool) -> _Plan:
+def _adaptive_plan(source, rule: AdaptiveWindows, keep_tail: bool) -> WindowPlan:
     """The pass of motion-adaptive windows (:mod:`cmax_taichi.solve.adaptive`) over an Events or an open
     Recording: each span is planned when the previous window's estimate is known."""
     if isinstance(source, Events):
-        plan = _plan(source, 2, None, None, keep_tail)  # the checks and the reads of count windows
+        plan = plan_windows(source, 2, None, None, keep_tail)  # the checks and the reads of count windows
         times = np.asarray(source.t)
         planner = AdaptivePlanner(
             rule, lambda i: float(times[i]), lambda t: int(np.searchsorted(times, t, side="left"))
         )
     elif hasattr(source, "window_spans"):
-        plan = _plan(source, 2, None, None, keep_tail)
+        plan = plan_windows(source, 2, None, None, keep_tail)
         planner = AdaptivePlanner(rule, lambda i: float(source._times(i, i + 1)[0]), source._search_time)
     else:
         raise TypeError(f"source must be Events, a Recording or a path, got {type(source).__name__}")
@@ -208,26 +165,6 @@ def _adaptive_spans(planner: AdaptivePlanner, n_total: int, keep_tail: bool) -> 
         yield Span(index, start, stop)
         start = max(stop, planner.next_start)
         index += 1
-
-
-def _count_spans(n_total: int, n_events: int, stride: int | None, keep_tail: bool) -> int:
-    """The windows of a count pass that may be estimated (for the progress bar): the full windows, and
-    the partial tail when ``keep_tail`` keeps it."""
-    step = n_events if stride is None else int(stride)
-    full = 0 if n_total < n_events else (n_total - n_events) // step + 1
-    tail = n_total - full * step
-    return full + (1 if keep_tail and tail >= spans_.min_tail_events(n_events) else 0)
-
-
-def _window_fate(span: Span, plan: _Plan, camera: Camera | None, lossy: checks.UndistortionTally):
-    """Read a window and decide its fate: ``(events used, on-sensor mask or None, undistortion mask or
-    None, status)``; undistorted here (once) when ``camera`` is given, so that the losses are counted."""
-    events, inside = plan.read(span)  # the events on the sensor (inside: which rows)
-    used, kept = events, None
-    if camera is not None and span.keep and len(events):
-        used, kept = events.undistort(camera, return_mask=True)
-        lossy.add(events, used)
-    return used, inside, kept, window_status(span, len(used), used.duration)
 
 
 def count_events(
@@ -253,11 +190,8 @@ def count_events(
                 rec, camera=camera, n_events=n_events, duration=duration, stride=stride,
                 max_windows=max_windows, keep_tail=keep_tail,
             )  # fmt: skip
-    if duration is None:
-        n_events = checks.whole_number("n_events", n_events, 2)
-    if max_windows is not None:
-        max_windows = checks.whole_number("max_windows", max_windows, 1)
-    plan = _plan(source, n_events, duration, stride, keep_tail)
+    n_events, duration, stride, max_windows = check_window_options(n_events, duration, stride, max_windows)
+    plan = plan_windows(source, n_events, duration, stride, keep_tail)
     camera = camera if camera is not None else plan.camera
     undistort = camera is not None and camera.has_distortion and not plan.undistorted
     ledger = EventLedger(plan.n_total)
@@ -268,7 +202,7 @@ def count_events(
             if max_windows is not None and span.index >= max_windows:
                 stopped_early = True
                 break
-            _, inside, kept, status = _window_fate(
+            _, inside, kept, status = read_window(
                 span, plan, camera if undistort else None, checks.UndistortionTally()
             )
             ledger.add(span, status, inside, kept)
@@ -435,14 +369,7 @@ def process(
     in them, or a still camera: :meth:`SequenceResult.identity_windows`) are counted in one
     :class:`~cmax_taichi.core.checks.IdentityEstimateWarning` at the end.
     """
-    if duration is None:
-        n_events = checks.whole_number("n_events", n_events, 2)
-        stride = None if stride is None else checks.whole_number("stride (events)", stride, 1)
-    else:
-        duration = checks.seconds("duration", duration, positive=True)
-        stride = None if stride is None else checks.seconds("stride", stride, positive=True)
-    if max_windows is not None:
-        max_windows = checks.whole_number("max_windows", max_windows, 1)
+    n_events, duration, stride, max_windows = check_window_options(n_events, duration, stride, max_windows)
     adaptive = _adaptive_rule(adaptive, duration, stride)
     if isinstance(source, (str, os.PathLike)):
         from cmax_taichi import io
@@ -524,7 +451,7 @@ def process(
                     break
                 index = span.index
                 t0 = time.perf_counter()
-                used, inside, kept, status = _window_fate(span, plan, fate_camera, lossy)
+                used, inside, kept, status = read_window(span, plan, fate_camera, lossy)
                 if index < first_window or status not in ESTIMATED_STATUSES:
                     ledger.add(span, status, inside, kept)
                     if plan.planner is not None:
@@ -587,7 +514,7 @@ def process(
     return result
 
 
-def _adapt(plan: _Plan, solver: WindowSolver, span, used, inside, kept, solved, fate_camera, lossy):
+def _adapt(plan: WindowPlan, solver: WindowSolver, span, used, inside, kept, solved, fate_camera, lossy):
     """An adaptive window after its solve (:func:`~cmax_taichi.solve.adaptive.settle_window`; the first
     one may grow). Returns the window as kept and its solve: ``(span, used, inside, kept, result,
     search, fwl)``."""
@@ -600,7 +527,7 @@ def _adapt(plan: _Plan, solver: WindowSolver, span, used, inside, kept, solved, 
         if stop <= current.stop:
             return None
         wider = Span(current.index, current.start, stop, current.tail, current.keep)
-        more_used, more_inside, more_kept, status = _window_fate(wider, plan, fate_camera, lossy)
+        more_used, more_inside, more_kept, status = read_window(wider, plan, fate_camera, lossy)
         if status not in ESTIMATED_STATUSES:
             return None
         grown_span[0] = wider

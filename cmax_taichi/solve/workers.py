@@ -79,7 +79,11 @@ def _worker_main(conn: Connection, parent_pid: int, make: Callable[[], Any]) -> 
 
 
 def _serve(conn: Connection, make: Callable[[], Any]) -> None:
-    state = make()
+    try:
+        state = make()
+    except Exception as exc:  # e.g. a plugin that fails in a fresh interpreter: said, not a silent death
+        conn.send(("failed", f"{type(exc).__name__}: {exc}"))
+        return
     conn.send(("ready", os.getpid()))  # tasks come only after this: a death before is a start-up failure
     while True:
         try:
@@ -134,7 +138,8 @@ def run_tasks(
 
     A task whose worker dies is retried on a fresh worker up to ``max_restarts`` times, then answered
     ``failed(i, error)``; the death of a worker charges only the task it held. A task that raises is
-    answered ``failed(i, error)`` at once. ``make`` (picklable) builds each worker's state.
+    answered ``failed(i, error)`` at once. ``make`` (picklable) builds each worker's state; when it
+    raises (a plugin that fails in a fresh interpreter), every task left is answered with that error.
     ``on_poll(done)`` runs about twice a second (progress). On any exit (an error, KeyboardInterrupt,
     SystemExit), every worker is stopped before this returns or raises.
     """
@@ -170,6 +175,11 @@ def run_tasks(
                             message = worker.conn.recv()
                             if message[0] == "ready":
                                 worker.ready = answered = True
+                            elif message[0] == "failed":  # its state could not be built: nor will the next's
+                                for i in list(queue):
+                                    results[i] = failed(i, f"the worker could not start: {message[1]}")
+                                queue.clear()
+                                answered = True
                             else:
                                 i, value, error = message
                                 results[i] = value if error is None else failed(i, error)

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cmax_taichi.core.registry import track
+
 #: rotation3: rays with ``X'_z <= Z_MIN`` (behind the camera) are dropped
 Z_MIN = 1e-6
 #: rotation3: below this angle ``phi = |dt| |w|`` (rad) the Rodrigues series is used
@@ -59,8 +61,9 @@ class ReferenceWarp:
     needs_duration: bool = False
 
 
-#: name -> reference warp (the built-ins, then whatever tests register)
-REFERENCE_WARPS: dict[str, ReferenceWarp] = {}
+#: name -> reference warp (the built-ins, then whatever tests and plugins register; a plugin that fails
+#: leaves it as it was: :func:`cmax_taichi.core.registry.track`)
+REFERENCE_WARPS: dict[str, ReferenceWarp] = track({})
 
 
 def register_reference_warp(ref: ReferenceWarp, *, replace: bool = False) -> ReferenceWarp:
