@@ -8,7 +8,8 @@ fixed cost of a call) and 1,000 events on 240x180 (the row of issue 20's 0.2 ms 
 medians (over blocks of 50 calls) of: the public ``value_and_grad`` and ``value``; the fused kernel
 called the ordinary way (``Kernel.__call__``: Taichi's Python argument handling, then the launch); the
 same compiled kernel launched from its C++ launch context (no Python around it: the kernel and the
-dispatch of its parallel tasks), the fastest block of each, and the median CPU time per call (all
+dispatch of its parallel tasks; where the pipeline has its own direct launch, that launch, which sets
+the arguments from Python: a few us), the fastest block of each, and the median CPU time per call (all
 threads). ``python work`` is the public call minus the C++ launch. Runs on any version that has the
 fused pipeline (the kernel's signature before and after the window's constants went into one params
 array) (``prob._fused``'s kernel of the window's loop schedule): the launch context is built here, with
@@ -87,7 +88,7 @@ def _c_launch(kernel, args, c_args=None):
 def _kernel(fused):
     """The compiled kernel that ``fused`` launches for its window (its schedule's, where the version
     has CPU loop schedules; ``_run_k`` before)."""
-    return fused._schedules.kernel(fused.serial) if hasattr(fused, "_schedules") else fused._run_k
+    return fused._schedules.kernel(fused.serial, fused.tier) if hasattr(fused, "_schedules") else fused._run_k
 
 
 def _kernel_call(fused, theta):
@@ -125,19 +126,30 @@ def main(argv=None) -> int:
         prob = cm.ContrastMaximization(_window(n, sensor), warp="translation2", blur_sigma=1.0)
         prob.value_and_grad(theta)
         fused = prob._fused
-        call, c_call = _kernel_call(fused, theta)
         row = {
             "value_and_grad": _median_us(lambda prob=prob: prob.value_and_grad(theta), args.repeats),
             "value": _median_us(lambda prob=prob: prob.value(theta), args.repeats),
         }
         # the kernel as the library compiles and launches it (the scheduling that per_thread_loops sets)
         with backend.per_thread_loops():
-            row["kernel, ordinary call (Kernel.__call__)"] = _median_us(
-                lambda fused=fused, call=call: _kernel(fused)(*call), args.repeats
-            )
-            row["kernel, C++ launch (no Python)"] = _median_us(
-                _c_launch(_kernel(fused), call, c_call), args.repeats
-            )
+            if hasattr(fused, "kernel_call"):  # the version's own arguments and direct launch
+                fused._params.array[: theta.size] = theta
+                call = fused.kernel_call(1)
+                with backend.hand_written_gradient_kernels(fused.tier):  # the tier's compile settings
+                    row["kernel, ordinary call (Kernel.__call__)"] = _median_us(
+                        lambda fused=fused, call=call: _kernel(fused)(*call), args.repeats
+                    )
+                row["kernel, C++ launch (no Python)"] = _median_us(
+                    lambda fused=fused: fused._launch(1), args.repeats
+                )
+            else:
+                call, c_call = _kernel_call(fused, theta)
+                row["kernel, ordinary call (Kernel.__call__)"] = _median_us(
+                    lambda fused=fused, call=call: _kernel(fused)(*call), args.repeats
+                )
+                row["kernel, C++ launch (no Python)"] = _median_us(
+                    _c_launch(_kernel(fused), call, c_call), args.repeats
+                )
         row["python work (value_and_grad - C++ launch)"] = tuple(
             a - b for a, b in zip(row["value_and_grad"], row["kernel, C++ launch (no Python)"], strict=True)
         )

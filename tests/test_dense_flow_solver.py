@@ -155,7 +155,6 @@ def _write_recording(tmp_path, scene):
 def test_flow_command_end_to_end(tmp_path, f64, scene):
     """``cmax-taichi flow`` on a recording written to disk: flow files readable back, the timestamps,
     the table (with what the optimizer did on each level) and the figure."""
-    import csv
 
     from cmax_taichi.cli import main
     from cmax_taichi.io.writers import read_flow_npz
@@ -179,7 +178,9 @@ def test_flow_command_end_to_end(tmp_path, f64, scene):
     assert summary["windows"] == 2 and summary["stalled_windows"] == 0
     assert summary["options"]["regularizers"] == {"deformation": 1.0, "curvature": 0.1}
     # every event accounted for as estimate does: the windows after --max-windows are counted
-    assert summary["events"]["total"] == len(ev) and summary["events"]["after_max_windows"] == len(ev) - 8000
+    assert summary["events"]["total"] == len(scene.events) and (
+        summary["events"]["after_max_windows"] == len(scene.events) - 8000
+    )
     assert summary["recording"]["fingerprint"] and meta["fingerprint"] == summary["recording"]["fingerprint"]
     with (out / "results.csv").open() as f:
         rows = list(csv.DictReader(f))
@@ -205,7 +206,6 @@ def test_flow_command_end_to_end(tmp_path, f64, scene):
 def test_flow_command_reports_a_stalled_level(tmp_path, f64, scene, monkeypatch, capsys):
     """The exact penalties' kinks stall L-BFGS-B at the global search's constant flow (t_ref first,
     divergence 10 + deformation 10): the command says so, and so do results.csv and summary.json."""
-    import csv
 
     from cmax_taichi.cli import main
 
@@ -257,7 +257,6 @@ def test_flow_files_are_scored_by_evaluate_as_by_flow(tmp_path, f64):
     """``cmax-taichi flow`` on a simulated recording in MVSEC's files (``*_data.hdf5`` with its
     ``*_gt_flow_dist.npz``), dt = 1 frame, then ``cmax-taichi evaluate`` on its flow files: the same AEE
     per window as the one ``flow`` computed from the recording's ground truth."""
-    import csv
 
     from cmax_taichi import sim as sm
     from cmax_taichi.cli import main

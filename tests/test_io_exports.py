@@ -145,6 +145,7 @@ def test_results_to_hdf5(tmp_path):
         assert list(f.attrs["columns"]) == [
             "index", "t_start", "t_end", "n_events", "v_x", "v_y",
             "value", "fwl", "iterations", "evaluations", "seconds", "converged", "n_dropped", "status",
+            "kernels",
         ]  # fmt: skip
         assert [s.decode() for s in f["status"][()]] == ["estimated"] * 3
         np.testing.assert_array_equal(f["n_dropped"][()], [0, 0, 0])

@@ -63,9 +63,9 @@ def test_coarse_views_share_the_fields_and_kernels_of_the_problem():
     first and last kept), and the centre of its warps scaled alike."""
     x, y, t, p = edge_events(n=3000, seed=4)
     prob = cm.ContrastMaximization(cm.Events(x, y, t, p, SENSOR), warp="mitrokhin4", regularizers=BOTH)
-    kernels = dict(prob._fused._ws.kernels)
+    schedules = prob._fused._schedules
     view = pyramid.coarse_view(prob, 4, max_events=1000)
-    assert view._fused._ws is prob._fused._ws and view._fused._ws.kernels == kernels
+    assert view._fused._ws is prob._fused._ws and view._fused._schedules is schedules
     assert view.n_events == 1000 and view.duration == prob.duration
     W, H = SENSOR
     c = np.array([(W - 1) / 2, (H - 1) / 2])

@@ -76,7 +76,8 @@ def test_windows_by_count_with_warm_start(events, tmp_path):
     assert header.WINDOW_COLUMNS[:2] == ("index", "t_start [s]") and "converged" in header.DIAGNOSTIC_COLUMNS
     # the three windows, then the row of the partial tail (273 events, not estimated, counted)
     assert len(rows) == 5 and float(rows[1][4]) == pytest.approx(result.windows[0].theta[0])
-    assert [r[-1] for r in rows[1:]] == ["estimated"] * 3 + ["partial_tail"]
+    status = rows[0].index("status")
+    assert [r[status] for r in rows[1:]] == ["estimated"] * 3 + ["partial_tail"]
     assert rows[4][:4] == ["3", repr(float(events.t[3000])), repr(float(events.t[-1])), "273"]
     assert result.events["partial_tail"] == 273 and result.events["estimated"] == 3000
     json_path = result.to_json(tmp_path / "r.json")

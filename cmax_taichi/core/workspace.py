@@ -59,16 +59,24 @@ class Workspace:
 
 @contextlib.contextmanager
 def allocating(what: str) -> Iterator[None]:
-    """Declare fields inside this block; they are allocated (materialized) at its end.
+    """Declare fields (or make host arrays) inside this block; fields are allocated (materialized) at
+    its end.
 
     A Taichi failure while declaring or allocating them (the machine's or the device's memory, the
     address space, Taichi's limit on fields per tree) would leave Taichi unable to make any new field;
     instead the backend is re-initialised with the same settings (:func:`backend.recover`: the pools
-    and compiled kernels are dropped) and one MemoryError names ``what`` and Taichi's reason.
+    and compiled kernels are dropped) and one MemoryError names ``what`` and Taichi's reason. A host
+    array that cannot be allocated is one MemoryError naming ``what`` too (nothing to re-initialise).
     """
     try:
         yield
         ti.lang.impl.get_runtime().materialize()
+    except MemoryError as exc:  # a host (NumPy) array: Taichi's state is untouched
+        reason = " ".join(str(exc).split()).rstrip(".")
+        raise MemoryError(
+            f"could not allocate the arrays of {what}: {reason} (the session stays usable; a smaller "
+            "sensor or window needs less)"
+        ) from None
     except RuntimeError as exc:  # Taichi's allocation errors, TaichiRuntimeError, failed assertions
         reason = " ".join(str(exc).split()).rstrip(".")
         backend.recover()

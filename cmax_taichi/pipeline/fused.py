@@ -474,7 +474,19 @@ class FusedPipeline:
             return self._out.array
         self._compiling = True  # (or loading from the offline cache: not a measure of the window)
         kernel = self._schedules.kernel(serial, self.tier)
-        call = (
+        call = self.kernel_call(grad)
+        # the tier's compile settings (read when it compiles): one Taichi kernel serves both tiers, Taichi
+        # compiles (or loads) it per configuration
+        with backend.hand_written_gradient_kernels(self.tier):
+            kernel(*call)
+            # the next calls launch the compiled kernel directly
+            self._launchers[(serial, self.tier)] = DirectLaunch.make(kernel, call)
+        return self._out.array
+
+    def kernel_call(self, grad: int) -> tuple:
+        """The arguments of an ordinary call of the window's kernel (``Kernel.__call__``), in the order
+        that the direct launch sets them."""
+        return (
             self.n_events,
             plain(self.events),
             plain(self._terms),
@@ -484,13 +496,6 @@ class FusedPipeline:
             *self._sensor,
             *(plain(a) for a in self._ws.arrays.values()),
         )
-        # the tier's compile settings (read when it compiles): one Taichi kernel serves both tiers, Taichi
-        # compiles (or loads) it per configuration
-        with backend.hand_written_gradient_kernels(self.tier):
-            kernel(*call)
-            # the next calls launch the compiled kernel directly
-            self._launchers[(serial, self.tier)] = DirectLaunch.make(kernel, call)
-        return self._out.array
 
     # --- evaluation ------------------------------------------------------------------------------
     def launch_ready(self) -> bool:
