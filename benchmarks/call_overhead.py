@@ -88,7 +88,11 @@ def _c_launch(kernel, args, c_args=None):
 def _kernel(fused):
     """The compiled kernel that ``fused`` launches for its window (its schedule's, where the version
     has CPU loop schedules; ``_run_k`` before)."""
-    return fused._schedules.kernel(fused.serial, fused.tier) if hasattr(fused, "_schedules") else fused._run_k
+    if not hasattr(fused, "_schedules"):
+        return fused._run_k
+    if hasattr(fused, "kernel_call"):  # a kernel per tier, the optimized one per sensor
+        return fused._schedules.kernel(fused.serial, fused.tier, fused._sensor)
+    return fused._schedules.kernel(fused.serial)
 
 
 def _kernel_call(fused, theta):

@@ -262,7 +262,7 @@ def make_dense_flow_kernels(
     tmp, img, adj = views[:3]
     sob, ibar = views[3:] if sobel else (None, None)
     acc = _c.Planes(args, "votes", 0, S * R * KR)
-    vote = events.vote(acc, R * KR)  # slice s of the votes += v
+    vote = events.vote(acc)  # votes[i] += v
     tap_x = _b.make_tap_sum(_c.read_plane, r_, 1, args)
     tap_y = _b.make_tap_sum(_c.read_plane, r_, 0, args)
     sobel_fn = _b.make_sobel(_c.read_plane, args)
@@ -314,18 +314,21 @@ def make_dense_flow_kernels(
             if _b.in_window(q, W, H):
                 vals, _ = quantities(div, du_dx, du_dy, dtr)
                 ix, iy, ax, ay = _b.bilinear_footprint(q)
+                HW = _c.plane_size(acc)
+                o = _c.at(acc, s * R * KR + r * KR, iy, ix)  # corner (0, 0) of the reference's first plane
                 for dy in ti.static(range(2)):
                     for dx in ti.static(range(2)):
                         wx, wy = _b.corner_weights(ax, ay, dx, dy)
                         if _b.corner_in_image(ix, iy, dx, dy, W, H):
                             w = wx * wy
-                            vote(s, iy + dy, ix + dx, r * KR + ch, b * w)
+                            i = o + dy * W + dx
+                            vote(i + ch * HW, b * w)
                             if ti.static(Q > 0):  # noqa: SIM102 - compile-time if
                                 if maps != 0:
                                     if ti.static(not shared_count):
-                                        vote(s, iy + dy, ix + dx, r * KR + i_cnt, ab * w)
+                                        vote(i + i_cnt * HW, ab * w)
                                     for v in ti.static(range(Q)):
-                                        vote(s, iy + dy, ix + dx, r * KR + i_num + v, ab * w * vals[v])
+                                        vote(i + (i_num + v) * HW, ab * w * vals[v])
 
     @ti.func
     def corner_terms(iy, ix, r, ch, b, vals):

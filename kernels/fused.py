@@ -193,6 +193,7 @@ def make_fused_kernels(
     positive_det: bool = True,
     serial: bool = False,
     store_terms: bool = False,
+    sizes: tuple[int, int] | None = None,
 ):
     """The kernel ``run`` of the fused pipeline of ``shape`` (see the module docstring).
 
@@ -215,6 +216,10 @@ def make_fused_kernels(
     ``store_terms`` (the model's ``store_event_terms``; ignored with atomic adds) evaluates it once per
     event and call into the ``terms`` argument (a ``(terms_width(P, n_voted), n)`` array of the kernel's
     float type; otherwise any ``(1, 1)`` one). ``serial`` runs every loop on the calling thread (CPU).
+    ``sizes``: the sensor ``(width, height)`` compiled in as constants (the kernel of one sensor: the
+    image indices fold, as fast as a kernel of fixed-shape fields), or None (the kernel reads them from
+    its ``width`` and ``height`` arguments: one compiled kernel serves every sensor). The arguments are
+    the same either way.
     """
     P, RV = shape.n_params, shape.n_voted
     real, C, r_, S, shared_count, SL, sobel = astuple(shape.layout)
@@ -241,6 +246,17 @@ def make_fused_kernels(
         raise ValueError("a voted 'absdet' quantity needs the model's det (det_fn)")
     if warp_terms is None:
         warp_terms = composed_warp_terms(warp_fn, det_fn, param_jac)
+    if sizes is not None:
+        sizes = (int(sizes[0]), int(sizes[1]))
+
+    def bind_sizes(w_, h_):
+        """Bind the sensor the passes index with: the compiled-in ``sizes``, or the run-time sizes as the
+        loop body's own locals (kept in registers: an argument is reloaded after every store to an
+        array, which may alias it)."""
+        if sizes is None:
+            return args.bind(width=w_, height=h_)
+        return args.bind(width=sizes[0], height=sizes[1])
+
     # row passes: a few rows per task on the CPU (their partial sums are per row, so the threads'
     # scheduling cannot change J); a GPU keeps its default
     row_block = None if atomic_scatter else 4
@@ -556,17 +572,22 @@ def make_fused_kernels(
         words: _c.U32_ARRAY,
         rowpx: _c.I32_ARRAY,
     ):
-        ti.static(args.bind(params=params, width=width, height=height, votes=votes, images=images,
-                            rows=rows, state=state, words=words, rowpx=rowpx))  # fmt: skip
+        ti.static(args.bind(params=params, votes=votes, images=images, rows=rows, state=state, words=words,
+                            rowpx=rowpx))  # fmt: skip
+        ti.static(bind_sizes(width, height))
         gconst = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)  # constant quantities' penalties
         gatomic = ti.Vector([0.0 for _ in ti.static(range(P))], dt=ti.f64)  # the GPU's event gradients
         # --- 1. splat ----------------------------------------------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):
+                w_, h_ = width, height
+                ti.static(bind_sizes(w_, h_))
                 ops.splat_event(0, row(ev, i), theta_vec(), ctx_vec())
         else:
             ti.loop_config(block_dim=1, serialize=serial)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
+                w_, h_ = width, height
+                ti.static(bind_sizes(w_, h_))
                 lo, hi = slice_events(s, n)
                 theta = theta_vec()
                 c = ctx_vec()
@@ -588,6 +609,8 @@ def make_fused_kernels(
         #        and the map reductions; tmp: what the previous call left outside Rx cleared, blur along x
         ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(height):
+            w_, h_ = width, height
+            ti.static(bind_sizes(w_, h_))
             tiles.build_x(args, y)
             sums = ti.Vector([0.0 for _ in ti.static(range(1 + RV))])  # sum m, sum m P_v
             tiles.each_pixel(args, F0, y, sum_slices_and_maps, sums)
@@ -598,6 +621,8 @@ def make_fused_kernels(
         # --- 3. rows: Rxy (and Rs); the kept image over Rxy; without Sobel the image's moments; votes cleared
         ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(height):
+            w_, h_ = width, height
+            ti.static(bind_sizes(w_, h_))
             tiles.build_y(args, y)
             keep = keep_image(grad)
             if keep:  # img: in the previous kept image's Rxy, not in this one's
@@ -619,6 +644,8 @@ def make_fused_kernels(
             # --- 4. rows: Sobel images (kept for the backward) and the pixel terms that read them, over Rs
             ti.loop_config(block_dim=row_block, serialize=serial)
             for y in range(height):
+                w_, h_ = width, height
+                ti.static(bind_sizes(w_, h_))
                 rsum = ti.Vector([0.0 for _ in ti.static(range(SLC))])
                 tiles.each_pixel(args, R_OBJ, y, sobel_and_terms, rsum)
                 for k in ti.static(range(SLC)):
@@ -626,16 +653,22 @@ def make_fused_kernels(
         # --- 5. serial: the row sums in row order, the untouched pixels in closed form, J ------------------
         ti.loop_config(serialize=True)
         for _ in range(1):
+            w_, h_ = width, height
+            ti.static(bind_sizes(w_, h_))
             gconst = finish_value(grad)
         # --- 6. rows (grad): adjoint images ------------------------------------------------------------
         if ti.static(sobel):
             # L(I): transposed Sobel of the Sobel images, over Rxy (where the transposed blur reads it)
             ti.loop_config(block_dim=row_block, serialize=serial)
             for y in range(height):
+                w_, h_ = width, height
+                ti.static(bind_sizes(w_, h_))
                 if grad & 1 != 0:
                     tiles.each_pixel(args, RXY, y, transposed_sobel, 0)
             ti.loop_config(block_dim=row_block, serialize=serial)
             for y in range(height):
+                w_, h_ = width, height
+                ti.static(bind_sizes(w_, h_))
                 if grad & 1 != 0:
                     # transposed blur along y of dJ/dI = (scale L(I) + offset) / G0 into tmp2 over Rx
                     tv = load_taps()
@@ -643,6 +676,8 @@ def make_fused_kernels(
                     tiles.each_segment(args, RX, y, blur_y_adjoint, (tv, c1, c0))
         ti.loop_config(block_dim=row_block, serialize=serial)
         for y in range(height):
+            w_, h_ = width, height
+            ti.static(bind_sizes(w_, h_))
             if grad & 1 != 0:
                 # transposed blur along x into adj at the touched pixels; map adjoints; clear the maps.
                 # Without Sobel, dJ/dI = (scale I + offset) / G0 and tmp2 = B_y^T B_y u (stage 3): the
@@ -657,11 +692,15 @@ def make_fused_kernels(
         # --- 7. events (grad, closed-form Jacobians): dJ/dtheta ---------------------------------------
         if ti.static(atomic_scatter):
             for i in range(n):
+                w_, h_ = width, height
+                ti.static(bind_sizes(w_, h_))
                 if grad & 1 != 0:
                     gatomic += ops.event_grad(row(ev, i), theta_vec(), ctx_vec())
         else:
             ti.loop_config(block_dim=1, serialize=serial)  # one slice per thread (backend.per_thread_loops)
             for s in range(S):
+                w_, h_ = width, height
+                ti.static(bind_sizes(w_, h_))
                 if grad & 1 != 0:
                     lo, hi = slice_events(s, n)
                     theta = theta_vec()
@@ -678,6 +717,8 @@ def make_fused_kernels(
         # --- 8. serial: results (the slices' sums in slice order) ------------------------------------------
         ti.loop_config(serialize=True)
         for _ in range(1):
+            w_, h_ = width, height
+            ti.static(bind_sizes(w_, h_))
             out[0] = ti.cast(state_at(ST_LOSS), ti.f64)
             graw = state_at(ST_GRAW)
             out[1] = ti.cast(graw, ti.f64)

@@ -114,8 +114,16 @@ class Planes:
 
 @ti.func
 def at(view: ti.template(), p, y, x):
-    """Index of pixel ``(y, x)`` of plane ``p`` of ``view`` (a :class:`Planes`) in its array."""
+    """Index of pixel ``(y, x)`` of plane ``p`` of ``view`` (a :class:`Planes`) in its array. Written as
+    the plane's offset plus the pixel's, so that the accesses of one pixel to several planes share the
+    pixel's part (LLVM eliminates common subexpressions, not reassociated ones)."""
     return ((view.base + p) * view.args.height + y) * view.args.width + x
+
+
+@ti.func
+def plane_size(view: ti.template()):
+    """Pixels per plane, ``H W``."""
+    return view.args.height * view.args.width
 
 
 @ti.func
@@ -172,11 +180,9 @@ class EventLayout:
         return 3 + int(self.weighted) + int(self.split_polarity)
 
     def ndarray_type(self, real):
-        """The Taichi type of ``ev``: an ``(n, width)`` array, a row ``(x, y, dt[, w][, channel])`` (px, px,
-        s) per event. Scalar, not an array of vectors: Taichi 1.7.4 keys a kernel's compiled instance by
-        its arguments' element types, and gives an external array of vectors a new type object at every
-        call, so that each new problem built the kernel again (about a second of front end)."""
-        return real_array(real, ndim=2)
+        """The Taichi type of ``ev``: a flat array of ``n`` rows ``(x, y, dt[, w][, channel])`` (px, px, s),
+        one per event (:attr:`width` values each: a compile-time stride)."""
+        return real_array(real)
 
     def row(self):
         """``row(ev, i)``: event ``i`` of ``ev`` as a vector (what :meth:`reader` reads)."""
@@ -184,7 +190,7 @@ class EventLayout:
 
         @ti.func
         def row(ev: ti.template(), i):
-            return ti.Vector([ev[i, k] for k in ti.static(range(width))])
+            return ti.Vector([ev[i * width + k] for k in ti.static(range(width))])
 
         return row
 
@@ -223,15 +229,14 @@ class EventLayout:
 
         return slice_events
 
-    def vote(self, acc: Planes, per_slice: int):
-        """``vote(s, iy, ix, k, v)``: channel ``k`` of slice ``s`` of the votes ``acc`` (``per_slice``
-        planes a slice) ``+= v`` at ``(iy, ix)``: atomic or, where slice ``s`` belongs to one thread, a
+    def vote(self, acc: Planes):
+        """``vote(i, v)``: element ``i`` of the votes ``acc`` ``+= v`` (the caller's index: :func:`at` of a
+        footprint's corner, channel planes apart): atomic or, where the slice belongs to one thread, a
         plain read-modify-write."""
-        atomic, K = self.atomic, int(per_slice)
+        atomic = self.atomic
 
         @ti.func
-        def vote(s, iy, ix, k, v):
-            i = at(acc, s * K + k, iy, ix)
+        def vote(i, v):
             if ti.static(atomic):
                 acc.array[i] += v
             else:

@@ -82,7 +82,8 @@ class EventPasses:
         T_Q, T_V, T_J = 0, 2, 2 + RV  # rows of the stored terms: position, quantities, Jacobians
         T_DQ = T_J + 2 * P
         event = events.reader()  # (p, dt, b, ch) of an event vector
-        vote = events.vote(acc, per_slice)  # slice s of the votes += v
+        vote = events.vote(acc)  # votes[i] += v
+        K = int(per_slice)
 
         @ti.func
         def quantities(p, dt, theta, c, det):
@@ -121,17 +122,20 @@ class EventPasses:
                 ix, iy, ax, ay = _b.bilinear_footprint(q)
                 _t.mark(args, ix, iy)
                 ab = ti.abs(b)
+                HW = _c.plane_size(acc)
+                o = _c.at(acc, s * K, iy, ix)  # corner (0, 0) of the slice's first plane
                 for dy in ti.static(range(2)):
                     for dx in ti.static(range(2)):
                         wx, wy = _b.corner_weights(ax, ay, dx, dy)
                         if _b.corner_in_image(ix, iy, dx, dy, W, H):
                             w = wx * wy
-                            vote(s, iy + dy, ix + dx, ch, b * w)
+                            i = o + dy * W + dx
+                            vote(i + ch * HW, b * w)
                             if ti.static(R > 0):
                                 if ti.static(not shared_count):
-                                    vote(s, iy + dy, ix + dx, i_cnt, ab * w)
+                                    vote(i + i_cnt * HW, ab * w)
                                 for v in ti.static(range(RV)):
-                                    vote(s, iy + dy, ix + dx, i_num + v, ab * w * vals[v])
+                                    vote(i + (i_num + v) * HW, ab * w * vals[v])
 
         @ti.func
         def splat_event(s, e, theta, c):
@@ -190,16 +194,17 @@ class EventPasses:
             return jx, dq
 
         @ti.func
-        def corner_terms(iy, ix, ch, b, vals):
-            """The adjoint gathered at one pixel: (b adj_ch + |b| adj_C + |b| sum_r q_r adj_r, adj_r)."""
+        def corner_terms(i, HW, ch, b, vals):
+            """The adjoint gathered at one pixel (index ``i`` in the first plane of ``adj``, ``HW`` pixels
+            a plane): (b adj_ch + |b| adj_C + |b| sum_r q_r adj_r, adj_r)."""
             ab = ti.abs(b)
-            a = b * _c.load(adj, ch, iy, ix)
+            a = b * adj.array[i + ch * HW]
             nr = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])
             if ti.static(R > 0):
                 if ti.static(not shared_count):
-                    a += ab * _c.load(adj, i_cnt, iy, ix)
+                    a += ab * adj.array[i + i_cnt * HW]
                 for v in ti.static(range(RV)):
-                    nr[v] = ab * _c.load(adj, i_num + v, iy, ix)
+                    nr[v] = ab * adj.array[i + (i_num + v) * HW]
                     a += vals[v] * nr[v]
             return a, nr
 
@@ -218,6 +223,8 @@ class EventPasses:
             inside = _b.in_window(q, W, H)  # (bitwise: no branch)
             qs = ti.Vector([ti.select(inside, q[0], 0.0), ti.select(inside, q[1], 0.0)])
             ix, iy, ax, ay = _b.bilinear_footprint(qs)
+            HW = _c.plane_size(adj)
+            base = _c.at(adj, 0, 0, 0)
             ga = 0.0  # dS/dax
             gb = 0.0  # dS/day
             gv = ti.Vector([0.0 for _ in ti.static(range(max(RV, 1)))])  # dS/dq_v
@@ -226,7 +233,7 @@ class EventPasses:
                     keep = _b.corner_in_image(ix, iy, dx, dy, W, H)
                     cx = ti.min(ti.max(ix + dx, 0), W - 1)
                     cy = ti.min(ti.max(iy + dy, 0), H - 1)
-                    a, nr = corner_terms(cy, cx, ch, b, vals)
+                    a, nr = corner_terms(base + cy * W + cx, HW, ch, b, vals)
                     a = ti.select(keep, a, 0.0)
                     wx, wy = _b.corner_weights(ax, ay, dx, dy)
                     ga += ti.static(1.0 if dx == 1 else -1.0) * wy * a

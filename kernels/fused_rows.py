@@ -53,47 +53,51 @@ class SegmentPasses:
         @ti.func
         def blur_x(src: ti.template(), c: ti.template(), y, x0, tv):
             """``sum_k taps_k src[c, y, x + k]`` at the segment's pixels (plane ``c`` of ``src``; the
-            votes' slice 0 holds their channels in its first planes)."""
+            votes' slice 0 holds their channels in its first planes). Away from the borders the taps are
+            unrolled over whole segments; at a border, a loop over the taps checks each."""
             W = src.width
+            o = _c.at(src, c, y, x0)  # the segment's first pixel
             v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
             if whole(x0, W) and x0 >= r_ and x0 + SEG - 1 + r_ < W:
-                for k in ti.static(range(-r_, r_ + 1)):
+                for k in range(-r_, r_ + 1):
                     for p in ti.static(range(SEG)):
-                        v[p] += tv[k + r_] * _c.load(src, c, y, x0 + p + k)
+                        v[p] += tv[k + r_] * src.array[o + p + k]
             else:
-                for k in ti.static(range(-r_, r_ + 1)):
+                for k in range(-r_, r_ + 1):
                     for p in ti.static(range(SEG)):
                         if 0 <= x0 + p + k < W and in_image(x0 + p, W):
-                            v[p] += tv[k + r_] * _c.load(src, c, y, x0 + p + k)
+                            v[p] += tv[k + r_] * src.array[o + p + k]
             return v
 
         @ti.func
         def blur_y(src: ti.template(), c: ti.template(), y, x0, tv):
             """``sum_k taps_k src[c, y + k, x]`` at the segment's pixels."""
             W, H = src.width, src.height
+            o = _c.at(src, c, y, x0)
             v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
             if whole(x0, W) and y >= r_ and y < H - r_:
-                for k in ti.static(range(-r_, r_ + 1)):
+                for k in range(-r_, r_ + 1):
                     for p in ti.static(range(SEG)):
-                        v[p] += tv[k + r_] * _c.load(src, c, y + k, x0 + p)
+                        v[p] += tv[k + r_] * src.array[o + k * W + p]
             else:
-                for k in ti.static(range(-r_, r_ + 1)):
+                for k in range(-r_, r_ + 1):
                     if 0 <= y + k < H:
                         for p in ti.static(range(SEG)):
                             if in_image(x0 + p, W):
-                                v[p] += tv[k + r_] * _c.load(src, c, y + k, x0 + p)
+                                v[p] += tv[k + r_] * src.array[o + k * W + p]
             return v
 
         @ti.func
         def store(dst: ti.template(), c: ti.template(), y, x0, v):
             W = dst.width
+            o = _c.at(dst, c, y, x0)
             if whole(x0, W):
                 for p in ti.static(range(SEG)):
-                    _c.store(dst, c, y, x0 + p, v[p])
+                    dst.array[o + p] = v[p]
             else:
                 for p in ti.static(range(SEG)):
                     if in_image(x0 + p, W):
-                        _c.store(dst, c, y, x0 + p, v[p])
+                        dst.array[o + p] = v[p]
 
         @ti.func
         def twice_taps(y, tv, height):
@@ -101,9 +105,9 @@ class SegmentPasses:
             with itself, less the products of the first blur's taps that fall outside the image."""
             wide = ti.Vector([0.0 for _ in ti.static(range(4 * r_ + 1))])
             if ti.static(r_ > 0):
-                for k1 in ti.static(range(-r_, r_ + 1)):
+                for k1 in range(-r_, r_ + 1):
                     if 0 <= y + k1 < height:
-                        for k2 in ti.static(range(-r_, r_ + 1)):
+                        for k2 in range(-r_, r_ + 1):
                             wide[k1 + k2 + 2 * r_] += tv[k1 + r_] * tv[k2 + r_]
             else:
                 wide[0] = 1.0
@@ -113,45 +117,56 @@ class SegmentPasses:
         def twice_blur_y(src: ti.template(), wide, c: ti.template(), y, x0):
             """``(B_y^T B_y src)[c, y, x]`` at the segment's pixels, with the taps of :func:`twice_taps`."""
             W, H = src.width, src.height
+            o = _c.at(src, c, y, x0)
             v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
             if whole(x0, W) and y >= 2 * r_ and y < H - 2 * r_:
-                for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
+                for k in range(-2 * r_, 2 * r_ + 1):
                     for p in ti.static(range(SEG)):
-                        v[p] += wide[k + 2 * r_] * _c.load(src, c, y + k, x0 + p)
+                        v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
             else:
-                for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
+                for k in range(-2 * r_, 2 * r_ + 1):
                     if 0 <= y + k < H:
                         for p in ti.static(range(SEG)):
                             if in_image(x0 + p, W):
-                                v[p] += wide[k + 2 * r_] * _c.load(src, c, y + k, x0 + p)
+                                v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
             return v
 
         @ti.func
         def clear(y, x0, dst: ti.template()):
             """Every plane of ``dst`` zeroed at the segment (the argument order of a
             ``TileOps.each_segment`` body)."""
+            o = _c.at(dst, 0, y, x0)
+            HW = _c.plane_size(dst)
             for p in ti.static(range(SEG)):
                 if in_image(x0 + p, dst.width):
                     for c in ti.static(range(dst.count)):
-                        _c.store(dst, c, y, x0 + p, 0.0)
+                        dst.array[o + c * HW + p] = 0.0
 
         @ti.func
         def y_tap_sum(y, tv, height):
             """``B_y^T 1`` at row ``y``: the sum of the y taps that fall inside the image."""
             tapsum = 0.0
-            for k in ti.static(range(-r_, r_ + 1)):
+            for k in range(-r_, r_ + 1):
                 if 0 <= y + k < height:
                     tapsum += tv[k + r_]
             return tapsum
 
         @ti.func
         def x_tap_sums(x0, tv, width):
-            """``B_x^T 1`` at the segment's pixels: the sum of the x taps that fall inside the image."""
+            """``B_x^T 1`` at the segment's pixels: the sum of the x taps that fall inside the image (away
+            from the borders every tap does: their sum, added in the same order)."""
             s = ti.Vector([0.0 for _ in ti.static(range(SEG))])
-            for k in ti.static(range(-r_, r_ + 1)):
+            if whole(x0, width) and x0 >= r_ and x0 + SEG - 1 + r_ < width:
+                total = 0.0
+                for k in ti.static(range(2 * r_ + 1)):
+                    total += tv[k]
                 for p in ti.static(range(SEG)):
-                    if 0 <= x0 + p + k < width:
-                        s[p] += tv[k + r_]
+                    s[p] = total
+            else:
+                for k in range(-r_, r_ + 1):
+                    for p in ti.static(range(SEG)):
+                        if 0 <= x0 + p + k < width:
+                            s[p] += tv[k + r_]
             return s
 
         self.load_taps, self.blur_x, self.blur_y, self.store = load_taps, blur_x, blur_y, store

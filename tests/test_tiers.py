@@ -61,12 +61,20 @@ def test_a_problem_and_warmup_name_the_same_configuration(own_cache):
     regs = {"divergence": 1.0, "deformation": 1.0}
     prob = _problem("mitrokhin4", regularizers=regs, blur_sigma=0.9, polarity="split")
     want = tiers.config_for(
-        warp="mitrokhin4", regularizers=tuple(regs), blur_sigma=1.0, polarity="split"
+        warp="mitrokhin4", regularizers=tuple(regs), blur_sigma=1.0, polarity="split", sensor_size=SENSOR
     )  # sigma 0.9 and 1.0: the same footprint, the same kernels
     assert prob._fused.kernel_config == want and prob._fused.kernel_config.key() == want.key()
-    assert want.describe() == "mitrokhin4 + variance + divergence, deformation"
-    other = tiers.config_for(warp="mitrokhin4", regularizers=("deformation", "divergence"), polarity="split")
+    W, H = SENSOR
+    assert want.describe() == f"mitrokhin4 + variance + divergence, deformation on {W}x{H}"
+    other = tiers.config_for(
+        warp="mitrokhin4", regularizers=("deformation", "divergence"), polarity="split", sensor_size=SENSOR
+    )
     assert other.key() != want.key()  # the regularizers' order is the kernels' quantity order
+    # the optimized kernels of another sensor are another compile (the sensor is compiled in)
+    bigger = tiers.config_for(
+        warp="mitrokhin4", regularizers=tuple(regs), polarity="split", sensor_size=(W + 1, H)
+    )
+    assert bigger.key() != want.key()
     events = cm.Events(*edge_events(n=400), SENSOR)
     flow = DenseFlowProblem(events, (2, 2), regularizers=regs, kink_width=KINK_WIDTH)  # the estimator's
     dense = tiers.config_for(warp=None, objective="gradient_magnitude", regularizers=tuple(regs))
@@ -160,7 +168,11 @@ def test_the_next_window_takes_the_optimized_kernels(own_cache, no_background, m
     finally:
         FusedPipeline.loops = saved
     schedules = prob._fused._schedules
-    assert schedules.kernel(True, "full") is not schedules.kernel(True, "fast")
+    fast_kernel, full_kernel = schedules.kernel(True, "fast", SENSOR), schedules.kernel(True, "full", SENSOR)
+    assert full_kernel is not fast_kernel
+    other = (SENSOR[0] + 8, SENSOR[1])  # the fast kernel serves every sensor, the optimized one has it in
+    assert schedules.kernel(True, "fast", other) is fast_kernel
+    assert schedules.kernel(True, "full", other) is not full_kernel
     assert full[0] == pytest.approx(fast[0], rel=1e-12)
     np.testing.assert_allclose(full[1], fast[1], rtol=1e-9, atol=1e-12 * np.abs(fast[1]).max())
 
@@ -186,9 +198,9 @@ def test_background_requests_are_not_repeated(own_cache, monkeypatch):
 @pytest.mark.slow
 def test_the_background_process_compiles_and_records(own_cache):
     """The background program compiles a configuration's optimized kernels into the offline cache and
-    records them; a later process of another sensor runs on them without compiling."""
+    records them; a later process of that sensor runs on them without compiling."""
     cache = own_cache("auto")
-    config = tiers.config_for(warp="zoom1", blur_sigma=0.0)
+    config = tiers.config_for(warp="zoom1", blur_sigma=0.0, sensor_size=SENSOR)
     env = {"TI_OFFLINE_CACHE_FILE_PATH": str(cache), "CMAX_TAICHI_COMPILE": "full"}
     done = subprocess.run(
         [sys.executable, "-c", tiers._WORKER, config.to_json()],

@@ -1,12 +1,15 @@
 """Compile the optimized kernels of a configuration beforehand, and show or clear the kernel cache.
 
 The kernels a configuration (warp, objective, regularizers, blur footprint, polarity, weights) runs on
-are compiled once per machine and kept in Taichi's offline cache, for every sensor. Without this command
-the first run of a configuration starts on quickly compiled kernels and compiles the optimized ones in
-the background (``--compile auto``, the default); after it, runs start on the optimized ones.
+are compiled once per machine and kept in Taichi's offline cache. The quick kernels serve every sensor;
+the optimized ones of a warp have the sensor compiled in (--sensor-size, one compile each), the dense
+flow's serve every sensor. Without this command the first run of a configuration starts on the quick
+kernels and compiles the optimized ones in the background (``--compile auto``, the default); after it,
+runs start on the optimized ones.
 
 examples:
-  cmax-taichi warmup --warp rotation3
+  cmax-taichi warmup --warp rotation3            # on a 240x180 sensor (DAVIS240)
+  cmax-taichi warmup --warp rotation3 --sensor-size 346 260 --sensor-size 640 480
   cmax-taichi warmup --warp mitrokhin4 --reg divergence=1 --reg deformation=1
   cmax-taichi warmup --flow                      # the dense flow's default configuration
   cmax-taichi warmup --examples                  # what the --example commands of the README run
@@ -52,6 +55,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NAME=WEIGHT",
         help="an event-collapse regularizer (repeatable; its weight does not matter here)",
     )
+    what.add_argument(
+        "--sensor-size",
+        type=int,
+        nargs=2,
+        action="append",
+        default=None,
+        metavar=("W", "H"),
+        help="the sensor of the --warp configurations (repeatable; default 240 180)",
+    )
     what.add_argument("--blur", type=float, default=1.0, help="Gaussian blur sigma, px (default 1)")
     what.add_argument("--polarity", default="ignore", help="ignore | signed | split (default ignore)")
     what.add_argument("--weights", action="store_true", help="problems with per-event vote weights")
@@ -75,9 +87,11 @@ def _example_configs(tiers) -> list:
 
     configs = []
     for example in EXAMPLES.values():
-        configs.append(tiers.config_for(warp=example.warp))
+        size = example.sensor_size
+        configs.append(tiers.config_for(warp=example.warp, sensor_size=size))
         if cm.get_warp(example.warp).collapse_enabled:
-            configs.append(tiers.config_for(warp=example.warp, regularizers=("divergence", "deformation")))
+            both = ("divergence", "deformation")
+            configs.append(tiers.config_for(warp=example.warp, regularizers=both, sensor_size=size))
     configs.append(tiers.config_for(warp=None, **FLOW_DEFAULTS, regularizers=_flow_regularizers()))
     return configs
 
@@ -120,12 +134,13 @@ def run(args: argparse.Namespace) -> int:
             )  # fmt: skip
         )
     for warp in args.warp:
-        configs.append(
-            tiers.config_for(
-                warp=warp, objective=args.objective or "variance", regularizers=regs, blur_sigma=args.blur,
-                polarity=args.polarity, weighted=args.weights,
-            )  # fmt: skip
-        )
+        for size in args.sensor_size or [(240, 180)]:
+            configs.append(
+                tiers.config_for(
+                    warp=warp, objective=args.objective or "variance", regularizers=regs,
+                    blur_sigma=args.blur, polarity=args.polarity, weighted=args.weights, sensor_size=size,
+                )  # fmt: skip
+            )
     if not configs:
         raise CliError("nothing to compile: name --warp NAME, --flow or --examples (or --list, --clear)")
     failed = 0

@@ -129,7 +129,9 @@ class _Schedules:
 
     Each (schedule, tier) is a Taichi kernel of its own: Taichi 1.7.4 compiles a kernel object once, with
     the compile options in force then, and never again, so the optimized tier cannot be a recompile of
-    the fast tier's kernel.
+    the fast tier's kernel. The fast tier's kernel reads the sensor's size at run time (one kernel for
+    every sensor); the optimized tier's has it compiled in (a kernel per sensor: the image indices fold,
+    as fast as kernels of fixed-shape fields).
 
     ``parallel_from``: the smallest event count whose window ran on the pool because its timed calls
     on one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`) and the same call on the pool
@@ -141,14 +143,16 @@ class _Schedules:
 
     def __init__(self, build) -> None:
         self._build = build
-        self._kernels: dict[tuple[bool, str], object] = {}
+        self._kernels: dict[tuple, object] = {}
         self.parallel_from = None
         self.serial_upto = 0  # the largest window whose first serial call was under the limit
 
-    def kernel(self, serial: bool, tier: str):
-        if (serial, tier) not in self._kernels:
-            self._kernels[(serial, tier)] = self._build(serial)
-        return self._kernels[(serial, tier)]
+    def kernel(self, serial: bool, tier: str, sensor: tuple[int, int]):
+        """The kernel of a schedule and tier (``sensor``: the sensor compiled into the optimized tier)."""
+        key = (serial, tier, tuple(sensor) if tier == "full" else None)
+        if key not in self._kernels:
+            self._kernels[key] = self._build(serial, key[2])
+        return self._kernels[key]
 
 
 def _row_keys(y: np.ndarray, height: int) -> np.ndarray:
@@ -257,7 +261,7 @@ class FusedPipeline:
             *kernels_key(problem.objective.name, objective, regs, weighted, split, atomic, constant),
         )
 
-        def build_kernel(serial: bool):
+        def build_kernel(serial: bool, sizes: tuple[int, int] | None):
             return kfused.make_fused_kernels(
                 shape,
                 model.warp,
@@ -275,6 +279,7 @@ class FusedPipeline:
                 positive_det=model.positive_det,
                 serial=serial,
                 store_terms=stores_terms(model.store_event_terms, serial, n_voted),
+                sizes=sizes,
             )
 
         self._schedules = workspace.compiled(kkey, lambda: _Schedules(build_kernel))
@@ -365,7 +370,7 @@ class FusedPipeline:
             self._event_buffer.release()
             self.events = self._event_buffer.array
         else:
-            self.events = HostArray(self._packed[:n])
+            self.events = HostArray(self._packed[:n].reshape(-1))  # the rows, one after the other
             if self._terms_rows and self._terms.shape[1] != capacity:
                 rows = self._terms_rows
                 self._terms = HostArray(np.zeros((rows, capacity), dtype=backend.numpy_real()))
@@ -466,14 +471,18 @@ class FusedPipeline:
             launcher.set_array(3, self._params)
             ctx.set_arg_int((4,), grad)
             launcher.set_array(5, self._out)
-            ctx.set_arg_int((6,), self._sensor[0])
-            ctx.set_arg_int((7,), self._sensor[1])
-            for index, array in enumerate(self._ws.arrays.values(), start=8):
-                launcher.set_array(index, array)
+            # the workspace's arrays: on the CPU (host arrays, read in place) set once per launcher; a
+            # GPU launch replaces a device array in the context by its pointer, so they are set each time
+            if launcher.set_for is not self._ws or self._atomic:
+                ctx.set_arg_int((6,), self._sensor[0])
+                ctx.set_arg_int((7,), self._sensor[1])
+                for index, array in enumerate(self._ws.arrays.values(), start=8):
+                    launcher.set_array(index, array)
+                launcher.set_for = self._ws
             launcher.launch()
             return self._out.array
         self._compiling = True  # (or loading from the offline cache: not a measure of the window)
-        kernel = self._schedules.kernel(serial, self.tier)
+        kernel = self._schedules.kernel(serial, self.tier, self._sensor)
         call = self.kernel_call(grad)
         # the tier's compile settings (read when it compiles): one Taichi kernel serves both tiers, Taichi
         # compiles (or loads) it per configuration

@@ -2,10 +2,12 @@
 of the way.
 
 Taichi compiles the fused kernels (``kernels/fused.py``, ``kernels/dense_flow.py``) with its advanced
-IR optimizations (tier ``"full"``: the fastest kernels, 10-60 s and several hundred MB to compile a
-configuration on a 2-core machine) or without them (tier ``"fast"``: 1-3 s, kernels 1.4-3.7x slower;
-docs/performance.md). Taichi's offline cache keeps both, keyed by the configuration and not by the
-sensor: a kernel compiled once serves every camera. The compile mode (``cm.init(compile_mode=...)``,
+IR optimizations (tier ``"full"``: the fastest kernels, 10-30 s to compile a configuration on a 2-core
+machine) or without them (tier ``"fast"``: a few seconds, kernels slower; docs/performance.md).
+Taichi's offline cache keeps both. The fast kernels read the sensor's size at run time: compiled once,
+they serve every camera at once. The optimized fused kernels have the sensor compiled in (their image
+indices fold: as fast as kernels of fixed-shape fields), so each sensor has its own, compiled in the
+background like the first. The compile mode (``cm.init(compile_mode=...)``,
 ``CMAX_TAICHI_COMPILE``, ``--compile`` on the command line) chooses:
 
 * ``"auto"`` (the default): a configuration whose optimized kernels are in the offline cache runs on
@@ -90,6 +92,9 @@ class KernelConfig:
         The event passes add atomically (a GPU; on a CPU only where a test forces it).
     kink_width : float
         The regularizers' kinks rounded over this width (the dense flow's optimizer; 0: exact).
+    sensor : tuple
+        ``(width, height)`` compiled into the optimized fused kernels, px; ``()`` where the kernels read
+        it at run time (the dense flow).
     """
 
     kind: str
@@ -106,13 +111,15 @@ class KernelConfig:
     slices: int = 1
     atomic: bool = False
     kink_width: float = 0.0
+    sensor: tuple = ()
     rebuildable: bool = field(default=True, compare=False)
 
     def describe(self) -> str:
-        """``rotation3 + variance + divergence, deformation`` (what the messages name)."""
+        """``rotation3 + variance + divergence, deformation on 240x180`` (what the messages name)."""
         head = self.warp if self.kind == "fused" else f"dense flow ({self.references} reference(s))"
         regs = f" + {', '.join(self.regularizers)}" if self.regularizers else ""
-        return f"{head} + {self.objective}{regs}"
+        on = f" on {self.sensor[0]}x{self.sensor[1]}" if self.sensor else ""
+        return f"{head} + {self.objective}{regs}{on}"
 
     def key(self) -> str:
         """The configuration's key: its fields, the library's code and Taichi's version."""
@@ -131,6 +138,7 @@ class KernelConfig:
         data = json.loads(text)
         data["regularizers"] = tuple(data["regularizers"])
         data["plugins"] = tuple(data["plugins"])
+        data["sensor"] = tuple(data.get("sensor", ()))
         return cls(**data)
 
 
@@ -194,7 +202,7 @@ def fused_config(problem, regs: Sequence, weighted: bool, slices: int, atomic: b
         kind="fused", warp=model.name, objective=objective.name, regularizers=tuple(r.name for r in regs),
         radius=int(problem.setup.radius), polarity=problem.polarity, weighted=bool(weighted), plugins=plugins,
         arch=info.arch, precision=info.precision, slices=int(slices), atomic=bool(atomic),
-        rebuildable=rebuildable,
+        sensor=(int(problem.width), int(problem.height)), rebuildable=rebuildable,
     )  # fmt: skip
 
 
@@ -233,12 +241,13 @@ def config_for(
     weighted: bool = False,
     references: int = 1,
     kink_width: float | None = None,
+    sensor_size: tuple[int, int] = (240, 180),
 ) -> KernelConfig:
     """The :class:`KernelConfig` of problems of these options on the running backend: a
-    :class:`~cmax_taichi.ContrastMaximization` with ``warp``, or, with ``warp=None``, a dense flow of
-    ``references`` reference times whose optimizer rounds the regularizers' kinks over ``kink_width``
-    (default the dense flow's, ``flow.solver.KINK_WIDTH``). Unknown names raise ValueError listing the
-    valid ones."""
+    :class:`~cmax_taichi.ContrastMaximization` with ``warp`` on a sensor of ``sensor_size`` (width,
+    height, px), or, with ``warp=None``, a dense flow (any sensor) of ``references`` reference times
+    whose optimizer rounds the regularizers' kinks over ``kink_width`` (default the dense flow's,
+    ``flow.solver.KINK_WIDTH``). Unknown names raise ValueError listing the valid ones."""
     from cmax_taichi.models.objectives import OBJECTIVES
     from cmax_taichi.models.regularizers import REGULARIZERS
     from cmax_taichi.models.warps import get_warp
@@ -249,6 +258,11 @@ def config_for(
         raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
     if not (isinstance(references, int) and references >= 1):
         raise ValueError(f"references must be a whole number >= 1, got {references!r}")
+    sensor = ()
+    if warp is not None:
+        from cmax_taichi.core.checks import sensor_size as checked_sensor_size
+
+        sensor = checked_sensor_size(sensor_size)
     info = backend.info()
     obj = OBJECTIVES.get(objective)
     if obj.fused is None:
@@ -268,7 +282,7 @@ def config_for(
         regularizers=tuple(r.name for r in regs), radius=gaussian_taps(float(blur_sigma))[0],
         polarity=polarity, weighted=bool(weighted), references=int(references), plugins=plugins,
         arch=info.arch, precision=info.precision, slices=1 if atomic else n_slices(), atomic=atomic,
-        kink_width=width, rebuildable=rebuildable,
+        kink_width=width, sensor=sensor, rebuildable=rebuildable,
     )  # fmt: skip
 
 
@@ -443,7 +457,8 @@ def request_background_compile(config: KernelConfig) -> bool:
 _WORKER = "import sys; from cmax_taichi.pipeline.tiers import compile_in_background; " \
     "sys.exit(compile_in_background(sys.argv[1]))"
 def _synthetic_events(n: int = 2000, size=(64, 48)):
-    """A random window on a small sensor (the kernels do not depend on the sensor)."""
+    """A random window on a sensor of ``size`` (the optimized fused kernels' sensor; the others read it
+    at run time: any serves)."""
     import numpy as np
 
     from cmax_taichi.core.events import Events
@@ -464,8 +479,9 @@ def build_kernels(config: KernelConfig) -> None:
 
     for plugin in config.plugins:
         registry.load_plugin(plugin)
-    events = _synthetic_events()
-    camera = Camera(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    size = tuple(config.sensor) or (64, 48)
+    events = _synthetic_events(size=size)
+    camera = Camera(fx=50.0, fy=50.0, cx=(size[0] - 1) / 2, cy=(size[1] - 1) / 2)
     weights = np.ones(len(events)) if config.weighted else None
     regs = dict.fromkeys(config.regularizers, 1.0)
     sigma = config.radius / 3.0  # a blur of this footprint (the taps are run-time values)
@@ -577,12 +593,14 @@ def warmup(
     polarity: str = "ignore",
     weighted: bool = False,
     references: int = 1,
+    sensor_size: tuple[int, int] = (240, 180),
 ) -> dict:
     """Compile the optimized kernels of problems of these options beforehand (``cmax-taichi warmup``).
 
     The kernels go into Taichi's offline cache (:func:`cache_folder`), where every later process on
-    this machine finds them, whatever its sensor: it then starts on the optimized kernels at once.
-    The compile runs in a process of its own (this one's Taichi program is left as it is).
+    this machine finds them: it then starts on the optimized kernels at once. The optimized fused
+    kernels have the sensor compiled in (one compile per sensor size); the dense flow's serve every
+    sensor. The compile runs in a process of its own (this one's Taichi program is left as it is).
 
     Parameters
     ----------
@@ -599,6 +617,8 @@ def warmup(
         Problems with per-event vote weights.
     references : int
         Reference times of the dense flow (1, or 3 for ``references="multi"``).
+    sensor_size : (int, int)
+        The sensor (width, height), px, of the fused kernels (ignored for the dense flow).
 
     Returns
     -------
@@ -615,7 +635,7 @@ def warmup(
     names = list(regularizers or ())
     config = config_for(
         warp=warp, objective=objective, regularizers=names, blur_sigma=blur_sigma, polarity=polarity,
-        weighted=weighted, references=references,
+        weighted=weighted, references=references, sensor_size=sensor_size,
     )  # fmt: skip
     record = compile_configs([config])[0]
     return {"config": config.describe(), "status": record["status"], "seconds": record["seconds"]}
