@@ -30,7 +30,8 @@ import json, resource, sys, time
 import numpy as np
 import cmax_taichi as cm
 
-warp, regs, n, size = sys.argv[1], sys.argv[2], int(sys.argv[3]), tuple(int(v) for v in sys.argv[4].split("x"))
+warp, regs, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+size = tuple(int(v) for v in sys.argv[4].split("x"))
 cm.init(arch="cpu", precision="f64", compile_mode="full")
 rng = np.random.default_rng(0)
 W, H = size
