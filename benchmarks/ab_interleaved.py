@@ -24,6 +24,7 @@ import json
 import statistics
 import subprocess
 import sys
+import tempfile
 
 CHILD = r"""
 import json, resource, sys, time
@@ -82,6 +83,7 @@ def time_row(pythons: tuple[str, str], row: str, rounds: int) -> dict:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            cwd=tempfile.gettempdir(),  # not a checkout: ``python -c`` imports from its working folder first
         )
         for py in pythons
     ]
