@@ -4,8 +4,8 @@
 versions on one machine (docs/performance.md).
 
 Row sets: by default six windows, small and large (100 calls each, 15 at 1M events); ``--small``: the
-eight small rows that one pair of full runs showed slower after the row-order change (60 calls each); ``--targets``:
-rows of the benchmark grid (the full sweep's textured and uniform windows of ``cmax_taichi/lab/
+eight small rows that one pair of full runs showed slower after the row-order change (60 calls each);
+``--targets``: rows of the benchmark grid (the full sweep's textured and uniform windows of ``cmax_taichi/lab/
 bench_windows.py``, which this script loads from its own checkout, so that an older version runs the
 same windows; the textured streams come from the shared cache, simulated once); ``--rotation``: the
 rotation3 / translation2 pair at 300,000 edge events on 240x180 (20 calls each, three alternating rounds,

@@ -161,7 +161,8 @@ def rewrite_block(text: str, block: Block, output: list[str], matched: list[str 
     """The page with the block replaced by what the command printed (an excerpt: line by line)."""
     lines = text.splitlines(keepends=True)
     if block.excerpt:
-        new = [printed if printed is not None else old for old, printed in zip(block.lines, matched, strict=True)]
+        pairs = zip(block.lines, matched, strict=True)
+        new = [printed if printed is not None else old for old, printed in pairs]
     else:
         new = output
     start, end = block.first_line, block.first_line + len(block.lines)
@@ -271,7 +272,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{where}  {b.command}: written ({len(drifts)} line(s) changed)")
                 continue
             checked = sum(1 for line in b.lines for _, v in _tokens(line) if not v)
-            print(f"{where}  {b.command}: {checked} figures, {'OK' if not drifts else f'{len(drifts)} DRIFT'}")
+            verdict = "OK" if not drifts else f"{len(drifts)} DRIFT"
+            print(f"{where}  {b.command}: {checked} figures, {verdict}")
             for d in drifts:
                 print(f"  line {d.line}: {d.why}\n    quoted:  {d.quoted.strip()}\n    printed: "
                       f"{'(none)' if d.printed is None else d.printed.strip()}")

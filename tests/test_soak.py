@@ -1,4 +1,4 @@
-"""A small version of the soak benchmark (issue 12): windows through ``sequence.process`` in a fresh
+"""A small version of the soak benchmark: windows through ``sequence.process`` in a fresh
 process, with equal and with varying window sizes; the resident memory does not grow after the first
 windows (the full check, ``python -m benchmarks.soak --windows 2000``, is in docs/estimation.md).
 
