@@ -199,17 +199,26 @@ def run_command(command: str, workdir: Path, env: dict[str, str], timeout: float
 
 def cli_reference() -> str:
     """docs/cli.md: every command's ``--help``, as the parsers print it."""
-    os.environ["COLUMNS"] = str(CLI_COLUMNS)
     from cmax_taichi.cli import build_parser
 
     parser = build_parser()
+    columns = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = str(CLI_COLUMNS)  # argparse wraps at the terminal's width
+    try:
+        texts = [parser.format_help()]
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        texts += [command.format_help() for command in sub.choices.values()]
+    finally:
+        if columns is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = columns
     parts = ["# Command-line reference", "",
              "Every command's `--help`, generated from the parsers by `python -m benchmarks.docs_figures "
              "--write`", "(`--check` tells when it is out of date). Bad input on any command is one line on "
-             "stderr and exit code 2.", "", "```text", parser.format_help().rstrip(), "```"]
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    for name, command in sub.choices.items():
-        parts += ["", f"## {name}", "", "```text", command.format_help().rstrip(), "```"]
+             "stderr and exit code 2.", "", "```text", texts[0].rstrip(), "```"]
+    for name, text in zip(sub.choices, texts[1:], strict=True):
+        parts += ["", f"## {name}", "", "```text", text.rstrip(), "```"]
     return "\n".join(parts) + "\n"
 
 
