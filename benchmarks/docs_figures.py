@@ -19,9 +19,11 @@ whitespace collapsed ("reads like"), then number by number:
 * larger whole numbers (events) may differ by 1%;
 * decimals may differ by 3% of the quoted value or 0.02, whichever is larger (estimates, errors, AEE).
 
-The commands run from a temporary folder beside a link to ``../shared/data`` (commands that read it are
-skipped, saying so, where it is absent), with ``CMAX_TAICHI_COMPILE=fast`` unless ``--compile`` says
-otherwise: the quick kernels give the same values to rounding, well inside the tolerances.
+The commands run as ``python -m cmax_taichi.cli`` of this checkout, from a temporary folder beside a
+link to ``../shared/data`` (commands that read it are skipped, saying so, where it is absent), with
+``CMAX_TAICHI_COMPILE=fast`` unless ``--compile`` says otherwise. The quick kernels compute the same
+values to rounding, but an optimizer's path can follow those last bits: the pages quote figures that
+the data determine (not, say, a velocity component of a fraction of a pixel over the window).
 """
 
 from __future__ import annotations
@@ -178,19 +180,14 @@ def _pages() -> list[Path]:
     return pages
 
 
-def _cli_argv() -> list[str]:
-    """How to run the command line: the console script beside this Python, else ``-m``."""
-    script = Path(sys.executable).with_name("cmax-taichi")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "cmax_taichi.cli"]
-
-
 def run_command(command: str, workdir: Path, env: dict[str, str], timeout: float) -> list[str]:
-    """The stdout lines of a quoted ``cmax-taichi ...`` command, run in ``workdir``."""
+    """The stdout lines of a quoted ``cmax-taichi ...`` command (``python -m cmax_taichi.cli``, the same
+    entry point), run in ``workdir``."""
     argv = shlex.split(command)
     if argv[0] != "cmax-taichi":
         raise ValueError(f"only cmax-taichi commands are checked, not {command!r}")
-    proc = subprocess.run(_cli_argv() + argv[1:], cwd=workdir, env=env, capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    proc = subprocess.run([sys.executable, "-m", "cmax_taichi.cli", *argv[1:]], cwd=workdir, env=env,
+                          capture_output=True, text=True, timeout=timeout, check=False)
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or ["(no stderr)"]
         raise RuntimeError(f"{command!r} exited with {proc.returncode}: {tail[0]}")
@@ -244,7 +241,9 @@ def main(argv: list[str] | None = None) -> int:
 
     failures = 0
     shared = ROOT.parent / "shared" / "data"
-    env = dict(os.environ, CMAX_TAICHI_COMPILE=args.compile, PYTHONUNBUFFERED="1")
+    # this checkout's package, whatever is installed: the pages describe this code
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    env = dict(os.environ, CMAX_TAICHI_COMPILE=args.compile, PYTHONUNBUFFERED="1", PYTHONPATH=path)
     outputs: dict[str, list[str] | str] = {}
     with tempfile.TemporaryDirectory(prefix="docs-figures-") as tmp:
         workdir = Path(tmp) / "run"
