@@ -267,25 +267,29 @@ def main(argv: list[str] | None = None) -> int:
 
     for page in _pages():
         text = page.read_text()
+        report: list[str] = []
         # from the last block up, so that a rewrite does not move the blocks still to do
         for b in reversed(find_blocks(page, text)):
-            where = f"{page.relative_to(ROOT)}:{b.first_line}"
+            where = f"{page.relative_to(ROOT)}:{b.first_line + 1}"
             output = outputs[b.command]
             if isinstance(output, str):
-                print(f"{where}  {b.command}: {output}")
+                report.insert(0, f"{where}  {b.command}: {output}")
                 continue
             drifts, matched = compare_block(b, output)
             if args.write:
                 text = rewrite_block(text, b, output, matched)
-                print(f"{where}  {b.command}: written ({len(drifts)} line(s) changed)")
+                report.insert(0, f"{where}  {b.command}: written ({len(drifts)} line(s) had drifted)")
                 continue
             checked = sum(1 for line in b.lines for _, v in _tokens(line) if not v)
             verdict = "OK" if not drifts else f"{len(drifts)} DRIFT"
-            print(f"{where}  {b.command}: {checked} figures, {verdict}")
+            lines = [f"{where}  {b.command}: {checked} figures, {verdict}"]
             for d in drifts:
-                print(f"  line {d.line}: {d.why}\n    quoted:  {d.quoted.strip()}\n    printed: "
-                      f"{'(none)' if d.printed is None else d.printed.strip()}")
+                lines.append(f"  line {d.line}: {d.why}\n    quoted:  {d.quoted.strip()}\n    printed: "
+                             f"{'(none)' if d.printed is None else d.printed.strip()}")
+            report[:0] = lines
             failures += bool(drifts)
+        if report:
+            print("\n".join(report))
         if args.write:
             page.write_text(text)
 
