@@ -1,13 +1,13 @@
 """Median ``value_and_grad`` of a few benchmark rows through the library's benchmark implementation:
-``python benchmarks/ab_rows.py [--small | --issue20 | --rotation | --rotation-small | --stored-terms]
+``python benchmarks/ab_rows.py [--small | --targets | --rotation | --rotation-small | --stored-terms]
 [--value] [--repeats-scale S]``. Run it with each version's environment, alternating, to compare two
 versions on one machine (docs/performance.md).
 
 Row sets: by default six windows, small and large (100 calls each, 15 at 1M events); ``--small``: the
-eight small rows that one pair of full runs showed slower after issue 16 (60 calls each); ``--issue20``:
-rows of issue 20's grid (the full sweep's textured and uniform windows of ``cmax_taichi/lab/
+eight small rows that one pair of full runs showed slower after the row-order change (60 calls each);
+``--targets``: rows of the benchmark grid (the full sweep's textured and uniform windows of ``cmax_taichi/lab/
 bench_windows.py``, which this script loads from its own checkout, so that an older version runs the
-same windows; the textured streams come from the shared cache, simulated once); ``--rotation``: issue 20's
+same windows; the textured streams come from the shared cache, simulated once); ``--rotation``: the
 rotation3 / translation2 pair at 300,000 edge events on 240x180 (20 calls each, three alternating rounds,
 and their events-per-second ratio from the medians); ``--rotation-small``: rotation3 windows of 1,000 to
 10,000 events with and without both regularizers (the serial schedule's sizes); ``--stored-terms``: those
@@ -52,7 +52,7 @@ DEFAULT_ROWS = _rows(
     1000000 346x260 mitrokhin4 div+def
     """
 )
-#: the eight small rows that one pair of full runs showed slower after issue 16
+#: the eight small rows that one pair of full runs showed slower after the row-order change
 SMALL_ROWS = _rows(
     """
     1000 1280x720 rotation3 div+def
@@ -65,8 +65,8 @@ SMALL_ROWS = _rows(
     10000 346x260 rotation3 none
     """
 )
-#: issue 20's targets and the 1M rows
-ISSUE20_ROWS = _rows(
+#: the per-call targets and the 1M rows
+TARGET_ROWS = _rows(
     """
     1000 240x180 translation2 none textured
     1000 240x180 translation2 none uniform
@@ -81,7 +81,7 @@ ISSUE20_ROWS = _rows(
     1000000 346x260 translation2 none edges
     """
 )
-#: issue 20's rotation3 / translation2 pair (events per second of rotation3 at least half translation2's)
+#: the rotation3 / translation2 pair (events per second of rotation3 at least half translation2's)
 ROTATION_ROWS = _rows(
     """
     300000 240x180 translation2 none edges
@@ -216,8 +216,8 @@ def main(argv: list[str]) -> int:
         return _rotation_ratio(max(5, int(scale * 20)), value_only=value_only)
     if "--stored-terms" in argv:
         return _stored_terms(max(5, int(scale * 80)))
-    if "--issue20" in argv:
-        rows = ISSUE20_ROWS
+    if "--targets" in argv:
+        rows = TARGET_ROWS
         repeats = [max(5, int(scale * (15 if n >= 300_000 else 100))) for n, *_ in rows]
     elif "--small" in argv:
         rows = SMALL_ROWS

@@ -1,5 +1,5 @@
 """``value_and_grad`` on small windows of textured scenes and of uniformly spread events, for comparing
-two versions of the library on one machine (docs/performance.md, "Image work that follows the events").
+two versions of the library on one machine (benchmarks/NOTES.md, "Image work that follows the events").
 
 ``python benchmarks/ab_tiles.py windows PATH.npz``
     simulates the windows once (the simulator's textured scenes, as a camera records them: events

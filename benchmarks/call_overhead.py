@@ -4,7 +4,7 @@ Taichi's launch, and the kernel itself.
 ``python benchmarks/call_overhead.py [--repeats N] [--json OUT]``
 
 Rows: translation2 without regularizers, 2 events on a 16x12 sensor (image passes of 192 pixels: the
-fixed cost of a call) and 1,000 events on 240x180 (the row of issue 20's 0.2 ms target). For each, wall
+fixed cost of a call) and 1,000 events on 240x180 (the row of the 0.2 ms per-call target). For each, wall
 medians (over blocks of 50 calls) of: the public ``value_and_grad`` and ``value``; the fused kernel
 called the ordinary way (``Kernel.__call__``: Taichi's Python argument handling, then the launch); the
 same compiled kernel launched from its C++ launch context (no Python around it: the kernel and the

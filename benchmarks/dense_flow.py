@@ -1,4 +1,4 @@
-"""Wall and CPU time of the dense flow estimator (cmax_taichi.flow) on the windows of issue 22.
+"""Wall and CPU time of the dense flow estimator (cmax_taichi.flow) on the MVSEC and VGA windows.
 
     python benchmarks/dense_flow.py [--rows mvsec vga] [--configs ours reference] [--repeats 3] [--out DIR]
 

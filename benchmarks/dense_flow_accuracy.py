@@ -1,5 +1,5 @@
 """Accuracy of the dense flow (cmax_taichi.flow) against the exact flow of simulated depth scenes, beside
-the best global warp on the same window (issue 22's first "Done when").
+the best global warp on the same window (the dense flow's accuracy target).
 
     python benchmarks/dense_flow_accuracy.py [--scenes boxroom planes room object] [--out DIR]
 

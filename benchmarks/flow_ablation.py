@@ -26,7 +26,7 @@ marks rows with a stalled level. Beside the variants, the best global translatio
 (``translation2``, gradient magnitude, ``cm.maximize``) as a constant flow, scored the same way.
 
 Writes ``OUT/flow_ablation.json`` (every row), ``OUT/flow_ablation.csv`` (one line per run) and
-``OUT/flow_ablation.md`` (the summary table of docs/flow.md). ``--quick`` runs a subset (two windows of
+``OUT/flow_ablation.md`` (the summary table of benchmarks/NOTES.md). ``--quick`` runs a subset (two windows of
 each kind, the variants that docs/flow.md argues from, first and middle reference) in a few minutes.
 Kernels compile in the fast mode (``CMAX_TAICHI_COMPILE=fast`` unless set): the same values and
 gradients to rounding, 1.4-3.7x slower evaluations, 10-23x quicker compiles for the 20-odd kernel

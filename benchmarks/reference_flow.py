@@ -1,4 +1,4 @@
-"""Dense optical flow, side by side: tub-rip/event_based_optical_flow (the reference of issue 22) on
+"""Dense optical flow, side by side: tub-rip/event_based_optical_flow (the authors' reference) on
 the same windows as ours, its time and its accuracy.
 
     python benchmarks/reference_flow.py --reference /work/peers/event_based_optical_flow \\

@@ -1,5 +1,5 @@
-"""Run tub-rip/event_based_optical_flow's dense solver on one window of events (the reference of
-issue 22), in the reference's own environment: ``benchmarks/reference_flow.py`` starts this file with
+"""Run tub-rip/event_based_optical_flow's dense solver on one window of events (the authors' reference),
+in the reference's own environment: ``benchmarks/reference_flow.py`` starts this file with
 the reference checkout's Python (torch, optuna, ...). It imports only NumPy, PyTorch, PyYAML and the
 reference, never cmax_taichi.
 

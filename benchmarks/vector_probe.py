@@ -17,7 +17,7 @@ double>``, ``<8 x double>``) and vectorized loops (``vector.body``) the optimize
   Rodrigues' coefficients without branches), to give LLVM's SLP vectorizer isomorphic chains to pack.
 
 On 2026-12-05 (Taichi 1.7.4, LLVM 15, this 2-core AMD EPYC) none of the four had a vectorized loop or a
-4-wide vector instruction (docs/performance.md): every ndarray store is followed by a reload of the
+4-wide vector instruction (benchmarks/NOTES.md): every ndarray store is followed by a reload of the
 array's base pointer from the kernel's argument buffer (the IR carries no alias information), so neither
 the loop vectorizer nor the SLP vectorizer can prove the next iteration's addresses. A loop that only
 loads and sums does vectorize once it has no branch: the fused kernel's gather (``kernels/fused.py``'s

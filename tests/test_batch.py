@@ -223,7 +223,7 @@ def test_import_does_not_import_ray():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-# --- batches that keep their word (issue 23) --------------------------------------------------------
+# --- batches that keep their word --------------------------------------------------------
 def test_resume_refuses_a_recording_replaced_at_the_same_path(tmp_path):
     """A checkpoint is continued only on the recording that wrote it (size, mtime, content, camera)."""
     path = write_recording(tmp_path / "rec.txt", VELOCITIES[0], seed=0)

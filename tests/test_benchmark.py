@@ -137,7 +137,7 @@ def test_segmentation_table_of_the_full_run():
 
 
 def test_stage_profiler_prints_every_task(tmp_path):
-    """benchmarks/profile_stages.py (the source of the per-stage figures in docs/performance.md)."""
+    """benchmarks/profile_stages.py (the source of the per-stage figures in benchmarks/NOTES.md)."""
     import subprocess
     import sys
     from pathlib import Path
@@ -167,7 +167,7 @@ def test_stage_profiler_prints_every_task(tmp_path):
 
 
 def test_call_overhead_times_every_part(tmp_path):
-    """benchmarks/call_overhead.py (the fixed cost per call in docs/performance.md) launches the library's
+    """benchmarks/call_overhead.py (the fixed cost per call in benchmarks/NOTES.md) launches the library's
     kernel both ways, with its current signature, and reports every part of a call."""
     import json
     import subprocess

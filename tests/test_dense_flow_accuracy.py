@@ -1,6 +1,6 @@
-"""Issue 22's accuracy target on the 3-D simulator: on the ``corridor`` depth preset (346x260, 5-14 px
+"""The dense flow's accuracy target on the 3-D simulator: on the ``corridor`` depth preset (346x260, 5-14 px
 over the window, the flow varying by a factor 2.5) the dense flow with its defaults is within 0.5 px of the
-exact displacement and at most half as far off as the best global warp (docs/flow.md, "Accuracy on
+exact displacement and at most half as far off as the best global warp (benchmarks/NOTES.md, "Accuracy on
 simulated depth scenes")."""
 
 from __future__ import annotations

@@ -209,7 +209,7 @@ def test_the_path_follows_the_regularizer_declarations(monkeypatch):
 
 
 def test_event_buffers_are_pooled_not_made_per_problem():
-    """Issue 12: Taichi 1.7.4 never frees a vector ndarray, so one per problem grew the process by ~24
+    """Taichi 1.7.4 never frees a vector ndarray, so one per problem grew the process by ~24
     bytes per event per window. Problems of one capacity bucket now share one buffer."""
     from cmax_taichi.core import workspace
 

@@ -1,6 +1,6 @@
 """The fused kernel's gather loops are vectorized by LLVM (``kernels/fused.py``'s ``grad_at`` has no
 branch for that): a branch added there keeps them scalar, a fifth of the CPU time of a call with both
-regularizers at 1M events (docs/performance.md, 2026-12-05). Checked in the optimized LLVM IR that
+regularizers at 1M events (benchmarks/NOTES.md, 2026-12-05). Checked in the optimized LLVM IR that
 Taichi writes out, in a child process (its own Taichi program, no offline cache, so the kernel is
 compiled here rather than loaded)."""
 

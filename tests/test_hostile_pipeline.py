@@ -1,5 +1,5 @@
-"""Issue 13, part B: hostile input to the pipeline and the solvers gets one clear error naming the
-parameter (or a finite, correct result), and the session stays usable after every failure.
+"""Hostile input to the pipeline and the solvers gets one clear error naming the
+parameter (or a finite, correct result), and the process stays usable after every failure.
 
 Each test provokes one case of the issue, checks the exception type and that the message names the
 parameter, then builds and evaluates a normal small problem (:func:`assert_session_usable`). Cases of

@@ -1,6 +1,6 @@
-"""Hostile and edge inputs of the input layer (issue 13, part A): one regression test per case.
+"""Hostile and edge inputs of the input layer: one regression test per case.
 
-Each case answers with one error naming the problem (or a correct result), and the session stays
+Each case answers with one error naming the problem (or a correct result), and the process stays
 usable: after every failure a normal ``Events`` / ``open_recording`` / ``process`` works.
 """
 
@@ -39,7 +39,7 @@ def _random_events(n=300, seed=0, sensor=SENSOR, duration=0.05):
 
 
 def _normal_events() -> cm.Events:
-    """A normal construction, to show the session is intact after a failure."""
+    """A normal construction, to show the process is intact after a failure."""
     events = cm.Events(*_random_events(), SENSOR)
     assert len(events) == 300
     return events
@@ -489,7 +489,7 @@ def test_cli_segment_refuses_a_nan_start_time(tmp_path, capsys):
     assert err == "cmax-taichi segment: error: --t-start must be a finite number of seconds, got nan"
 
 
-# --- issue 23: timestamps checked once, early ------------------------------------------------------
+# --- timestamps checked once, early ------------------------------------------------------
 def _mvsec_times(path, t):
     n = len(t)
     with h5py.File(path, "w") as f:
@@ -559,7 +559,7 @@ def test_a_broken_external_link_names_the_file(tmp_path):
         io.open_recording(path)
 
 
-# --- issue 23: special files never block --------------------------------------------------------------
+# --- special files never block --------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["fifo", "socket", "device"])
 def test_special_files_are_refused_at_open(tmp_path, capsys, kind):
     import socket
@@ -615,7 +615,7 @@ def test_a_fifo_where_a_side_file_is_expected_is_refused(tmp_path):
         io.open_recording(folder)
 
 
-# --- issue 23: unclear answers made clear -----------------------------------------------------------------
+# --- unclear answers made clear -----------------------------------------------------------------
 def test_evaluate_of_a_binary_file_names_it(tmp_path, capsys):
     raw = tmp_path / "some.raw"
     raw.write_bytes(b"\x81\x00\xff\xfe" * 8)

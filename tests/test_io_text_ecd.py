@@ -115,7 +115,7 @@ def test_mvsec_text_cut():
     inside = (raw[:, 1] <= 345) & (raw[:, 2] <= 259)
     np.testing.assert_array_equal(ev.x, raw[inside, 1])
     np.testing.assert_array_equal(ev.t, raw[inside, 0])
-    # each read counts its own drops; a pass of windows gives one warning with the totals (issue 23)
+    # each read counts its own drops; a pass of windows gives one warning with the totals
     with pytest.warns(RuntimeWarning, match=r"dropped \d+ of 30000 event\(s\) outside the 346x260 sensor"):
         rec.read(0, 30000)
     with warnings.catch_warnings(record=True) as caught:

@@ -1,4 +1,4 @@
-"""The limits of ``core/limits.py`` (sensor pixels, bytes, blur sigma, clusters) and a session that survives
+"""The limits of ``core/limits.py`` (sensor pixels, bytes, blur sigma, clusters) and a process that survives
 every refusal and every failed Taichi allocation: after each failure a normal problem is built and
 evaluated, and gives the float64 reference's value."""
 

@@ -180,7 +180,7 @@ def test_tpe_search(edges, monkeypatch):
 
 
 def test_far_warm_start_never_ends_below_the_identity():
-    """Issue 12: a warm start far outside the search box (6000 px/s) gave J = 0.09 < J(identity) = 1
+    """A warm start far outside the search box (6000 px/s) gave J = 0.09 < J(identity) = 1
     reported as converged, because the identity was clipped into the local box and never evaluated."""
     prob = cm.ContrastMaximization(moving_edges(), "translation2")
     j_identity = prob.value([0.0, 0.0])

@@ -1,4 +1,4 @@
-"""Outputs never touch inputs (issue 23): estimate / segment / reproduce / batch refuse an output folder
+"""Outputs never touch inputs: estimate / segment / reproduce / batch refuse an output folder
 that is or holds a recording, never replace a file that no cmax-taichi run wrote (the manifest), stage
 what they write and move it into place when the run completes, refuse a second run on the same folder
 (the lock), and leave the folder as it was on Ctrl-C or SIGTERM. One regression test per case."""

@@ -19,7 +19,7 @@ from cmax_taichi.solve.scales import parameter_scales, search_bounds
 pytestmark = pytest.mark.usefixtures("f64")
 
 BOTH = {"divergence": 10.0, "deformation": 10.0}
-#: the claims of issue 20
+#: the search's claims (at most 150 evaluations, J near the grid's)
 MAX_EVALUATIONS = 150
 MIN_J_RATIO = 0.99
 

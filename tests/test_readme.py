@@ -47,6 +47,7 @@ def test_readme_quick_start_is_the_out_of_the_box_set_up():
         "cmax-taichi estimate --example collapse --out out/collapse",
         "cmax-taichi estimate --example collapse --reg divergence=10 --reg deformation=10"
         " --out out/collapse-reg",
+        "cmax-taichi flow --example planes --out out/planes",
         "cmax-taichi segment --example two-objects --out out/segment",
         "python -m pytest -q",
     ]

@@ -237,7 +237,7 @@ def test_fwl_of_a_regularized_sequence_is_the_fwl(events):
 
 
 def test_windows_not_estimated_have_rows_and_every_event_is_counted(tmp_path):
-    """Issue 23: a window of one event and one of zero duration get rows (status, NaN parameters); the
+    """A window of one event and one of zero duration get rows (status, NaN parameters); the
     totals sum to the events in, match count_events (the same pass without estimating), and survive the
     JSON and HDF5 round trips; one warning gives them."""
     rng = np.random.default_rng(1)

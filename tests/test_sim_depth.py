@@ -147,7 +147,7 @@ def test_planes_preset_is_the_issue_test_case(planes):
 
 @pytest.fixture(scope="module")
 def corridor():
-    """The smooth 3-D scene of issue 22: 'corridor', 346x260, its first window."""
+    """The smooth 3-D scene of the dense flow's accuracy target: 'corridor', 346x260, its first window."""
     return _first_window("corridor")
 
 

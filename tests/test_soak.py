@@ -1,6 +1,6 @@
-"""A small version of the soak benchmark (issue 12): windows through ``sequence.process`` in a fresh
+"""A small version of the soak benchmark: windows through ``sequence.process`` in a fresh
 process, with equal and with varying window sizes; the resident memory does not grow after the first
-windows (the full check, ``python -m benchmarks.soak --windows 2000``, is in docs/estimation.md).
+windows (the full check, ``python -m benchmarks.soak --windows 2000``, is in benchmarks/NOTES.md).
 
 Before the event buffers were pooled and a problem took each next window in place, every window kept
 about 24 bytes per event for the life of the process: 3,000-event windows grew the RSS by about 0.07 MB

@@ -62,7 +62,7 @@ class Limits:
     max_bytes : int
         Largest estimated size of the Taichi fields of one problem (bytes); default half the physical
         memory of the machine. On a GPU the device memory may be smaller: an allocation that still
-        fails is reported as a MemoryError and leaves the session usable.
+        fails is reported as a MemoryError and leaves the Python process usable.
     max_blur_sigma : float
         Largest ``blur_sigma`` (px); default 3. The fused kernel unrolls the footprint at compile time:
         sigma = 1, 3, 5, 8 px took 4.8, 8.3, 21.9, 40.7 s to compile cold on a 2-core machine at load 4

@@ -6,7 +6,7 @@ call at its bottom; users add their own with :func:`register_warp` and friends, 
 a plugin: a module or a Python file that registers entries when it is imported (:func:`load_plugin`,
 ``cmax-taichi ... --plugin FILE.py``). Loading a plugin is all or nothing: a plugin that fails half-way
 (an error, or ``sys.exit`` while it is imported) leaves every registry as it was, so the fixed plugin
-loads in the same session.
+loads in the same process.
 """
 
 from __future__ import annotations

@@ -246,7 +246,7 @@ def quick_plan(precision: str = "f64") -> Plan:
     return Plan(cfgs, min_repeats=3, max_repeats=10, budget_s=0.4, label="quick", notes=notes)
 
 
-#: issue 20's grid: events per window, and the three configurations of each (N, sensor)
+#: the benchmark grid: events per window, and the three configurations of each (N, sensor)
 GRID_EVENTS = (1_000, 5_000, 30_000, 300_000, 1_000_000)
 GRID_CONFIGS = (("translation2", "none"), ("rotation3", "none"), ("mitrokhin4", "div+def"))
 
@@ -281,7 +281,7 @@ def full_plan(precision: str = "f64") -> Plan:
         "simulator watching a textured plane translate at (120, -80) px/s (events where the edges are, as "
         "a camera records them; one stream per sensor); `uniform` = events uniformly spread over the sensor "
         "and 50 ms (the worst case for work that follows the touched pixels); `edges` = 40 synthetic "
-        "straight edges plus 10% noise (the windows of the sweeps before issue 20).",
+        "straight edges plus 10% noise (the windows of the earlier sweeps).",
         "NumPy reference: value only (its gradient by central differences would cost 2P values), N <= 1e5 "
         "(textured), N <= 3e4 (uniform).",
         "N = 1e7 on 346x260 only, translation2 and mitrokhin4 with both regularizers (time budget).",

@@ -1,5 +1,5 @@
 """The benchmark's report: machine and versions, the Markdown tables (also the table of
-docs/performance.md), ``results.csv`` and ``results.png``."""
+docs/BENCHMARK.md), ``results.csv`` and ``results.png``."""
 
 from __future__ import annotations
 
@@ -97,7 +97,7 @@ def markdown_report(
     wall_s: float,
     seg: list[dict] | None = None,
 ) -> str:
-    """The Markdown report (also the table of docs/performance.md)."""
+    """The Markdown report (also the table of docs/BENCHMARK.md)."""
     v = machine["versions"]
     lines = [
         f"Benchmark `{plan.label}` run on {machine['date']}: {machine['cpu']}, {machine['cores']} cores "

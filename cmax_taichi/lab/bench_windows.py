@@ -11,7 +11,7 @@
 * ``"uniform"``: positions and times uniformly spread over the sensor and :data:`DURATION`: every event
   touches its own pixels, the worst case for work that follows the touched pixels;
 * ``"edges"``: the synthetic straight edges of :func:`cmax_taichi.lab.bench_impls.make_window` (the
-  windows of the benchmark runs before issue 20, kept for the 1e7-event rows and the comparisons).
+  windows of the earlier benchmark sweeps, kept for the 1e7-event rows and the comparisons).
 
 Each returns float64 arrays ``x, y`` (px), ``t`` (s, from 0) and ``p`` in {0, 1}, time-sorted.
 """

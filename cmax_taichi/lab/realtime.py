@@ -8,7 +8,7 @@ global search), and the real-time factor (seconds of data per wall second) with 
 included and without it. Each run is preceded by its first window alone, which loads the kernels of
 that sensor and model into the process (or compiles them, with a cold offline cache): that fixed cost
 of a process is reported in its own column, and ``cmax-taichi estimate``'s whole process time in
-docs/performance.md.
+benchmarks/NOTES.md.
 
 Cases (:data:`CASES`): ECD slider_depth with translation2, the four ECD rotation cuts with rotation3,
 MVSEC indoor_flying1 with mitrokhin4 and both regularizers, all at 5,000-event windows; the simulated

@@ -92,7 +92,7 @@ class WarpModel:
         regularizers) and reads them in the splat and in the gradient's gather, rather than evaluating
         it in both. Values and gradients agree with the unstored kernel to rounding. Declare it only
         where it is measured faster: for a cheap warp the stored terms' memory traffic costs more than
-        the arithmetic they save (docs/performance.md). GPUs (atomic adds) ignore it.
+        the arithmetic they save (benchmarks/NOTES.md). GPUs (atomic adds) ignore it.
     scale_kinds : tuple of str, optional
         One of :data:`SCALE_KINDS` per parameter, for the optimizer's scaling and search box. Default:
         from ``units`` (px/s: "velocity"; 1/s, rad/s: "rate"); a model with any other unit gets its

@@ -515,7 +515,7 @@ class ContrastMaximization(SetupView):
         return self._th.grad.to_numpy().astype(np.float64).reshape(-1)
 
     # value and value_and_grad run once per evaluation of an optimizer: their Python is kept to a few
-    # us (docs/performance.md, issue 20). On the fused path a launch-ready kernel stands for the alive
+    # us (docs/performance.md). On the fused path a launch-ready kernel stands for the alive
     # check: it holds the Taichi program it was compiled in, and a reset or re-initialisation makes a new
     # one (then the full check below runs and raises).
     def value(self, theta) -> float:

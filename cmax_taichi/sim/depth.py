@@ -319,7 +319,8 @@ _PRESET_LIST = (
         "towards the image's top and bottom, continuous (no occluding edge); contrast threshold 0.3",
         _corridor,
         # finer than the other presets' 0.6 (the simulator's default is 0.2): at 0.6 the dense flow is
-        # 0.60 px off on this window, at 0.3 0.41 px (docs/flow.md, "Accuracy on simulated depth scenes")
+        # 0.60 px off on this window, at 0.3 0.41 px (benchmarks/NOTES.md, "Accuracy on simulated depth
+        # scenes")
         config={**_SIM, "contrast_threshold": 0.3},
         window=0.075,
     ),

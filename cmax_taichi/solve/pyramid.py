@@ -53,7 +53,7 @@ STARTS_PER_LEVEL = (3, 2)
 RUNNER_UP_GAIN = 0.5
 #: evaluations of a ``maximize(init="pyramid")`` call (the search and the local runs at full resolution;
 #: its ``max_evaluations`` default): the local runs stop there with their best iterate (not converged).
-#: Search and local run took 49-129 evaluations on the cases of docs/estimation.md, and reached it on one
+#: Search and local run took 49-129 evaluations on the cases of benchmarks/NOTES.md, and reached it on one
 PYRAMID_BUDGET = 150
 #: the longest step (px) of a BFGS run from a result of the search at full resolution (a few finest
 #: coarse pixels: the search leaves its results within about one)

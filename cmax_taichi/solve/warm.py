@@ -35,7 +35,7 @@ TRACKING_LOSS_RATIO = 0.8
 #: step, shorter than this, unless ``optimize_options`` gives an ``xtol``. ``maximize``'s default of
 #: 0.01 px chased steps that the windows' data do not resolve: on the shared recordings and the simulated
 #: streams this rule takes 25-60% fewer warm evaluations, with errors against the truth about the same
-#: (docs/performance.md, "2026-12-05, evening")
+#: (benchmarks/NOTES.md, "2026-12-05, evening")
 WARM_XTOL = 0.03
 
 #: problem options under which the estimate's own problem measures the FWL (variance, normalised, no
