@@ -265,7 +265,8 @@ def _wait_for_staging(out: Path, proc: subprocess.Popen, seconds: float = 300) -
 @pytest.mark.slow
 @pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_interrupted_estimate_leaves_out_as_it_was(tmp_path, sig, code, capsys):
-    long = write_recording(tmp_path / "long", n=80000, duration=2.0)
+    # long enough (120 windows) that the run is still estimating when the signal comes
+    long = write_recording(tmp_path / "long", n=240000, duration=6.0)
     out = tmp_path / "out"
     proc = _start_estimate(long, out)
     _wait_for_staging(out, proc)

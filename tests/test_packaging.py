@@ -34,6 +34,8 @@ def test_non_editable_install_ships_kernels(tmp_path):
     )
     if build.returncode != 0 and "setuptools" in build.stderr.lower() and "no module" in build.stderr.lower():
         pytest.skip("setuptools is not installed in this environment")
+    if build.returncode != 0 and "project.license" in build.stderr:
+        pytest.skip("this environment's setuptools predates the test extra's setuptools>=77 (PEP 639)")
     assert build.returncode == 0, build.stderr
     assert (target / "cmax_taichi" / "kernels" / "warps" / "zoom1.py").is_file()
     assert (target / "cmax_taichi" / "kernels" / "warps" / "common.py").is_file()
@@ -71,6 +73,8 @@ OPTIONAL_IMPORTS = {
     "ray": "ray",  # estimate --engine ray
     "optuna": "tpe",  # maximize(init="tpe")
     "torch": "bench",  # the benchmark's PyTorch twin
+    "rosbags": "rosbag",  # ROS1 / ROS2 bags
+    "dv_processing": "live",  # estimate --live (dv-processing TCP streams)
     "hdf5plugin": None,  # a compressed HDF5 dataset (DSEC): its message says pip install hdf5plugin
     "PIL": None,  # Pillow, which matplotlib depends on
 }

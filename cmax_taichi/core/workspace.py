@@ -74,7 +74,7 @@ def allocating(what: str) -> Iterator[None]:
     except MemoryError as exc:  # a host (NumPy) array: Taichi's state is untouched
         reason = " ".join(str(exc).split()).rstrip(".")
         raise MemoryError(
-            f"could not allocate the arrays of {what}: {reason} (the session stays usable; a smaller "
+            f"could not allocate the arrays of {what}: {reason} (the process goes on as before; a smaller "
             "sensor or window needs less)"
         ) from None
     except RuntimeError as exc:  # Taichi's allocation errors, TaichiRuntimeError, failed assertions
@@ -82,7 +82,7 @@ def allocating(what: str) -> Iterator[None]:
         backend.recover()
         raise MemoryError(
             f"Taichi could not allocate the fields of {what}: {reason}. The Taichi backend was "
-            "re-initialised with the same arch and precision (the session stays usable; problems built "
+            "re-initialised with the same arch and precision (the process goes on; problems built "
             "before must be built again)"
         ) from None
 
