@@ -4,14 +4,20 @@ the :data:`~cmax_taichi.kernels.tiles.SEG` pixels ``x0 .. x0 + SEG - 1`` of row 
 :class:`~cmax_taichi.kernels.fused_common.Planes` view, with zero padding at the image's borders.
 
 Away from the borders the taps read whole segments without bounds checks (vector loads). The image's
-width and height are the kernel's arguments (read through the view); the blur radius is compiled in
-(its taps are unrolled), the taps themselves are read from the kernel's parameters.
+width and height come through the view (run-time or compiled-in values); the blur radius is compiled
+in, the taps themselves are read from the kernel's parameters. The interior passes unroll the taps up
+to :data:`UNROLLED_RADIUS` (the default blur's footprint and a little more: 10-15% less time per call
+for a small window); wider footprints, and the border paths, loop over them, which keeps the compile
+of the optimized kernels to a few hundred MB (unrolled, a 3 px blur took 1.5 GB).
 """
 
 import taichi as ti
 
 from . import fused_common as _c
 from .tiles import SEG, in_image
+
+#: the widest blur footprint (radius, px) whose interior taps are unrolled (sigma 1.5 px)
+UNROLLED_RADIUS = 5
 
 
 @ti.func
@@ -39,6 +45,7 @@ class SegmentPasses:
     def __init__(self, real, radius: int, taps_at: int, args: _c.KernelArgs) -> None:
         r_ = int(radius)
         T = int(taps_at)
+        unrolled = r_ <= UNROLLED_RADIUS
 
         @ti.func
         def load_taps():
@@ -53,15 +60,20 @@ class SegmentPasses:
         @ti.func
         def blur_x(src: ti.template(), c: ti.template(), y, x0, tv):
             """``sum_k taps_k src[c, y, x + k]`` at the segment's pixels (plane ``c`` of ``src``; the
-            votes' slice 0 holds their channels in its first planes). Away from the borders the taps are
-            unrolled over whole segments; at a border, a loop over the taps checks each."""
+            votes' slice 0 holds their channels in its first planes). Away from the borders the taps run over
+            whole segments (unrolled up to :data:`UNROLLED_RADIUS`); at a border each tap is checked."""
             W = src.width
             o = _c.at(src, c, y, x0)  # the segment's first pixel
             v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
             if whole(x0, W) and x0 >= r_ and x0 + SEG - 1 + r_ < W:
-                for k in range(-r_, r_ + 1):
-                    for p in ti.static(range(SEG)):
-                        v[p] += tv[k + r_] * src.array[o + p + k]
+                if ti.static(unrolled):
+                    for k in ti.static(range(-r_, r_ + 1)):
+                        for p in ti.static(range(SEG)):
+                            v[p] += tv[k + r_] * src.array[o + p + k]
+                else:
+                    for k in range(-r_, r_ + 1):
+                        for p in ti.static(range(SEG)):
+                            v[p] += tv[k + r_] * src.array[o + p + k]
             else:
                 for k in range(-r_, r_ + 1):
                     for p in ti.static(range(SEG)):
@@ -76,9 +88,14 @@ class SegmentPasses:
             o = _c.at(src, c, y, x0)
             v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
             if whole(x0, W) and y >= r_ and y < H - r_:
-                for k in range(-r_, r_ + 1):
-                    for p in ti.static(range(SEG)):
-                        v[p] += tv[k + r_] * src.array[o + k * W + p]
+                if ti.static(unrolled):
+                    for k in ti.static(range(-r_, r_ + 1)):
+                        for p in ti.static(range(SEG)):
+                            v[p] += tv[k + r_] * src.array[o + k * W + p]
+                else:
+                    for k in range(-r_, r_ + 1):
+                        for p in ti.static(range(SEG)):
+                            v[p] += tv[k + r_] * src.array[o + k * W + p]
             else:
                 for k in range(-r_, r_ + 1):
                     if 0 <= y + k < H:
@@ -120,9 +137,14 @@ class SegmentPasses:
             o = _c.at(src, c, y, x0)
             v = ti.Vector([0.0 for _ in ti.static(range(SEG))])
             if whole(x0, W) and y >= 2 * r_ and y < H - 2 * r_:
-                for k in range(-2 * r_, 2 * r_ + 1):
-                    for p in ti.static(range(SEG)):
-                        v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
+                if ti.static(unrolled):
+                    for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
+                        for p in ti.static(range(SEG)):
+                            v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
+                else:
+                    for k in range(-2 * r_, 2 * r_ + 1):
+                        for p in ti.static(range(SEG)):
+                            v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
             else:
                 for k in range(-2 * r_, 2 * r_ + 1):
                     if 0 <= y + k < H:
