@@ -8,7 +8,8 @@ rows, state, words, rowpx)`` holds every stage as its own task (Taichi runs the 
 kernel one after the other, each in parallel). It reads no Taichi field: the image, row and mask
 arrays are its arguments, sized for the sensor by the driver (:meth:`FusedShape.array_sizes`), and
 the sensor's ``width`` and ``height`` are arguments too, so one compiled kernel serves every sensor
-(``fused_common``). Its stages:
+(``fused_common``), or compiled-in constants (``sizes``: the optimized kernel of one sensor, whose
+image indices fold). Its stages:
 
 1. splat: each event is warped and votes bilinearly into the IWE channels, the count ``C`` and the
    map numerators of the votes (``votes``: per slice ``s``, planes ``k`` of ``H x W``), and marks the

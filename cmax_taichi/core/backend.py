@@ -293,7 +293,7 @@ def per_thread_loops() -> Iterator[None]:
     range-for of fewer than about 512 iterations on one thread whatever its ``block_dim``, so the fused
     kernels' loops over their per-thread slices (``range(2)`` on two cores) ran serially: one core
     for the whole event pass. Only the fused kernels take the earlier scheme: with it, the generic
-    chain's autodiff gradients came out wrong on small windows (a race not located; docs/performance.md).
+    chain's autodiff gradients came out wrong on small windows (a race not located; benchmarks/NOTES.md).
     The setting is read when a kernel compiles; launching an already compiled kernel inside costs two
     attribute writes.
     """

@@ -25,7 +25,7 @@ On the CPU each kernel comes in two schedules of the same code (:class:`_Schedul
 Taichi's thread pool, or all on the calling thread. Taichi 1.7.4 wakes the pool's workers for every
 parallel loop (six per value-and-gradient), 40-100 us each on the 2-core reference machine: more than a
 small window's whole work (a 1,000-event window's value-and-gradient: 0.07 ms on one thread, 0.4 ms on
-the pool; docs/performance.md). A window runs on one thread while its first call costs less than the
+the pool; benchmarks/NOTES.md). A window runs on one thread while its first call costs less than the
 pool would save; J and dJ/dtheta of the two differ by rounding only (the compiler's code for each
 schedule), and a window keeps one schedule for all its calls.
 """
@@ -119,7 +119,7 @@ def stores_terms(declared: bool, serial: bool, n_voted: int) -> bool:
     rows for rotation3) cost less than the second warp they save (-5% to -11% per value_and_grad at
     1,000-10,000 rotation3 events, and on ECD boxes_rotation's windows), but with voted quantities (16
     rows with both regularizers) their traffic costs more (+1% to +15%; ``benchmarks/ab_rows.py
-    --stored-terms``, docs/performance.md, 2026-12-05)."""
+    --stored-terms``, benchmarks/NOTES.md)."""
     return bool(declared) and (not serial or n_voted == 0)
 
 
@@ -180,7 +180,7 @@ class FusedPipeline:
     loops = "auto"
     serial_max_events = 20_000
     #: the calling thread's time of one value-and-gradient above which the pool may be faster on the
-    #: 2-core reference machine (its six loops' dispatch: 0.4-0.7 ms; docs/performance.md): a window
+    #: 2-core reference machine (its six loops' dispatch: 0.4-0.7 ms; benchmarks/NOTES.md): a window
     #: over it is timed on the pool too
     serial_limit_s = 1.0e-3
     #: a window is timed only when it has more than this many times the events of the largest window
@@ -356,7 +356,7 @@ class FusedPipeline:
             self._packed[n:] = 0.0  # the device buffer is uploaded whole
         # the events ordered by their pixel row (a stable radix sort: time order within a row), so that
         # consecutive events vote into, and gather the adjoints from, the same few rows of the images,
-        # which stay in the L1 cache: 10-30% less CPU time per call at 1M events (docs/performance.md).
+        # which stay in the L1 cache: 10-30% less CPU time per call at 1M events (benchmarks/NOTES.md).
         # J and dJ/dtheta are sums over events: the order changes their rounding only.
         # (on the CPU only: on a GPU, neighbouring events would contend for the same atomic adds)
         order = slice(None) if self._atomic else np.argsort(_row_keys(ev.y, self._sensor[1]), kind="stable")

@@ -35,7 +35,7 @@ dynamic loops, so they work in reverse-mode autodiff (``rotation3``'s angle redu
 refuses ``floor``, and nothing here uses forward mode). No event-loop function should call the maths
 library per event (``sin``, ``cos``, ``exp`` of an event's ``dt``): such a call is an opaque function
 call in both event loops (rotation3's 300,000-event call went from 36 to 15 ms when series replaced
-them, docs/performance.md); ``common.taylor_terms`` and ``common.polynomial`` build truncated
+them, benchmarks/NOTES.md); ``common.taylor_terms`` and ``common.polynomial`` build truncated
 series exact to the precision in use (``rotation3`` is the example).
 
 Shared helpers (complex arithmetic, constants, finite-difference stand-ins, the dense-flow kernel) are

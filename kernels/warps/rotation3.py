@@ -15,7 +15,7 @@ f32), so they are exact to the rounding of that precision; ``s1``, ``s2`` and th
 ``pi / 2`` into ``[-pi/4, pi/4]`` first (in a branch: a square root, a ``floor``, a division; the same
 polynomials), with an error of about the rounding of ``phi`` itself. No event calls the maths
 library: with libm calls in its event loops rotation3 cost 8x translation2 per event
-(docs/performance.md).
+(benchmarks/NOTES.md).
 ``warp_terms`` computes the warp, ``det`` and ``param_jac`` of an event from one evaluation (the fused
 kernels call it, so they rotate each ray once); ``warp``, ``det`` and ``param_jac`` are its parts. The
 parameter Jacobian is ``dX'/dw = -c1 [X]x + c2 w X^T + c2 (w . X) I + (g - 2 c2 X) w^T`` projected row
@@ -38,7 +38,7 @@ MODEL = {
     "positive_det": True,  # det = 1 / z^3 with z clamped to MIN_RAY_Z > 0
     "needs_camera": True,
     # its warp_terms is the costliest per event of the built-in models: evaluated once per event and
-    # call, stored for the gather (docs/performance.md, "stored event terms")
+    # call, stored for the gather (benchmarks/NOTES.md, "stored event terms")
     "store_event_terms": True,
     "description": "3-DOF camera rotation (SO(3), needs intrinsics)",
 }
