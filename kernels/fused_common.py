@@ -112,6 +112,13 @@ class Planes:
         return self.args.height
 
 
+def loops_over_local_vectors() -> bool:
+    """Whether the running arch compiles a run-time loop that indexes a local vector (``tv[k + r]``):
+    the LLVM backends (CPU, CUDA) do; Taichi 1.7.4's SPIR-V code generator (Vulkan, Metal, OpenGL) fails
+    on it ("Value ... does not yet exist"), so there such loops are unrolled."""
+    return ti.lang.impl.current_cfg().arch in (ti.x64, ti.arm64, ti.cuda, ti.amdgpu)
+
+
 @ti.func
 def at(view: ti.template(), p, y, x):
     """Index of pixel ``(y, x)`` of plane ``p`` of ``view`` (a :class:`Planes`) in its array. Written as

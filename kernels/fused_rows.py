@@ -45,7 +45,9 @@ class SegmentPasses:
     def __init__(self, real, radius: int, taps_at: int, args: _c.KernelArgs) -> None:
         r_ = int(radius)
         T = int(taps_at)
-        unrolled = r_ <= UNROLLED_RADIUS
+        # the tap loops in loops where the codegen takes them (less to compile), unrolled elsewhere
+        static_taps = not _c.loops_over_local_vectors()
+        unrolled = r_ <= UNROLLED_RADIUS or static_taps
 
         @ti.func
         def load_taps():
@@ -75,10 +77,16 @@ class SegmentPasses:
                         for p in ti.static(range(SEG)):
                             v[p] += tv[k + r_] * src.array[o + p + k]
             else:
-                for k in range(-r_, r_ + 1):
-                    for p in ti.static(range(SEG)):
-                        if 0 <= x0 + p + k < W and in_image(x0 + p, W):
-                            v[p] += tv[k + r_] * src.array[o + p + k]
+                if ti.static(static_taps):
+                    for k in ti.static(range(-r_, r_ + 1)):
+                        for p in ti.static(range(SEG)):
+                            if 0 <= x0 + p + k < W and in_image(x0 + p, W):
+                                v[p] += tv[k + r_] * src.array[o + p + k]
+                else:
+                    for k in range(-r_, r_ + 1):
+                        for p in ti.static(range(SEG)):
+                            if 0 <= x0 + p + k < W and in_image(x0 + p, W):
+                                v[p] += tv[k + r_] * src.array[o + p + k]
             return v
 
         @ti.func
@@ -97,11 +105,18 @@ class SegmentPasses:
                         for p in ti.static(range(SEG)):
                             v[p] += tv[k + r_] * src.array[o + k * W + p]
             else:
-                for k in range(-r_, r_ + 1):
-                    if 0 <= y + k < H:
-                        for p in ti.static(range(SEG)):
-                            if in_image(x0 + p, W):
-                                v[p] += tv[k + r_] * src.array[o + k * W + p]
+                if ti.static(static_taps):
+                    for k in ti.static(range(-r_, r_ + 1)):
+                        if 0 <= y + k < H:
+                            for p in ti.static(range(SEG)):
+                                if in_image(x0 + p, W):
+                                    v[p] += tv[k + r_] * src.array[o + k * W + p]
+                else:
+                    for k in range(-r_, r_ + 1):
+                        if 0 <= y + k < H:
+                            for p in ti.static(range(SEG)):
+                                if in_image(x0 + p, W):
+                                    v[p] += tv[k + r_] * src.array[o + k * W + p]
             return v
 
         @ti.func
@@ -122,10 +137,16 @@ class SegmentPasses:
             with itself, less the products of the first blur's taps that fall outside the image."""
             wide = ti.Vector([0.0 for _ in ti.static(range(4 * r_ + 1))])
             if ti.static(r_ > 0):
-                for k1 in range(-r_, r_ + 1):
-                    if 0 <= y + k1 < height:
-                        for k2 in range(-r_, r_ + 1):
-                            wide[k1 + k2 + 2 * r_] += tv[k1 + r_] * tv[k2 + r_]
+                if ti.static(static_taps):
+                    for k1 in ti.static(range(-r_, r_ + 1)):
+                        if 0 <= y + k1 < height:
+                            for k2 in ti.static(range(-r_, r_ + 1)):
+                                wide[k1 + k2 + 2 * r_] += tv[k1 + r_] * tv[k2 + r_]
+                else:
+                    for k1 in range(-r_, r_ + 1):
+                        if 0 <= y + k1 < height:
+                            for k2 in range(-r_, r_ + 1):
+                                wide[k1 + k2 + 2 * r_] += tv[k1 + r_] * tv[k2 + r_]
             else:
                 wide[0] = 1.0
             return wide
@@ -146,11 +167,18 @@ class SegmentPasses:
                         for p in ti.static(range(SEG)):
                             v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
             else:
-                for k in range(-2 * r_, 2 * r_ + 1):
-                    if 0 <= y + k < H:
-                        for p in ti.static(range(SEG)):
-                            if in_image(x0 + p, W):
-                                v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
+                if ti.static(static_taps):
+                    for k in ti.static(range(-2 * r_, 2 * r_ + 1)):
+                        if 0 <= y + k < H:
+                            for p in ti.static(range(SEG)):
+                                if in_image(x0 + p, W):
+                                    v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
+                else:
+                    for k in range(-2 * r_, 2 * r_ + 1):
+                        if 0 <= y + k < H:
+                            for p in ti.static(range(SEG)):
+                                if in_image(x0 + p, W):
+                                    v[p] += wide[k + 2 * r_] * src.array[o + k * W + p]
             return v
 
         @ti.func
@@ -168,9 +196,14 @@ class SegmentPasses:
         def y_tap_sum(y, tv, height):
             """``B_y^T 1`` at row ``y``: the sum of the y taps that fall inside the image."""
             tapsum = 0.0
-            for k in range(-r_, r_ + 1):
-                if 0 <= y + k < height:
-                    tapsum += tv[k + r_]
+            if ti.static(static_taps):
+                for k in ti.static(range(-r_, r_ + 1)):
+                    if 0 <= y + k < height:
+                        tapsum += tv[k + r_]
+            else:
+                for k in range(-r_, r_ + 1):
+                    if 0 <= y + k < height:
+                        tapsum += tv[k + r_]
             return tapsum
 
         @ti.func
@@ -185,10 +218,16 @@ class SegmentPasses:
                 for p in ti.static(range(SEG)):
                     s[p] = total
             else:
-                for k in range(-r_, r_ + 1):
-                    for p in ti.static(range(SEG)):
-                        if 0 <= x0 + p + k < width:
-                            s[p] += tv[k + r_]
+                if ti.static(static_taps):
+                    for k in ti.static(range(-r_, r_ + 1)):
+                        for p in ti.static(range(SEG)):
+                            if 0 <= x0 + p + k < width:
+                                s[p] += tv[k + r_]
+                else:
+                    for k in range(-r_, r_ + 1):
+                        for p in ti.static(range(SEG)):
+                            if 0 <= x0 + p + k < width:
+                                s[p] += tv[k + r_]
             return s
 
         self.load_taps, self.blur_x, self.blur_y, self.store = load_taps, blur_x, blur_y, store
