@@ -434,3 +434,19 @@ def test_a_denormal_stride_is_refused_not_overflowed():
 
     with pytest.raises(ValueError, match="would be inf windows, more than the limit"):
         list(checks.time_windows(0.0, 0.5, 600, 1.0, 5e-324, lambda t: 0, lambda i: 0.0))
+
+
+def test_evaluate_reads_the_recording_and_intervals_of_a_flow_run(mvsec, tmp_path, capsys):
+    # .flo files carry no interval: the flow run's flow_timestamps.txt and summary.json say what they are
+    run_folder = tmp_path / "flow_run"
+    (run_folder / "flow").mkdir(parents=True)
+    t0 = 1500000000.0
+    for k in range(2):
+        write_flo(run_folder / "flow" / f"flow_{k:04d}.flo", np.full((2, SIZE[1], SIZE[0]), 0.3))
+    stamps = "".join(f"{t0 + 0.1 + 0.05 * k:.9f} {t0 + 0.15 + 0.05 * k:.9f}\n" for k in range(2))
+    (run_folder / "flow_timestamps.txt").write_text(stamps)
+    recording = {"source": str(mvsec), "format": "mvsec", "fingerprint": fingerprint_of(mvsec)}
+    (run_folder / "summary.json").write_text(json.dumps({"recording": recording}))
+    code, out, err = run(capsys, "evaluate", run_folder, *SIZE_ARGS)
+    assert code == 0, err
+    assert f"2 flow file(s) of {run_folder / 'flow'} against {mvsec} (2 with pixels to score)" in out
