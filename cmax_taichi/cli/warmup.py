@@ -128,7 +128,6 @@ def run(args: argparse.Namespace) -> int:
     from cmax_taichi.pipeline import tiers
 
     common.init_backend(args.arch, args.precision)
-    folder = tiers.cache_folder().parent
     if args.clear:
         _clear_cache(tiers.cache_folder())
         return 0
