@@ -450,3 +450,14 @@ def test_evaluate_reads_the_recording_and_intervals_of_a_flow_run(mvsec, tmp_pat
     code, out, err = run(capsys, "evaluate", run_folder, *SIZE_ARGS)
     assert code == 0, err
     assert f"2 flow file(s) of {run_folder / 'flow'} against {mvsec} (2 with pixels to score)" in out
+
+
+def test_flow_references_take_the_fractions_its_error_offers(mvsec, tmp_path, capsys):
+    from cmax_taichi.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert parse(["flow", "rec", "--references", "0.25"]).references == 0.25
+    assert parse(["flow", "rec", "--references", "first,0.5"]).references == ("first", 0.5)
+    assert parse(["flow", "rec", "--references", "multi"]).references == "multi"
+    code, _, err = run(capsys, "flow", mvsec, *SIZE_ARGS, "--references", "1.5", "--out", tmp_path / "o")
+    assert code == 2 and "fraction of the window in [0, 1], got 1.5" in error_line(err)
