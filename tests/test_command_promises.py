@@ -461,3 +461,22 @@ def test_flow_references_take_the_fractions_its_error_offers(mvsec, tmp_path, ca
     assert parse(["flow", "rec", "--references", "multi"]).references == "multi"
     code, _, err = run(capsys, "flow", mvsec, *SIZE_ARGS, "--references", "1.5", "--out", tmp_path / "o")
     assert code == 2 and "fraction of the window in [0, 1], got 1.5" in error_line(err)
+
+
+def test_live_run_whose_only_window_the_end_closes_writes_strict_json(tmp_path):
+    # no window was closed by its own events: no latency measured, printed as such and null in the JSON
+    rng = np.random.default_rng(0)
+    n = 3000
+    t = 1.0 + np.sort(rng.uniform(0, 0.1, n))
+    rows = np.column_stack([t, rng.integers(0, 64, n), rng.integers(0, 48, n), rng.integers(0, 2, n)])
+    np.savetxt(tmp_path / "dots.txt", rows, fmt=["%.9f", "%d", "%d", "%d"])
+    out = tmp_path / "out"
+    args = ["--live", tmp_path / "dots.txt", "--out", out, "--speed", "10", "--warp", "translation2"]
+    done = subprocess.run(
+        [sys.executable, "-m", "cmax_taichi.cli", "estimate", *map(str, args), "--no-display"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0 and "no latency measured" in done.stdout, done.stderr
+    assert "nan" not in done.stdout
+    summary = json.loads((out / "results.json").read_text(), parse_constant=pytest.fail)
+    assert summary["live"]["latency_median_s"] is None and summary["events"]["estimated"] == n
