@@ -146,6 +146,11 @@ def test_blur_sigma_above_the_limit_is_refused_at_once(factor):
         assert_session_usable()
 
 
+def test_warmup_refuses_a_sensor_above_the_limit_before_compiling():
+    with pytest.raises(ValueError, match="max_sensor_pixels = .* of this warmup"):
+        cm.warmup("translation2", sensor_size=(10**6, 10**6))
+
+
 def test_warmup_refuses_a_blur_that_is_not_a_number():
     with pytest.raises(ValueError, match="blur_sigma must be a finite number >= 0, got nan"):
         cm.warmup("translation2", blur_sigma=float("nan"))
