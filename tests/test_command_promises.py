@@ -450,6 +450,10 @@ def test_evaluate_reads_the_recording_and_intervals_of_a_flow_run(mvsec, tmp_pat
     code, out, err = run(capsys, "evaluate", run_folder, *SIZE_ARGS)
     assert code == 0, err
     assert f"2 flow file(s) of {run_folder / 'flow'} against {mvsec} (2 with pixels to score)" in out
+    recording["source"] = str(tmp_path / "moved_away.hdf5")
+    (run_folder / "summary.json").write_text(json.dumps({"recording": recording}))
+    code, _, err = run(capsys, "evaluate", run_folder, *SIZE_ARGS)
+    assert code == 2 and "moved_away.hdf5, which is not there: give it with --data PATH" in error_line(err)
 
 
 def test_flow_references_take_the_fractions_its_error_offers(mvsec, tmp_path, capsys):

@@ -403,8 +403,13 @@ def _run_flows(args: argparse.Namespace, source: Path, thresholds: tuple[float, 
     # a 'cmax-taichi flow' run's folder names its recording and holds the intervals of its files
     run_folder, recording = _flow_run(source)
     if recording:
-        if not args.data:
-            args.data, args.format = recording.get("source"), args.format or recording.get("format")
+        if not args.data and recording.get("source"):
+            args.data, args.format = recording["source"], args.format or recording.get("format")
+            if not Path(args.data).exists():
+                raise CliError(
+                    f"{run_folder / 'summary.json'} names the recording {args.data}, which is not there: "
+                    "give it with --data PATH"
+                )
         stamps = run_folder / "flow_timestamps.txt"
         if args.timestamps is None and stamps.is_file() and _needs_timestamps(source):
             args.timestamps = str(stamps)
