@@ -282,6 +282,7 @@ def test_realtime_factor_report(tmp_path):
         ),
     )
     lines = []
+    (tmp_path / "data").mkdir()  # without the recording of "absent"
     rows = realtime.run_realtime(
         tmp_path / "data", tmp_path / "out", sim_seconds=0.15, cases=cases, log=lines.append
     )
@@ -304,6 +305,16 @@ def test_realtime_factor_report(tmp_path):
     assert (tmp_path / "out" / "realtime.csv").read_text().count("\n") == 4
     with pytest.raises(ValueError, match="--sim-seconds must be a positive number of seconds"):
         realtime.run_realtime(tmp_path, tmp_path / "out", sim_seconds=0.0, cases=cases)
+
+
+def test_realtime_refuses_a_missing_data_folder_and_an_endless_stream(tmp_path):
+    from cmax_taichi.lab import realtime
+
+    with pytest.raises(ValueError, match="nowhere: no such folder of recordings"):
+        realtime.run_realtime(tmp_path / "nowhere", tmp_path / "out")
+    with pytest.raises(MemoryError, match=r"the simulated stream of --sim-seconds 1e\+09 needs about"):
+        realtime.run_realtime(tmp_path, tmp_path / "out", sim_seconds=1e9)
+    assert not (tmp_path / "out").exists()
 
 
 def test_benchmark_windows(tmp_path, monkeypatch):

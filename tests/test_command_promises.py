@@ -434,3 +434,53 @@ def test_a_denormal_stride_is_refused_not_overflowed():
 
     with pytest.raises(ValueError, match="would be inf windows, more than the limit"):
         list(checks.time_windows(0.0, 0.5, 600, 1.0, 5e-324, lambda t: 0, lambda i: 0.0))
+
+
+def test_evaluate_reads_the_recording_and_intervals_of_a_flow_run(mvsec, tmp_path, capsys):
+    # .flo files carry no interval: the flow run's flow_timestamps.txt and summary.json say what they are
+    run_folder = tmp_path / "flow_run"
+    (run_folder / "flow").mkdir(parents=True)
+    t0 = 1500000000.0
+    for k in range(2):
+        write_flo(run_folder / "flow" / f"flow_{k:04d}.flo", np.full((2, SIZE[1], SIZE[0]), 0.3))
+    stamps = "".join(f"{t0 + 0.1 + 0.05 * k:.9f} {t0 + 0.15 + 0.05 * k:.9f}\n" for k in range(2))
+    (run_folder / "flow_timestamps.txt").write_text(stamps)
+    recording = {"source": str(mvsec), "format": "mvsec", "fingerprint": fingerprint_of(mvsec)}
+    (run_folder / "summary.json").write_text(json.dumps({"recording": recording}))
+    code, out, err = run(capsys, "evaluate", run_folder, *SIZE_ARGS)
+    assert code == 0, err
+    assert f"2 flow file(s) of {run_folder / 'flow'} against {mvsec} (2 with pixels to score)" in out
+    recording["source"] = str(tmp_path / "moved_away.hdf5")
+    (run_folder / "summary.json").write_text(json.dumps({"recording": recording}))
+    code, _, err = run(capsys, "evaluate", run_folder, *SIZE_ARGS)
+    assert code == 2 and "moved_away.hdf5, which is not there: give it with --data PATH" in error_line(err)
+
+
+def test_flow_references_take_the_fractions_its_error_offers(mvsec, tmp_path, capsys):
+    from cmax_taichi.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert parse(["flow", "rec", "--references", "0.25"]).references == 0.25
+    assert parse(["flow", "rec", "--references", "first,0.5"]).references == ("first", 0.5)
+    assert parse(["flow", "rec", "--references", "multi"]).references == "multi"
+    code, _, err = run(capsys, "flow", mvsec, *SIZE_ARGS, "--references", "1.5", "--out", tmp_path / "o")
+    assert code == 2 and "fraction of the window in [0, 1], got 1.5" in error_line(err)
+
+
+def test_live_run_whose_only_window_the_end_closes_writes_strict_json(tmp_path):
+    # no window was closed by its own events: no latency measured, printed as such and null in the JSON
+    rng = np.random.default_rng(0)
+    n = 3000
+    t = 1.0 + np.sort(rng.uniform(0, 0.1, n))
+    rows = np.column_stack([t, rng.integers(0, 64, n), rng.integers(0, 48, n), rng.integers(0, 2, n)])
+    np.savetxt(tmp_path / "dots.txt", rows, fmt=["%.9f", "%d", "%d", "%d"])
+    out = tmp_path / "out"
+    args = ["--live", tmp_path / "dots.txt", "--out", out, "--speed", "10", "--warp", "translation2"]
+    done = subprocess.run(
+        [sys.executable, "-m", "cmax_taichi.cli", "estimate", *map(str, args), "--no-display"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0 and "no latency measured" in done.stdout, done.stderr
+    assert "nan" not in done.stdout
+    summary = json.loads((out / "results.json").read_text(), parse_constant=pytest.fail)
+    assert summary["live"]["latency_median_s"] is None and summary["events"]["estimated"] == n

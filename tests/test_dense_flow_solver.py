@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import time
 
 import numpy as np
 import pytest
@@ -325,3 +326,13 @@ def test_trajectories_and_the_padded_image_are_bounded_up_front():
         check_padded_sensor((side, side), 10, "--padding")
     with pytest.raises(ValueError, match=rf"the {side + 1}x{side} sensor"):
         check_padded_sensor((side + 1, side), 0)
+
+
+def test_levels_beyond_the_grid_are_refused_at_once(f64):
+    # a huge levels used to build 2^levels integers (minutes, then an unreadable number)
+    ev = cm.Events([1.0, 30.0, 12.0], [1.0, 20.0, 9.0], [0.0, 0.01, 0.02], [1, 1, 1], (40, 30))
+    for levels, multiple in ((10**6, r"2\^999999"), (6, "32")):
+        start = time.perf_counter()
+        with pytest.raises(ValueError, match=f"16x16 cells allow at most 5 level.*multiples of {multiple}$"):
+            DenseFlowEstimator(levels=levels).estimate(ev)
+        assert time.perf_counter() - start < 5.0

@@ -99,6 +99,10 @@ def test_npz_round_trip_and_dispatch(tmp_path):
         write_flow(tmp_path / "g.tif", flow)
     with pytest.raises(TypeError, match="metadata 'note' must be a number or a string"):
         write_flow_npz(tmp_path / "h.npz", flow, note=[1, 2])
+    for interval in ({"t_start": 2.0, "t_end": 1.0}, {"t_start": float("nan"), "t_end": 1.0}, {"t_end": 1.0}):
+        with pytest.raises(ValueError, match="the interval needs finite t_start < t_end"):  # not scorable
+            write_flow_npz(tmp_path / "i.npz", flow, **interval)
+    assert not (tmp_path / "i.npz").exists()
     np.savez(tmp_path / "other.npz", something=np.zeros(3))
     with pytest.raises(KeyError, match="other.npz: no 'flow' array"):
         read_flow_npz(tmp_path / "other.npz")

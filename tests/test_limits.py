@@ -129,19 +129,31 @@ def test_bytes_above_the_limit_raise_memory_error():
     assert_session_usable()
 
 
-def test_blur_sigma_above_the_limit_is_refused_at_once():
+@pytest.mark.parametrize("factor", [4, 1e9])  # 1e9: the taps alone would take tens of GB
+def test_blur_sigma_above_the_limit_is_refused_at_once(factor):
     window = _window()
-    sigma = 4 * cm.get_limits().max_blur_sigma
+    sigma = factor * cm.get_limits().max_blur_sigma
     for build in (
         lambda: cm.ContrastMaximization(window, "translation2", blur_sigma=sigma),
         lambda: MultiClusterCMax(window, 2, "translation2", blur_sigma=sigma),
         lambda: cm.segment(window, n_clusters=2, warp="translation2", blur_sigma=sigma),
+        lambda: cm.warmup("translation2", blur_sigma=sigma),
     ):
         start = time.perf_counter()
         with pytest.raises(ValueError, match=r"blur_sigma = .* max_blur_sigma"):
             build()
         assert time.perf_counter() - start < 5.0  # nothing compiled
         assert_session_usable()
+
+
+def test_warmup_refuses_a_sensor_above_the_limit_before_compiling():
+    with pytest.raises(ValueError, match="max_sensor_pixels = .* of this warmup"):
+        cm.warmup("translation2", sensor_size=(10**6, 10**6))
+
+
+def test_warmup_refuses_a_blur_that_is_not_a_number():
+    with pytest.raises(ValueError, match="blur_sigma must be a finite number >= 0, got nan"):
+        cm.warmup("translation2", blur_sigma=float("nan"))
 
 
 def test_n_clusters_above_the_limit_is_refused_at_once():

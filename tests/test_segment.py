@@ -92,6 +92,8 @@ def test_bad_input():
         cm.segment(ev, 2.0)
     with pytest.raises(ValueError, match="temperature"):
         cm.segment(ev, 2, temperature=0)
+    with pytest.raises(ValueError, match="seed must be at least 0, got -1"):  # not numpy's words
+        cm.segment(ev, 2, seed=-1)
     with pytest.raises(ValueError, match="one warp or one per cluster"):
         cm.segment(ev, 2, warp=["translation2"] * 3)
     with pytest.raises(ValueError, match="unknown warp|not registered|valid"):

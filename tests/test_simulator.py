@@ -231,6 +231,7 @@ def test_scaled_preset_keeps_the_flow_relative_to_the_image():
         (lambda: sm.SimulatorConfig(refractory=float("nan")), "refractory"),
         (lambda: sm.SimulatorConfig(hot_pixel_fraction=2.0), "hot_pixel_fraction"),
         (lambda: sm.SimulatorConfig(min_step=1.0, max_step=0.1), "min_step"),
+        (lambda: sm.SimulatorConfig(seed=-1), "seed must be a whole number >= 0, got -1"),
         (lambda: sm.Motion("zoom1", (1.0, 2.0)), "takes 1 parameter"),
         (lambda: sm.Motion("nope", (1.0,)), "nope"),
         (lambda: sm.Motion("mitrokhin4", (1.0, 2.0, 0.1, 0.5)), "segment"),

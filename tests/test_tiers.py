@@ -232,6 +232,21 @@ def test_warmup_command_lists_and_refuses_nothing_to_do(tmp_path):
     assert cleared.returncode == 0 and not (tmp_path / "c").exists()
 
 
+def test_warmup_clear_deletes_the_kernels_and_nothing_else(tmp_path):
+    # TI_OFFLINE_CACHE_FILE_PATH may name any folder: its other files are the user's
+    cache = tmp_path / "c"
+    (cache / "cmax-taichi" / "ready").mkdir(parents=True)
+    (cache / "cmax-taichi" / "ready" / "0123.json").write_text("{}")
+    (cache / "notes.txt").write_text("mine")
+    env = {**__import__("os").environ, "TI_OFFLINE_CACHE_FILE_PATH": str(cache)}
+    cleared = subprocess.run(
+        [sys.executable, "-m", "cmax_taichi.cli", "warmup", "--clear"],
+        capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    assert cleared.returncode == 0 and "kept 1 other item(s)" in cleared.stdout
+    assert (cache / "notes.txt").read_text() == "mine" and not (cache / "cmax-taichi").exists()
+
+
 def test_results_record_the_kernels_of_each_window(own_cache, no_background, tmp_path):
     own_cache("auto")
     from cmax_taichi.solve import sequence

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
-import json
 import math
 import os
 import signal
@@ -175,7 +174,7 @@ class LiveOutput:
             reader = csv.reader(fh)
             header = next(reader)
             rows = [dict(zip(header, row, strict=True)) for row in reader]
-        text = json.dumps({**summary, "windows": rows}, indent=1)
+        text = outputs.json_text({**summary, "windows": rows})  # strict: a latency without a window is null
         outputs.atomic_write_text(self.out / "results.json", text)
         outputs.write_manifest(self.out, LIVE_FILES, "estimate --live")
         return [self.out / name for name in LIVE_FILES]
@@ -437,11 +436,16 @@ def _print_summary(result, files) -> None:
 
     events = result.events
     left = events.get("total", 0) - events.get("estimated", 0)
+    if len(result.latencies):
+        median, p99 = 1e3 * result.latency(50), 1e3 * result.latency(99)
+        latency = f"latency median {median:.1f} ms, 99th percentile {p99:.1f} ms"
+    else:  # the end of the stream closed the only window: its wait for the end is no latency
+        latency = "no latency measured (no window was closed by its own events)"
     print(
         f"{result.windows} window(s) estimated, {result.skipped} not ({result.stop_reason}); "
         "real-time factor "
         f"{result.real_time_factor():.2f} (first window included: {result.first_window_seconds:.3f} s); "
-        f"latency median {1e3 * result.latency(50):.1f} ms, 99th percentile {1e3 * result.latency(99):.1f} ms"
+        + latency
     )
     note = f"; {left} not estimated ({describe_events(events)})" if left else ""
     print(f"  events: {events.get('estimated', 0)} of {events.get('total', 0)} estimated{note}")

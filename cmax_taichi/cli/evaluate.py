@@ -15,6 +15,8 @@ accumulated as EV-FlowNet does, DSEC flow PNGs, the simulator's files): AEE, NPE
 and > 5% of the truth) and AE on the pixels with valid ground truth and at least one event. Files:
 flow_*.npz with t_start, t_end (what 'estimate --flow-out DIR --flow-format npz' writes), or .flo /
 DSEC .png files with --timestamps (t_start t_end in s per line, or DSEC's from_us, to_us[, file_index]).
+The flow files of a 'cmax-taichi flow' output folder need neither --data nor --timestamps: its
+summary.json names the recording and its flow_timestamps.txt holds the intervals.
 
 Writes OUT/metrics.csv and OUT/metrics.json (OUT defaults to the folder of the results or of the flow
 files; RESULTS may also be a 'cmax-taichi flow' output folder) and prints a summary with the RMS
@@ -71,7 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--timestamps",
         default=None,
         metavar="FILE",
-        help="intervals of .flo / .png files: 't_start t_end' (s) per line, or DSEC's from_us, to_us[, idx]",
+        help="intervals of .flo / .png files: 't_start t_end' (s) per line, or DSEC's from_us, to_us[, idx] "
+        "(default: the flow_timestamps.txt of the 'cmax-taichi flow' run that wrote them)",
     )
     parser.add_argument("--format", default=None, help=f"{names(FORMATS)} (default: detected)")
     add_sensor_size_argument(
@@ -329,16 +332,36 @@ def _check_fingerprint(args: argparse.Namespace, rec, carried: list, what: Path)
         )
 
 
+def _flow_run(source: Path) -> tuple[Path, dict]:
+    """``(folder, recording)``: the output folder of the 'cmax-taichi flow' run that wrote the flow files
+    of ``source`` and the recording its summary.json names (``source``, ``format``, ``fingerprint``);
+    an empty dict where ``source`` is not a flow run's ``flow/`` folder."""
+    folder = source if source.is_dir() else source.parent
+    summary = folder.parent / "summary.json"
+    if folder.name == "flow" and summary.is_file():
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):  # not a flow run's summary
+            recording = json.loads(summary.read_text())["recording"]
+            if isinstance(recording, dict):
+                return folder.parent, recording
+    return folder.parent, {}
+
+
 def _flow_fingerprints(source: Path, windows) -> list:
     """The fingerprints the flow files carry (.npz), or that the summary.json of the 'cmax-taichi flow'
     run that wrote them names."""
     carried = [w.fingerprint for w in windows if w.fingerprint]
-    folder = source if source.is_dir() else source.parent
-    summary = folder.parent / "summary.json"
-    if not carried and folder.name == "flow" and summary.is_file():
-        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):  # not a flow run's summary
-            carried.append(json.loads(summary.read_text())["recording"]["fingerprint"])
+    recorded = _flow_run(source)[1].get("fingerprint")
+    if not carried and recorded:
+        carried.append(recorded)
     return carried
+
+
+def _needs_timestamps(source: Path) -> bool:
+    """Whether some flow file of ``source`` carries no interval (.flo, .png: only .npz files do)."""
+    from cmax_taichi.io.writers import FLOW_FORMATS
+
+    files = source.iterdir() if source.is_dir() else [source]
+    return any(f.suffix.lower().lstrip(".") in FLOW_FORMATS and f.suffix.lower() != ".npz" for f in files)
 
 
 def _check_intervals(windows, rec, timestamps) -> None:
@@ -377,6 +400,19 @@ def _run_flows(args: argparse.Namespace, source: Path, thresholds: tuple[float, 
     from cmax_taichi.io.writers import read_flow_windows
     from cmax_taichi.metrics import score_flow
 
+    # a 'cmax-taichi flow' run's folder names its recording and holds the intervals of its files
+    run_folder, recording = _flow_run(source)
+    if recording:
+        if not args.data and recording.get("source"):
+            args.data, args.format = recording["source"], args.format or recording.get("format")
+            if not Path(args.data).exists():
+                raise CliError(
+                    f"{run_folder / 'summary.json'} names the recording {args.data}, which is not there: "
+                    "give it with --data PATH"
+                )
+        stamps = run_folder / "flow_timestamps.txt"
+        if args.timestamps is None and stamps.is_file() and _needs_timestamps(source):
+            args.timestamps = str(stamps)
     if not args.data:
         raise CliError("evaluating flow files needs the recording with the ground truth: --data PATH")
     windows = read_flow_windows(source, args.timestamps)

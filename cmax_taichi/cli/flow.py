@@ -95,8 +95,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument(
         "--references",
         default="middle",
-        help="reference time(s) of the IWE: first | middle | last | multi (the reference's multi-focal "
-        "first + middle x2 + last) (default middle)",
+        type=_references,
+        help="reference time(s) of the IWE: first | middle | last | a fraction of the window in [0, 1], "
+        "several comma-separated (first,last), or multi (the reference's multi-focal first + middle x2 + "
+        "last) (default middle)",
     )
     defaults = ", ".join(f"{k}={v:g}" for k, v in _defaults().items())
     model.add_argument(
@@ -167,6 +169,18 @@ def parse_regularizers(items: list[str] | None, none: bool) -> dict[str, float]:
     if items is None:
         return dict(_defaults())
     return common.parse_regularizers(items, extra=SMOOTHNESS.names())
+
+
+def _references(text: str) -> str | float | tuple:
+    """--references as :func:`cmax_taichi.flow.problem.resolve_references` takes it: names and
+    fractions (numbers), one or several comma-separated; resolve_references checks them."""
+    items = []
+    for part in text.split(","):
+        try:
+            items.append(float(part))
+        except ValueError:
+            items.append(part.strip())
+    return items[0] if len(items) == 1 else tuple(items)
 
 
 def _check(args: argparse.Namespace) -> None:

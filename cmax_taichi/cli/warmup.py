@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+from pathlib import Path
 
 from cmax_taichi.cli import _common as common
 
@@ -105,16 +106,30 @@ def _flow_regularizers() -> tuple:
     return tuple(maps)
 
 
+def _clear_cache(records: Path) -> None:
+    """Delete the compiled kernels (Taichi's own cleaner: its cache files only) and cmax-taichi's records
+    of them, ``records``; whatever else the cache folder holds (it may be any folder the user named in
+    TI_OFFLINE_CACHE_FILE_PATH) is left in place and said."""
+    from taichi._lib import core as ti_core
+
+    folder = records.parent
+    n_files = ti_core.clean_offline_cache_files(str(folder.resolve())) if folder.is_dir() else 0
+    if records.is_dir():
+        shutil.rmtree(records)
+    others = sorted(folder.iterdir()) if folder.is_dir() else []
+    kept = f"; kept {len(others)} other item(s) there (not kernels), e.g. {others[0].name}" if others else ""
+    if folder.is_dir() and not others:
+        folder.rmdir()
+    print(f"cleared the kernel cache {folder} ({n_files} compiled kernel file(s)){kept}")
+
+
 def run(args: argparse.Namespace) -> int:
     from cmax_taichi.cli import CliError
     from cmax_taichi.pipeline import tiers
 
     common.init_backend(args.arch, args.precision)
-    folder = tiers.cache_folder().parent
     if args.clear:
-        if folder.is_dir():
-            shutil.rmtree(folder)
-        print(f"cleared the kernel cache {folder}")
+        _clear_cache(tiers.cache_folder())
         return 0
     if args.list:
         print(tiers.cache_summary())

@@ -24,6 +24,11 @@ class FlowBeyondSensorError(ValueError):
     """A displacement asked over an interval that carries the flow beyond the sensor."""
 
 
+def _halvings(n: int) -> int:
+    """How many times ``n`` halves into whole numbers (its factors of 2)."""
+    return (int(n) & -int(n)).bit_length() - 1
+
+
 @dataclass(frozen=True)
 class FlowGrid:
     """Nodes of a dense flow over a ``width x height`` sensor.
@@ -119,12 +124,13 @@ class FlowGrid:
         when the cells do not halve that often."""
         if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
             raise ValueError(f"levels must be an integer >= 1, got {levels!r}")
-        step = 2 ** (int(levels) - 1)
-        if self.nx % step or self.ny % step:
+        most = 1 + min(_halvings(self.nx), _halvings(self.ny))
+        if levels > most:  # 2^(levels - 1) is not computed: levels may be huge
+            multiple = f"{2 ** (levels - 1)}" if levels <= 21 else f"2^{levels - 1}"
             raise ValueError(
                 f"{levels} levels halve the cells {levels - 1} times: the finest grid's {self.nx}x{self.ny} "
-                f"cells must be multiples of {step} (e.g. grid=({step * max(1, self.nx // step)}, "
-                f"{step * max(1, self.ny // step)}))"
+                f"cells allow at most {most} level(s); use fewer levels, or cells that are multiples of "
+                f"{multiple}"
             )
         return [
             FlowGrid(self.width, self.height, self.nx // 2**k, self.ny // 2**k)

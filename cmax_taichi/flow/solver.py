@@ -85,7 +85,7 @@ def auto_scales(levels: int) -> tuple[int, ...]:
     """The image downsampling of each level (coarsest first) when not given: ``min(4, 2^(levels - 1 - k))``,
     e.g. (4, 4, 2, 1) for 4 levels: the coarse grids do not need the full image, whose cost per
     evaluation is 4 to 16 times theirs."""
-    return tuple(min(4, 2 ** (levels - 1 - k)) for k in range(levels))
+    return tuple(2 ** min(2, levels - 1 - k) for k in range(levels))  # no 2^levels: levels may be huge
 
 
 #: what a level's optimizer did (:attr:`LevelReport.status`): L-BFGS-B converged; it used its

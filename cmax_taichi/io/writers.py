@@ -20,6 +20,7 @@ Flow arrays are ``(2, H, W)`` (x then y component, px), the layout of
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,6 +123,10 @@ def write_flow_npz(path: str | os.PathLike, flow, **metadata) -> Path:
     for key, value in metadata.items():
         if not isinstance(value, (int, float, str, bool, np.number)):
             raise TypeError(f"metadata {key!r} must be a number or a string, got {type(value).__name__}")
+    if "t_start" in metadata or "t_end" in metadata:  # the interval evaluate scores the file over
+        a, b = float(metadata.get("t_start", math.nan)), float(metadata.get("t_end", math.nan))
+        if not (math.isfinite(a) and math.isfinite(b) and b > a):
+            raise ValueError(f"{path}: the interval needs finite t_start < t_end (s), got {a} .. {b}")
     path = Path(path)
     np.savez(path, flow=flow.astype(np.float32), **{k: np.asarray(v) for k, v in metadata.items()})
     return path

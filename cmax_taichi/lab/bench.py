@@ -565,8 +565,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--data",
-        default="../shared/data",
-        help="folder of the shared recordings for --realtime (default ../shared/data)",
+        default=None,
+        help="folder of the shared recordings for --realtime (default ../shared/data, where it is)",
     )
     parser.add_argument(
         "--sim-seconds",

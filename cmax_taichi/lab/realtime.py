@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax_taichi.core import limits
+
 __all__ = ["CASES", "RealtimeCase", "run_realtime"]
 
 BOTH_REGULARIZERS = {"divergence": 10.0, "deformation": 10.0}
@@ -46,6 +48,8 @@ HD_SENSOR = (1280, 720)
 HD_MOTION = (50.0, -30.0)  # px/s
 #: seconds of the HD stream (about 500,000 events; simulating them takes a minute or two)
 HD_SECONDS = 0.5
+#: the shared recordings beside the checkout, read when --data is not given
+DEFAULT_DATA = "../shared/data"
 #: events per window of the HD stream: the textured plane gives about 19,000 events per px of motion
 #: there, so a 5,000-event window holds 0.3 px of it and every estimate was the identity (docs/
 #: performance.md, 2026-12-04); 50,000 events (about 45 ms, 2.5 px) is a window that can be estimated
@@ -150,7 +154,7 @@ def _translation_error(windows, truth) -> float:
 
 
 def run_realtime(
-    data_dir: str | Path,
+    data_dir: str | Path | None,
     out_dir: str | Path,
     *,
     sim_seconds: float = 2.0,
@@ -163,7 +167,8 @@ def run_realtime(
     Parameters
     ----------
     data_dir : path
-        Folder of the shared recordings (cases whose folder is absent are reported as skipped).
+        Folder of the shared recordings (cases whose folder is absent are reported as skipped); None:
+        :data:`DEFAULT_DATA`, where it is. A folder that does not exist is a ValueError.
     out_dir : path
         Output folder (created; guarded as every command's: :class:`cmax_taichi.io.outputs.OutputFolder`).
     sim_seconds : float
@@ -177,9 +182,18 @@ def run_realtime(
         raise ValueError(f"--sim-seconds must be a positive number of seconds, got {sim_seconds}")
     if not (np.isfinite(hd_seconds) and hd_seconds > 0):
         raise ValueError(f"hd_seconds must be a positive number of seconds, got {hd_seconds}")
+    streams = ((sim_seconds, 420_000, "--sim-seconds"), (hd_seconds, 1_000_000, "hd_seconds"))
+    for seconds, rate, what in streams:
+        # the stream is held whole (x, y, t, p: 8 bytes each): refused before hours of simulation
+        what = f"the simulated stream of {what} {seconds:g}"
+        limits.check_bytes(int(seconds * rate * 32), what, f"about {rate:,} events/s")
+    if data_dir is None:  # the shared recordings beside the checkout, where there are
+        data_dir = Path(DEFAULT_DATA)
+    elif not Path(data_dir).is_dir():
+        raise ValueError(f"{data_dir}: no such folder of recordings (--data)")
+    data_dir = Path(data_dir)
     from cmax_taichi.io.outputs import OutputFolder
 
-    data_dir = Path(data_dir)
     folder = OutputFolder(
         out_dir, inputs=[data_dir], patterns=["realtime.csv", "realtime.md"], command="bench"
     )

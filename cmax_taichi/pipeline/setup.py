@@ -114,8 +114,15 @@ def resolve_t_ref(t_ref, events: Events) -> float:
 
 def gaussian_taps(blur_sigma: float) -> tuple[int, np.ndarray | None]:
     """``(radius, taps)``: the footprint radius ``ceil(3 sigma)`` (px) and the normalised Gaussian taps
-    (None without blur)."""
-    if blur_sigma <= 0:
+    (None without blur).
+
+    ValueError for a blur that is not a finite number >= 0 or is above ``max_blur_sigma``, before the
+    taps (``6 sigma`` of them) are allocated.
+    """
+    if not (math.isfinite(blur_sigma) and blur_sigma >= 0):
+        raise ValueError(f"blur_sigma must be a finite number >= 0, got {blur_sigma}")
+    limits.check_blur_sigma(blur_sigma)
+    if blur_sigma == 0:
         return 0, None
     r = int(math.ceil(3 * blur_sigma))
     with np.errstate(over="ignore"):  # (k / sigma)^2 = inf for a tiny sigma: a tap of 0, not 0 / 0 = NaN

@@ -260,9 +260,11 @@ def config_for(
         raise ValueError(f"references must be a whole number >= 1, got {references!r}")
     sensor = ()
     if warp is not None:
+        from cmax_taichi.core import limits
         from cmax_taichi.core.checks import sensor_size as checked_sensor_size
 
         sensor = checked_sensor_size(sensor_size)
+        limits.check_sensor(*sensor, "this warmup")  # before a compile is started
     info = backend.info()
     obj = OBJECTIVES.get(objective)
     if obj.fused is None:

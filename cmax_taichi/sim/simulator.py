@@ -92,6 +92,8 @@ class SimulatorConfig:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
 
         positive("contrast_threshold", self.contrast_threshold)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"seed must be a whole number >= 0, got {self.seed!r}")
         if self.contrast_threshold_neg is not None:
             positive("contrast_threshold_neg", self.contrast_threshold_neg)
         for name in ("threshold_sigma", "refractory", "noise_rate", "hot_pixel_rate"):

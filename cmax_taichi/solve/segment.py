@@ -429,6 +429,7 @@ def segment(
     learning_rate = _check_positive("learning_rate", learning_rate)
     tol = _check_positive("tol", tol)
     init_events = _check_int("init_events", init_events, 2)
+    seed = _check_int("seed", seed, 0)
     if max_displacement is not None:
         max_displacement = _check_positive("max_displacement", max_displacement)
     if not 0 <= float(min_cluster_fraction) < 1:
