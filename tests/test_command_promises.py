@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from test_outputs import error_line, run
+from test_outputs import error_line, run, write_recording
 
 from cmax_taichi.io import outputs
 from cmax_taichi.io.writers import read_flow_npz, write_flo, write_flow_npz
@@ -484,3 +484,16 @@ def test_live_run_whose_only_window_the_end_closes_writes_strict_json(tmp_path):
     assert "nan" not in done.stdout
     summary = json.loads((out / "results.json").read_text(), parse_constant=pytest.fail)
     assert summary["live"]["latency_median_s"] is None and summary["events"]["estimated"] == n
+
+
+@pytest.mark.parametrize("command", ["estimate", "flow"])
+def test_a_recording_shorter_than_a_window_is_one_error_line(tmp_path, capsys, command):
+    """Fewer events than one --window: the one error line says why, with the counts; the end-of-pass
+    warning of the events not estimated is not printed beside it."""
+    recording = write_recording(tmp_path / "short", n=600)
+    argv = [command, recording, "--window", "1000", "--quiet", "--out", tmp_path / "out"]
+    if command == "flow":
+        argv += ["--grid", "2", "2", "--levels", "1"]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "600 events, fewer than one window of --window 1000" in error_line(err)

@@ -12,7 +12,10 @@ help) is built.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import warnings
+from collections.abc import Iterator
 
 from cmax_taichi.core.backend import ARCHS, COMPILE_MODES
 from cmax_taichi.io import FORMATS
@@ -326,3 +329,33 @@ def parse_t_ref(text: str) -> str | float:
         return float(text)
     except ValueError:
         raise CliError(f"--t-ref must be first, middle, last or seconds, got {text!r}") from None
+
+
+@contextlib.contextmanager
+def held_drop_warnings() -> Iterator[list]:
+    """Hold the warnings that count events not estimated (``EventsDroppedWarning``) until the pass is
+    over; the other warnings show as they come. Yields the held ones: show them with
+    :func:`show_warnings` when the pass estimated something, or drop them when the command ends in its
+    one error line instead (which says why no window was estimated, with the counts)."""
+    from cmax_taichi.core.checks import EventsDroppedWarning
+
+    held: list[tuple] = []
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, EventsDroppedWarning):
+            held.append((message, category, filename, lineno, file, line))
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield held
+    finally:
+        warnings.showwarning = shown
+
+
+def show_warnings(held: list[tuple]) -> None:
+    """Show the warnings :func:`held_drop_warnings` held."""
+    for record in held:
+        warnings.showwarning(*record)

@@ -617,11 +617,14 @@ def _estimate_one(args, regs, folder, flow_folder, process, area_scale, cm, CliE
                 _write_window_flow(flow_folder.path(name), row, prob, res, fingerprint)
                 flows[0] += 1
 
-        result = process(
-            rec, **process_options(args, regs), camera=camera, progress=not args.quiet, on_window=on_window
-        )
-    if not result.windows:
+        with common.held_drop_warnings() as held:
+            result = process(
+                rec, **process_options(args, regs), camera=camera, progress=not args.quiet,
+                on_window=on_window,
+            )  # fmt: skip
+    if not result.windows:  # one line: the error says why, with the counts the held warning has
         raise CliError(f"{path}: no window to estimate: {common.why_no_window(args, result.events)}")
+    common.show_warnings(held)
     result.to_csv(folder.path("results.csv"))
     result.to_json(folder.path("results.json"))
     result.to_hdf5(folder.path("results.h5"))

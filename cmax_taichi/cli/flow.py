@@ -469,36 +469,38 @@ def _estimate_into(args, estimator, folder, regs: dict):
         )
     windows, stamps, bar = [], [], None
     started = time.perf_counter()
-    try:
-        if source is not None and args.padding is not None:  # iter_flow checks it too, naming no option
-            check_padded_sensor(source.sensor_size, args.padding, "--padding")
-        with folder.path("results.csv").open("w", newline="") as fcsv:
-            writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
-            writer.writeheader()
-            skipped_row = lambda w: writer.writerow(_row(w))  # noqa: E731 - rows in window order
-            flows = iter_flow(events, estimator, dt=args.dt, on_skipped=skipped_row, **options)
-            bar = None if args.quiet else ProgressBar(flows.total)
-            for window in flows:
-                if window.estimated:
-                    _write_window(args, folder, window, estimator, flows.source)
-                    stamps.append((window.result.t_start, window.result.t_start + window.dt))
-                writer.writerow(_row(window))
-                if not windows:  # the first result as soon as it is there
-                    _print_first_window(window, started)
-                window.events = window.displacement = None  # nothing of a window is kept but its summary
-                windows.append(window)
-                if bar is not None:
-                    note = f"J={window.result.value:.3f}"
-                    if window.metrics is not None:
-                        note += f" AEE={window.metrics['AEE']:.3f}px"
-                    bar.update(note)
-    finally:
-        if bar is not None:
-            bar.close()
-        if source is not None:
-            source.close()
-    if not windows:
+    with common.held_drop_warnings() as held:
+        try:
+            if source is not None and args.padding is not None:  # iter_flow checks it too, naming no option
+                check_padded_sensor(source.sensor_size, args.padding, "--padding")
+            with folder.path("results.csv").open("w", newline="") as fcsv:
+                writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
+                writer.writeheader()
+                skipped_row = lambda w: writer.writerow(_row(w))  # noqa: E731 - rows in window order
+                flows = iter_flow(events, estimator, dt=args.dt, on_skipped=skipped_row, **options)
+                bar = None if args.quiet else ProgressBar(flows.total)
+                for window in flows:
+                    if window.estimated:
+                        _write_window(args, folder, window, estimator, flows.source)
+                        stamps.append((window.result.t_start, window.result.t_start + window.dt))
+                    writer.writerow(_row(window))
+                    if not windows:  # the first result as soon as it is there
+                        _print_first_window(window, started)
+                    window.events = window.displacement = None  # nothing of a window is kept but its summary
+                    windows.append(window)
+                    if bar is not None:
+                        note = f"J={window.result.value:.3f}"
+                        if window.metrics is not None:
+                            note += f" AEE={window.metrics['AEE']:.3f}px"
+                        bar.update(note)
+        finally:
+            if bar is not None:
+                bar.close()
+            if source is not None:
+                source.close()
+    if not windows:  # one line: the error says why, with the counts the held warning has
         raise CliError(f"{args.path}: no window to estimate: {common.why_no_window(args, flows.events)}")
+    common.show_warnings(held)
     folder.path("flow_timestamps.txt").write_text("".join(f"{a:.9f} {b:.9f}\n" for a, b in stamps))
     info = summary(windows)
     info["events"] = flows.events
