@@ -287,3 +287,24 @@ def test_flow_out_may_be_out_itself(recording, tmp_path, capsys):
     assert code == 0, err
     assert (out / "flow_0000.flo").exists() and (out / "results.csv").exists()
     assert "flow_0000.flo" in json.loads((out / outputs.MANIFEST_NAME).read_text())["files"]
+
+
+def test_a_copied_output_folder_is_recognised_by_its_content(recording, tmp_path, capsys):
+    """``cp -r`` keeps the files and changes their times: a rerun into the copy replaces the outputs it
+    recognises by their content, and still refuses one whose content changed."""
+    import shutil
+
+    out = tmp_path / "out"
+    argv = ["estimate", recording, *FAST, "--max-windows", "1"]
+    assert run(capsys, *argv, "--out", out)[0] == 0
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)  # new modification times (copy2 keeps them: touch them to be sure)
+    for path in copy.rglob("*"):
+        if path.is_file():
+            os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
+    code, _, err = run(capsys, *argv, "--out", copy)
+    assert code == 0, err
+    (copy / "results.csv").write_text((copy / "results.csv").read_text().replace("0", "1", 1))
+    os.utime(copy / "results.csv", ns=(0, 10**9))
+    code, _, err = run(capsys, *argv, "--out", copy)
+    assert code == 2 and "results.csv exists and was changed since" in error_line(err)

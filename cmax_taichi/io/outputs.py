@@ -8,9 +8,10 @@ Guarantees of an :class:`OutputFolder` (``OUT``):
   folder that holds one, nor a folder inside an input folder; it is refused before anything is
   written (:class:`OutputConflictError`);
 * **nothing a run did not write is replaced**: a run recognises the outputs of cmax-taichi runs by the
-  manifest ``OUT/.cmax-taichi-manifest.json`` (each file's path, size, modification time and the
-  command that wrote it). A file that this run would write and that the manifest does not list (or
-  that changed since) is refused before any work, and again before it is replaced; so is a file that
+  manifest ``OUT/.cmax-taichi-manifest.json`` (each file's path, size, modification time, content
+  digest and the command that wrote it; a copied folder's files, whose times changed, are recognised by
+  their content). A file that this run would write and that the manifest does not list (or that
+  changed since) is refused before any work, and again before it is replaced; so is a file that
   *another* command wrote (``flow`` into the folder of an ``estimate`` that wrote ``results.csv``):
   commands share a folder only where their files do not collide (``evaluate``'s metrics beside the
   results it scored);
@@ -39,6 +40,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fnmatch
+import hashlib
 import json
 import math
 import os
@@ -236,13 +238,22 @@ def hold_lock(folder: str | os.PathLike, what: str = "cmax-taichi") -> Iterator[
 
 
 # --- the manifest -----------------------------------------------------------------------------------
+def _digest(path: Path) -> str:
+    """SHA-256 of a file's content (hex)."""
+    h = hashlib.sha256()
+    with path.open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def _stamp(path: Path, command: str) -> dict:
     st = path.stat()
-    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "command": command}
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": _digest(path), "command": command}
 
 
 def read_manifest(folder: Path) -> dict[str, dict]:
-    """``{relative path: {"size", "mtime_ns", "command"}}`` of the files cmax-taichi runs wrote into
+    """``{relative path: {"size", "mtime_ns", "sha256", "command"}}`` of the files cmax-taichi runs wrote into
     ``folder`` ({} without a manifest; a damaged manifest counts as none, so nothing is replaced on its
     word). Entries of a version-1 manifest take its one command."""
     try:
@@ -323,9 +334,12 @@ def _ours(folder: Path, relative: str, manifest: dict[str, dict]) -> bool:
         return False
     try:
         st = (folder / relative).stat()
+        if (st.st_size, st.st_mtime_ns) == (stamp.get("size"), stamp.get("mtime_ns")):
+            return True
+        # a copy of the folder (cp -r) keeps the content, not the times: the content decides
+        return st.st_size == stamp.get("size") and stamp.get("sha256") == _digest(folder / relative)
     except OSError:
         return False
-    return (st.st_size, st.st_mtime_ns) == (stamp.get("size"), stamp.get("mtime_ns"))
 
 
 def _identity(path: Path) -> tuple[int, int] | None:
