@@ -218,7 +218,7 @@ def make_fused_kernels(
     event and call into the ``terms`` argument (a ``(terms_width(P, n_voted), n)`` array of the kernel's
     float type; otherwise any ``(1, 1)`` one). ``serial`` runs every loop on the calling thread (CPU).
     ``sizes``: the sensor ``(width, height)`` compiled in as constants (the kernel of one sensor: the
-    image indices fold, as fast as a kernel of fixed-shape fields), or None (the kernel reads them from
+    image indices fold into constants), or None (the kernel reads them from
     its ``width`` and ``height`` arguments: one compiled kernel serves every sensor). The arguments are
     the same either way.
     """

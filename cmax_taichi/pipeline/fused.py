@@ -131,7 +131,7 @@ class _Schedules:
     the compile options in force then, and never again, so the optimized tier cannot be a recompile of
     the fast tier's kernel. The fast tier's kernel reads the sensor's size at run time (one kernel for
     every sensor); the optimized tier's has it compiled in (a kernel per sensor: the image indices fold,
-    as fast as kernels of fixed-shape fields).
+    faster than run-time sizes).
 
     ``parallel_from``: the smallest event count whose window ran on the pool because its timed calls
     on one thread exceeded the limit (:attr:`FusedPipeline.serial_limit_s`) and the same call on the pool

@@ -6,7 +6,7 @@ IR optimizations (tier ``"full"``: the fastest kernels, 10-30 s to compile a con
 machine) or without them (tier ``"fast"``: a few seconds, kernels slower; docs/performance.md).
 Taichi's offline cache keeps both. The fast kernels read the sensor's size at run time: compiled once,
 they serve every camera at once. The optimized fused kernels have the sensor compiled in (their image
-indices fold: as fast as kernels of fixed-shape fields), so each sensor has its own, compiled in the
+indices fold: faster than run-time sizes), so each sensor has its own, compiled in the
 background like the first. The compile mode (``cm.init(compile_mode=...)``,
 ``CMAX_TAICHI_COMPILE``, ``--compile`` on the command line) chooses:
 
