@@ -187,9 +187,13 @@ class EventLayout:
         return 3 + int(self.weighted) + int(self.split_polarity)
 
     def ndarray_type(self, real):
-        """The Taichi type of ``ev``: a flat array of ``n`` rows ``(x, y, dt[, w][, channel])`` (px, px, s),
-        one per event (:attr:`width` values each: a compile-time stride)."""
-        return real_array(real)
+        """The Taichi type of ``ev``: an ``(n, width)`` array, a row ``(x, y, dt[, w][, channel])`` (px, px,
+        s) per event. Scalar, not an array of vectors: Taichi 1.7.4 keys a kernel's compiled instance by
+        its arguments' element types, and gives an external array of vectors a new type object at every
+        call, so that each new problem built the kernel again (about a second of front end). Two
+        dimensions, not one flat array with a compile-time stride: LLVM vectorizes the gather loops over
+        the former and not the latter (tests/test_fused_vectorized.py)."""
+        return real_array(real, ndim=2)
 
     def row(self):
         """``row(ev, i)``: event ``i`` of ``ev`` as a vector (what :meth:`reader` reads)."""
@@ -197,7 +201,7 @@ class EventLayout:
 
         @ti.func
         def row(ev: ti.template(), i):
-            return ti.Vector([ev[i * width + k] for k in ti.static(range(width))])
+            return ti.Vector([ev[i, k] for k in ti.static(range(width))])
 
         return row
 

@@ -408,3 +408,14 @@ def test_every_event_of_a_recording_is_accounted_for(
     want = _oracle_counts(t, inside, n_events, duration, kwargs["stride"], keep_tail, max_windows)
     assert sum(v for k, v in got.items() if k not in ("total", "windows")) == got["total"] == len(t)
     assert {k: v for k, v in got.items() if k not in ("total", "windows", "undistortion")} == want
+
+
+def test_the_last_time_window_is_not_lost_to_rounding():
+    """[3.0, 3.001] in windows of 5 us: the span over the step rounds below 200, and the window that
+    starts at the last event was left out (its event counted between windows)."""
+    from cmax_taichi.solve.sequence import count_events
+
+    t = np.array([3.0, 3.001])
+    events = cm.Events(np.zeros(2), np.zeros(2), t, np.ones(2), (4, 4))
+    got = count_events(events, n_events=2, duration=0.005 * 0.001)
+    assert got["between_windows"] == 0 and got["too_few_events"] == 2

@@ -252,10 +252,11 @@ def _start_estimate(recording: Path, out: Path) -> subprocess.Popen:
 
 
 def _wait_for_staging(out: Path, proc: subprocess.Popen, seconds: float = 300) -> None:
-    """Until the run has written its first figure into the staging folder (it is mid-run)."""
+    """Until the run has made its staging folder and holds OUT's lock (it is mid-run: the figures, drawn
+    by a child process, may come only when a short run is nearly done)."""
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
-        if list(out.glob(outputs.STAGING_PREFIX + "*/figures/window_0000.png")):
+        if list(out.glob(outputs.STAGING_PREFIX + "*")) and (out / ".cmax-taichi.lock").exists():
             return
         assert proc.poll() is None, proc.communicate()
         time.sleep(0.1)

@@ -272,7 +272,7 @@ def time_windows(
             f"{span / (limit - 1) if limit > 1 else span:.3g} s"
         )
     k = 0
-    while k < count:
+    while k <= count:  # (one more than the count: span / step may round below a whole number)
         start = t_first + k * step
         if start > t_last:
             return

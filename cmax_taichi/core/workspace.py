@@ -117,7 +117,7 @@ class EventBuffer:
     """
 
     def __init__(self, dtype, n_columns: int, capacity: int) -> None:
-        self.array = ti.ndarray(dtype, shape=capacity * n_columns)  # the rows, one after the other
+        self.array = ti.ndarray(dtype, shape=(capacity, n_columns))
         self.capacity = capacity
         self._owner = None
 
@@ -131,7 +131,7 @@ class EventBuffer:
     def load(self, problem, padded) -> None:
         """Upload ``padded`` (``(capacity, n_columns)`` host array) for ``problem``, unless it holds them."""
         if not self.owned_by(problem):
-            self.array.from_numpy(padded.reshape(-1))
+            self.array.from_numpy(padded)
             self._owner = weakref.ref(problem)
 
 

@@ -370,7 +370,7 @@ class FusedPipeline:
             self._event_buffer.release()
             self.events = self._event_buffer.array
         else:
-            self.events = HostArray(self._packed[:n].reshape(-1))  # the rows, one after the other
+            self.events = HostArray(self._packed[:n])
             if self._terms_rows and self._terms.shape[1] != capacity:
                 rows = self._terms_rows
                 self._terms = HostArray(np.zeros((rows, capacity), dtype=backend.numpy_real()))
