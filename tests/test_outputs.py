@@ -266,9 +266,11 @@ def _wait_for_staging(out: Path, proc: subprocess.Popen, seconds: float = 300) -
 @pytest.mark.slow
 @pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_interrupted_estimate_leaves_out_as_it_was(tmp_path, sig, code, capsys):
-    # long enough (120 windows) that the run is still estimating when the signal comes
-    long = write_recording(tmp_path / "long", n=240000, duration=6.0)
+    # long enough (240 windows) that the run is still estimating when the signal comes
+    long = write_recording(tmp_path / "long", n=480000, duration=12.0)
     out = tmp_path / "out"
+    # the command's modules imported here first, so that the refusal below takes a moment, not the run
+    assert run(capsys, "estimate", long, "--out", long, *FAST)[0] == 2
     proc = _start_estimate(long, out)
     _wait_for_staging(out, proc)
     # meanwhile a second run on the same folder is refused at once, naming the first
