@@ -248,7 +248,12 @@ def _start_estimate(recording: Path, out: Path) -> subprocess.Popen:
     env = dict(os.environ, MPLBACKEND="Agg")
     argv = [sys.executable, "-m", "cmax_taichi.cli", "estimate", str(recording), "--out", str(out)]
     argv += ["--window", "2000", "--quiet", "--figures", "3"]
-    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    # SIGINT as a terminal delivers it: a suite started in the background (``cmd &``) passes SIGINT on
+    # ignored, and Python then installs no KeyboardInterrupt handler
+    return subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
 
 
 def _wait_for_staging(out: Path, proc: subprocess.Popen, seconds: float = 300) -> None:
