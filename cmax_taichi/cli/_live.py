@@ -70,7 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser, live_default: str = "adaptive
         help="count: --window events; duration: --duration seconds; adaptive: as long as the motion needs "
         "(--target-px at the window's extreme pixels). Default: "
         + ("adaptive with --live, else " if live_default == "adaptive" else "")
-        + "count (or duration with --duration)",
+        + "count (or duration with --duration)"
+        + ("" if live_default == "adaptive" else "; adaptive only with --live"),
     )
     win.add_argument("--target-px", type=float, default=None, help="adaptive: displacement per window, px")
     win.add_argument("--min-events", type=int, default=None, help="adaptive: fewest events per window")
@@ -186,7 +187,7 @@ class LiveOutput:
 
         if self._created and self._file is None:
             with contextlib.suppress(OSError):
-                (self.out / outputs.LOCK_NAME).unlink()
+                (self.out / outputs.LOCK_NAME).unlink(missing_ok=True)  # the lock, when still there
                 self.out.rmdir()
 
     def write(self, fields: list, latency: float) -> None:

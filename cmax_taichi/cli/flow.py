@@ -22,6 +22,7 @@ examples:
   cmax-taichi flow recording_data.hdf5 --window 30000 --dt 0.0625 --flow-format npz --out out_mvsec
   cmax-taichi flow events.h5 --duration 0.1 --grid 32 24 --levels 4 --reg deformation=2 --out out_dsec
   cmax-taichi evaluate out_mvsec/flow --data recording_data.hdf5   # score the files afterwards
+  cmax-taichi flow --live tcp://127.0.0.1:7777 --out out_live     # while the camera records (docs/live.md)
 """
 
 from __future__ import annotations
