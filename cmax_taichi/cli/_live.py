@@ -144,7 +144,6 @@ class LiveOutput:
         self._file = None
         self._writer = None
         self._appended: dict[str, object] = {}
-        self.written: list[str] = []
         self.rows = 0
 
     def __enter__(self) -> LiveOutput:
@@ -179,7 +178,6 @@ class LiveOutput:
         self._writer = csv.writer(self._file)
         self._writer.writerow([*self.columns, "latency [s]"])
         self._file.flush()
-        self.written.append("results.csv")
 
     def _remove_if_unused(self) -> None:
         """A run that failed before its first row leaves no folder it created behind."""
@@ -207,20 +205,19 @@ class LiveOutput:
             os.replace(partial, target)
         finally:
             partial.unlink(missing_ok=True)
-        self.written.append(relative)
 
     def append(self, relative: str, text: str) -> None:
         """``text`` appended to ``OUT/relative`` (created by the first call of the run) and flushed."""
         fh = self._appended.get(relative)
         if fh is None:
             fh = self._appended[relative] = self._stack.enter_context((self.out / relative).open("w"))
-            self.written.append(relative)
         fh.write(text)
         fh.flush()
 
     def finish(self, summary: dict, name: str = "results.json", with_rows: bool = True) -> list[Path]:
         """The summary ``OUT/name`` (JSON: with every row of results.csv when ``with_rows``) and the
-        manifest; the paths written, results.csv and the summary first."""
+        manifest of the files of the patterns (this run's: a previous run's were removed when it began);
+        their paths, results.csv and the summary first."""
         from cmax_taichi.io import outputs
 
         self._file.flush()
@@ -234,9 +231,10 @@ class LiveOutput:
             summary = {**summary, "windows": rows}
         text = outputs.json_text(summary, indent=1 if with_rows else 2)  # strict: NaN is null
         outputs.atomic_write_text(self.out / name, text)
-        self.written.insert(1, name)
-        outputs.write_manifest(self.out, self.written, self.command)
-        return [self.out / relative for relative in self.written]
+        written = ["results.csv", name]
+        written += [relative for relative in self._existing() if relative not in written]
+        outputs.write_manifest(self.out, written, self.command)
+        return [self.out / relative for relative in written]
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
