@@ -38,7 +38,7 @@ from cmax_taichi.cli import _common as common
 from cmax_taichi.cli import _live
 
 NAME = "flow"
-HELP = "dense optical flow of every window of a recording (flow files, figures, metrics against truth)"
+HELP = "dense optical flow of every window of a recording or live stream (flow files, figures, metrics)"
 
 
 def _defaults():
