@@ -1,7 +1,7 @@
 """Live input measured: recordings replayed through a loopback TCP stream, a simulated HD stream, memory
 over a long looped replay, and a multi-GB ROS bag read with bounded memory.
 
-``python -m benchmarks.live [--data ../shared/data] [--out DIR] [--rounds 3] [--parts tcp,hd,soak,bag]``
+``python -m benchmarks.live [--data ../shared/data] [--out DIR] [--rounds 3] [--parts tcp,hd,flow,soak,bag]``
 
 * **tcp**: each ECD rotation cut (rotation3) and slider_depth (translation2; at 1x and 2x) is served by
   :func:`cmax_taichi.io.streams.start_replay_server` on 127.0.0.1 at its recorded speed (times
@@ -19,6 +19,12 @@ over a long looped replay, and a multi-GB ROS bag read with bounded memory.
   process at its recorded speed (:class:`~cmax_taichi.io.streams.ReplayStream`), translation2.
 * **soak**: slider_depth looped for ``--soak-minutes`` through TCP; the resident set size of this process
   (and of the stream's reader process) every 2 s into ``soak_live.csv``; growth from the first minute on.
+* **flow**: slider_depth served through TCP at its recorded speed, its dense flow estimated live by
+  :func:`cmax_taichi.flow.live.run_live_flow` (``flow --live``): the command's defaults (16x16 cells, 4
+  levels, 30,000-event windows), a coarser flow (8x8 cells, 3 levels) and the default flow on
+  motion-adaptive windows; the real-time factor, the latency and the median node flow (px/s; the
+  dominant depth's flow is about (-110, 0)), ``--rounds`` rounds, medians; ``live_flow.csv`` /
+  ``live_flow.md``.
 * **bag**: a ROS1 bag of ``--bag-gb`` GB of ``dvs_msgs/EventArray`` (slider_depth tiled in time) written
   into OUT, then opened (decoded into the event cache) in a child process whose peak RSS is reported;
   the bag and its cache are deleted afterwards.
@@ -139,7 +145,7 @@ def summary_row(case: str, warp: str, result, rows, n_total: int, replay_seconds
         "events_per_window_median": statistics.median(r.n_events for r in rows) if rows else 0,
         "ms_per_window_median": 1e3 * statistics.median(r.t_end - r.t_start for r in rows) if rows else 0,
         "first_window_s": result.first_window_seconds,
-        "first_window_search": rows[0].search if rows else "",
+        "first_window_search": getattr(rows[0], "search", "") if rows else "",
         "warm_up_s": result.warm_up_seconds,
         "busy_s": result.busy_seconds,
         "data_s": result.data_seconds,
@@ -205,6 +211,92 @@ def run_hd(out_dir: Path, seconds: float, rounds: int, rule, log) -> list[dict]:
         rows_out.append(row)
         log(format_row(row))
     return rows_out
+
+
+#: the dense flows of the flow part: (label, DenseFlowEstimator options, windows: events or "adaptive")
+FLOW_CASES = (
+    ("16x16 cells, 4 levels, 30,000-event windows", {}, 30000),
+    ("8x8 cells, 3 levels, 30,000-event windows", {"grid": (8, 8), "levels": 3}, 30000),
+    ("16x16 cells, 4 levels, adaptive windows", {}, "adaptive"),
+)
+
+
+def flow_case(data: Path, label: str, options: dict, windows, speed: float = 1.0) -> dict:
+    """slider_depth through TCP, its dense flow estimated live (see the module docstring)."""
+    from cmax_taichi import io
+    from cmax_taichi.flow import DenseFlowEstimator
+    from cmax_taichi.flow.live import run_live_flow
+    from cmax_taichi.io.streams import open_stream, start_replay_server
+    from cmax_taichi.solve.adaptive import AdaptiveWindows
+
+    folder = data / "ecd_slider_depth"
+    with io.open_recording(folder) as rec:
+        camera, n_total, span = rec.camera, rec.n_events, rec.t_end - rec.t_start
+    server = start_replay_server(folder, speed=speed, linger=0.3, wait_for_go=True, wait_for_client=900)
+    rows, flows = [], []
+
+    def on_window(row, estimator, result, latency):
+        rows.append(row)
+        flows.append(np.median(result.nodes.reshape(-1, 2), axis=0))
+
+    load_before = load()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = run_live_flow(
+                open_stream(server.address, camera=camera), DenseFlowEstimator(**options),
+                windows=AdaptiveWindows() if windows == "adaptive" else windows, on_ready=server.go.set,
+                on_window=on_window,
+            )  # fmt: skip
+    finally:
+        server.stop()
+    row = summary_row(f"slider_depth, {label} (TCP, {speed:g}x)", "dense_flow", result, rows, n_total,
+                      span / speed, load_before)  # fmt: skip
+    u, v = np.median(np.array(flows), axis=0) if flows else (math.nan, math.nan)
+    row["flow_median_u"], row["flow_median_v"] = float(u), float(v)
+    return row
+
+
+def run_flow(data: Path, rounds: int, log) -> list[dict]:
+    out = []
+    for k in range(rounds):
+        for label, options, windows in FLOW_CASES:
+            row = flow_case(data, label, options, windows)
+            row["round"] = k
+            out.append(row)
+            log(
+                format_row(row)
+                + f"; median flow ({row['flow_median_u']:.1f}, {row['flow_median_v']:.1f}) px/s"
+            )
+    return out
+
+
+def flow_markdown(rows: list[dict]) -> str:
+    lines = [
+        "| case | events | windows (median events, ms of data) | behind | first window (ms) | "
+        "real-time factor, first window included | latency median / p99 (ms) | last window (ms) | "
+        "median node flow (px/s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['case']} | {r['events']:.0f} | {r['windows']:.0f} ({r['events_per_window_median']:.0f}, "
+            f"{r['ms_per_window_median']:.1f}) | {r['behind']:.0f} | {1e3 * r['first_window_s']:.0f} | "
+            f"{r['real_time_factor']:.3f} | {r['latency_median_ms']:.0f} / {r['latency_p99_ms']:.0f} | "
+            f"{r['end_latency_ms']:.0f} | ({r['flow_median_u']:.1f}, {r['flow_median_v']:.1f}) |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_table(rows: list[dict], path: Path) -> None:
+    """Every run's row as CSV."""
+    with path.open("w", newline="") as fh:
+        columns = sorted(
+            {k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k) if k in rows[0] else 99
+        )
+        w = csv.DictWriter(fh, fieldnames=columns, restval="")
+        w.writeheader()
+        w.writerows(rows)
 
 
 def run_soak(data: Path, out_dir: Path, minutes: float, rule, log) -> dict:
@@ -379,7 +471,7 @@ def main(argv=None) -> int:
     parser.add_argument("--data", default="../shared/data")
     parser.add_argument("--out", default="bench_live")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--parts", default="tcp,hd,soak,bag")
+    parser.add_argument("--parts", default="tcp,hd,flow,soak,bag")
     parser.add_argument("--hd-seconds", type=float, default=0.5)
     parser.add_argument("--soak-minutes", type=float, default=10.0)
     parser.add_argument("--bag-gb", type=float, default=2.0)
@@ -403,15 +495,14 @@ def main(argv=None) -> int:
         rows += run_hd(out, args.hd_seconds, args.rounds, rule, log)
     table = medians(rows)
     if table:
-        with (out / "live.csv").open("w", newline="") as fh:
-            columns = sorted(
-                {k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k) if k in rows[0] else 99
-            )
-            w = csv.DictWriter(fh, fieldnames=columns, restval="")
-            w.writeheader()
-            w.writerows(rows)
+        write_table(rows, out / "live.csv")
         (out / "live.md").write_text(markdown(table))
         log(markdown(table))
+    if "flow" in parts:
+        flow_rows = run_flow(data, args.rounds, log)
+        write_table(flow_rows, out / "live_flow.csv")
+        (out / "live_flow.md").write_text(flow_markdown(medians(flow_rows)))
+        log(flow_markdown(medians(flow_rows)))
     if "soak" in parts:
         (out / "soak.json").write_text(
             json.dumps(run_soak(data, out, args.soak_minutes, rule, log), indent=1)

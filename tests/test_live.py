@@ -184,11 +184,12 @@ def test_loopback_replay_server_delivers_every_event():
 
 
 # --- the command line -------------------------------------------------------------------------------
-def _cli(args, tmp_path, **kwargs):
+def _cli(args, tmp_path, command="estimate", **kwargs):
+    """``cmax-taichi COMMAND ARGS`` in a subprocess, without a display server."""
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     env["CMAX_TAICHI_CACHE"] = str(tmp_path / "cache")
     return subprocess.Popen(
-        [sys.executable, "-m", "cmax_taichi.cli", "estimate", *args], stdout=subprocess.PIPE,
+        [sys.executable, "-m", "cmax_taichi.cli", command, *args], stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True, env=env, **kwargs,
     )  # fmt: skip
 
@@ -241,6 +242,7 @@ def test_cli_live_bad_input(tmp_path, args, fragment):
     assert proc.returncode == 2
     lines = [line for line in stderr.splitlines() if line.strip() and not line.startswith("[Taichi]")]
     assert len(lines) == 1 and fragment in lines[0], stderr
+    assert not (tmp_path / "o").exists()  # a run that failed before its first row leaves no folder
 
 
 def test_display_frames_draw_and_update():

@@ -37,8 +37,9 @@ LIVE_FILES = ("results.csv", "results.json")
 DISPLAY_PERIOD = 0.25
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options of live input and of the window rule, on ``estimate``."""
+def add_arguments(parser: argparse.ArgumentParser, live_default: str = "adaptive") -> None:
+    """The options of live input and of the window rule, on ``estimate`` and ``flow`` (``live_default``:
+    the window mode of --live without --window-mode, as :func:`window_rule` takes it)."""
     live = parser.add_argument_group(
         "live input (estimate while the events arrive; results appended to OUT/results.csv)"
     )
@@ -67,8 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         choices=["count", "duration", "adaptive"],
         help="count: --window events; duration: --duration seconds; adaptive: as long as the motion needs "
-        "(--target-px at the window's extreme pixels). Default: adaptive with --live, else count (or "
-        "duration with --duration)",
+        "(--target-px at the window's extreme pixels). Default: "
+        + ("adaptive with --live, else " if live_default == "adaptive" else "")
+        + "count (or duration with --duration)"
+        + ("" if live_default == "adaptive" else "; adaptive only with --live"),
     )
     win.add_argument("--target-px", type=float, default=None, help="adaptive: displacement per window, px")
     win.add_argument("--min-events", type=int, default=None, help="adaptive: fewest events per window")
@@ -79,14 +82,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--topic", default=None, help="ROS bag: the event topic (listed when ambiguous)")
 
 
-def window_rule(args: argparse.Namespace):
+def window_rule(args: argparse.Namespace, live_default: str = "adaptive"):
     """The ``adaptive=`` of ``sequence.process`` (None: count or duration windows), and for --live the
-    ``windows=`` of ``run_live``; CliError for options that do not fit together."""
+    ``windows=`` of the live run; CliError for options that do not fit together. ``live_default``: the
+    mode of --live without --window-mode (``"count"``: count windows, or duration ones with --duration)."""
     from cmax_taichi.solve.adaptive import AdaptiveWindows
 
     mode = args.window_mode
     if mode is None:
-        mode = "adaptive" if args.live else "duration" if args.duration is not None else "count"
+        mode = "duration" if args.duration is not None else "count"
+        if args.live and live_default == "adaptive":
+            mode = "adaptive"
     given = {
         name: getattr(args, name)
         for name in ("target_px", "min_events", "max_events", "max_duration")
@@ -112,16 +118,32 @@ def window_rule(args: argparse.Namespace):
 
 # --- output --------------------------------------------------------------------------------------------
 class LiveOutput:
-    """OUT for a live run: checked and locked on entry, results.csv appended and flushed row by row,
-    results.json and the manifest when the run ends (:meth:`finish`)."""
+    """OUT for a live run: checked and locked on entry, results.csv appended and flushed row by row
+    (and other files as the windows come: :meth:`write_file`, :meth:`append`), the summary and the
+    manifest when the run ends (:meth:`finish`).
 
-    def __init__(self, out: str | os.PathLike, inputs: list[Path], columns: list[str]) -> None:
+    ``patterns``: what the run may write (relative paths, ``fnmatch`` wildcards in the file name): those
+    that exist and that no cmax-taichi run wrote are refused on entry; a previous run's are removed when
+    the run begins (no stale flow file beside this run's)."""
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        inputs: list[Path],
+        columns: list[str],
+        *,
+        command: str = "estimate --live",
+        patterns: tuple[str, ...] = LIVE_FILES,
+    ) -> None:
         self.out = Path(out)
         self.inputs = inputs
         self.columns = columns
+        self.command = command
+        self.patterns = patterns
         self._stack = contextlib.ExitStack()
         self._file = None
         self._writer = None
+        self._appended: dict[str, object] = {}
         self.rows = 0
 
     def __enter__(self) -> LiveOutput:
@@ -135,16 +157,23 @@ class LiveOutput:
             raise OSError(f"--out: cannot create {self.out} ({exc.strerror or exc})") from None
         self._stack.callback(self._remove_if_unused)
         try:
-            self._stack.enter_context(outputs.hold_lock(self.out, "estimate --live"))
-            outputs.refuse_foreign(self.out, LIVE_FILES)
+            self._stack.enter_context(outputs.hold_lock(self.out, self.command))
+            outputs.refuse_foreign(self.out, self._existing())
         except BaseException:
             self._stack.close()
             raise
         return self
 
+    def _existing(self) -> list[str]:
+        """The files under OUT that match the patterns (relative paths)."""
+        found = {p.relative_to(self.out).as_posix() for pat in self.patterns for p in self.out.glob(pat)}
+        return sorted(found)
+
     def begin(self) -> None:
         """Start results.csv (the header): the source is open, rows will come."""
-        (self.out / "results.json").unlink(missing_ok=True)  # a previous run's (ours: checked on entry)
+        for relative in self._existing():  # a previous run's (ours: checked on entry)
+            if relative != "results.csv":
+                (self.out / relative).unlink(missing_ok=True)
         self._file = self._stack.enter_context((self.out / "results.csv").open("w", newline=""))
         self._writer = csv.writer(self._file)
         self._writer.writerow([*self.columns, "latency [s]"])
@@ -156,7 +185,7 @@ class LiveOutput:
 
         if self._created and self._file is None:
             with contextlib.suppress(OSError):
-                (self.out / outputs.LOCK_NAME).unlink()
+                (self.out / outputs.LOCK_NAME).unlink(missing_ok=True)  # the lock, when still there
                 self.out.rmdir()
 
     def write(self, fields: list, latency: float) -> None:
@@ -165,19 +194,47 @@ class LiveOutput:
         self._file.flush()
         self.rows += 1
 
-    def finish(self, summary: dict) -> list[Path]:
-        """results.json (every row of results.csv, the settings and the summary) and the manifest."""
+    def write_file(self, relative: str, write) -> None:
+        """A whole file ``OUT/relative``: ``write(path)`` writes it under a hidden name beside it (with
+        its suffix), renamed into place when complete (a crash leaves no partial file)."""
+        target = self.out / relative
+        target.parent.mkdir(parents=True, exist_ok=True)
+        partial = target.with_name(f".{target.stem}.partial{target.suffix}")
+        try:
+            write(partial)
+            os.replace(partial, target)
+        finally:
+            partial.unlink(missing_ok=True)
+
+    def append(self, relative: str, text: str) -> None:
+        """``text`` appended to ``OUT/relative`` (created by the first call of the run) and flushed."""
+        fh = self._appended.get(relative)
+        if fh is None:
+            fh = self._appended[relative] = self._stack.enter_context((self.out / relative).open("w"))
+        fh.write(text)
+        fh.flush()
+
+    def finish(self, summary: dict, name: str = "results.json", with_rows: bool = True) -> list[Path]:
+        """The summary ``OUT/name`` (JSON: with every row of results.csv when ``with_rows``) and the
+        manifest of the files of the patterns (this run's: a previous run's were removed when it began);
+        their paths, results.csv and the summary first."""
         from cmax_taichi.io import outputs
 
         self._file.flush()
-        with open(self.out / "results.csv", newline="") as fh:
-            reader = csv.reader(fh)
-            header = next(reader)
-            rows = [dict(zip(header, row, strict=True)) for row in reader]
-        text = outputs.json_text({**summary, "windows": rows})  # strict: a latency without a window is null
-        outputs.atomic_write_text(self.out / "results.json", text)
-        outputs.write_manifest(self.out, LIVE_FILES, "estimate --live")
-        return [self.out / name for name in LIVE_FILES]
+        for fh in self._appended.values():
+            fh.flush()
+        if with_rows:
+            with open(self.out / "results.csv", newline="") as fh:
+                reader = csv.reader(fh)
+                header = next(reader)
+                rows = [dict(zip(header, row, strict=True)) for row in reader]
+            summary = {**summary, "windows": rows}
+        text = outputs.json_text(summary, indent=1 if with_rows else 2)  # strict: NaN is null
+        outputs.atomic_write_text(self.out / name, text)
+        written = ["results.csv", name]
+        written += [relative for relative in self._existing() if relative not in written]
+        outputs.write_manifest(self.out, written, self.command)
+        return [self.out / relative for relative in written]
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
@@ -256,8 +313,11 @@ class LiveDisplay:
         self._last = 0.0
         self.history: list[tuple[float, list[float]]] = []
 
-    def offer(self, row, prob, theta) -> None:
-        self.history = (self.history + [(0.5 * (row.t_start + row.t_end), list(theta))])[-300:]
+    def offer(self, row, values, names, units, images) -> None:
+        """The window of ``row`` (``t_start``, ``t_end``, ``index``, ``n_events``) done: ``values`` (one
+        per name of ``names``, in ``units``) join the traces; ``images()`` (the IWE before and after the
+        estimate) is called only when a frame is sent."""
+        self.history = (self.history + [(0.5 * (row.t_start + row.t_end), list(values))])[-300:]
         now = time.perf_counter()
         try:
             while self._conn.poll():
@@ -266,16 +326,14 @@ class LiveDisplay:
             return  # the window was closed
         if not self._ready or now - self._last < DISPLAY_PERIOD:
             return
-        import numpy as np
-
-        model = prob.model
+        identity, estimate = images()
         frame = {
-            "identity": prob.iwe(np.zeros(model.n_params)),
-            "estimate": prob.iwe(theta),
+            "identity": identity,
+            "estimate": estimate,
             "t": [t for t, _ in self.history],
-            "theta": [[v[k] for _, v in self.history] for k in range(model.n_params)],
-            "names": model.params,
-            "units": model.units,
+            "theta": [[v[k] for _, v in self.history] for k in range(len(names))],
+            "names": tuple(names),
+            "units": tuple(units),
             "title": f"window {row.index}: t = {row.t_start:.4f} .. {row.t_end:.4f} s, {row.n_events} events",
         }
         with contextlib.suppress(OSError, BrokenPipeError):
@@ -317,10 +375,90 @@ def graceful_stop():
 
 
 # --- the run -------------------------------------------------------------------------------------------
+class LiveSource:
+    """What every live command checks and opens: ``--live SOURCE`` (a path among the inputs), ``--speed``,
+    ``--loops``, ``--idle-timeout``, ``--calib`` and ``--display`` (CliError before anything opens)."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        if args.stride is not None or args.keep_tail:
+            raise CliError("--live keeps the last window when it holds enough, and has no --stride")
+        if not (math.isfinite(args.speed) and args.speed > 0):
+            raise CliError(f"--speed must be a positive number, got {args.speed}")
+        if args.loops < 1:
+            raise CliError(f"--loops must be at least 1, got {args.loops}")
+        timeout = args.idle_timeout
+        if timeout is not None and not (math.isfinite(timeout) and timeout > 0):
+            raise CliError(f"--idle-timeout must be a positive number of seconds, got {timeout}")
+        self.display = display_available() if args.display is None else args.display
+        if args.display and not display_available():
+            raise CliError("--display: no display here ($DISPLAY unset, or a non-interactive MPLBACKEND)")
+        self.args = args
+        self.source = source = args.live
+        is_path = not (source.startswith("tcp://") or source == "camera" or source.startswith("camera:"))
+        self.inputs = [Path(source)] if is_path else []
+        if is_path and not Path(source).exists():
+            raise CliError(f"--live {source}: no such file or folder (nor tcp://HOST:PORT, camera)")
+        self.camera = None
+        if args.calib is not None:
+            from cmax_taichi.io.text import read_calib
+
+            if not Path(args.calib).is_file():
+                raise CliError(f"--calib {args.calib}: no such file")
+            self.camera, _ = read_calib(Path(args.calib))
+
+    def open(self, needs_camera: str | None = None):
+        """The stream (CliError when it does not open; ``needs_camera``: what needs a calibration, when
+        the stream must have one)."""
+        from cmax_taichi.io.streams import StreamError, open_stream
+
+        args = self.args
+        size = getattr(args, "sensor_size", None)  # a replayed recording's, where the command has it
+        options = {"format": args.format, "topic": args.topic, "sensor_size": size and tuple(size)}
+        options = {k: v for k, v in options.items() if v is not None}
+        try:
+            stream = open_stream(
+                self.source, speed=args.speed, loops=args.loops, camera=self.camera, **options
+            )
+        except (ImportError, StreamError) as exc:
+            raise CliError(str(exc)) from None
+        if needs_camera is not None and stream.camera is None:
+            stream.close()
+            raise CliError(f"{needs_camera} needs a calibration, and {self.source} has none (--calib FILE)")
+        return stream
+
+
+def drive(start, shown: LiveDisplay | None):
+    """Run ``start(stop)`` (the live run, ``stop`` the event that Ctrl-C / SIGTERM set) to its end:
+    ``(result, error, signal)``, ``error`` the source's failure (StreamError, its ``live_result`` the
+    result), ``signal`` the signal that ended the run or None. Closes the display."""
+    from cmax_taichi.io.streams import StreamError
+
+    error = None
+    try:
+        with graceful_stop() as stop:
+            result = start(stop)
+    except StreamError as exc:
+        error, result = exc, exc.live_result
+    finally:
+        if shown is not None:
+            shown.close()
+    return result, error, stop.signal
+
+
+def exit_code(result, error, signum, rows: int, csv_path: Path) -> int:
+    """0; 130 / 143 when Ctrl-C / SIGTERM ended the run; CliError for a source that failed."""
+    if error is not None:
+        raise CliError(f"{error} (the {rows} row(s) before it are in {csv_path})")
+    if result.stop_reason == "stopped":
+        return 143 if signum == signal.SIGTERM else 130
+    return 0
+
+
 def run(args: argparse.Namespace, regs: dict, process_options: dict) -> int:
     """``estimate --live``: returns the exit code (0; 130 / 143 when Ctrl-C / SIGTERM ended the run)."""
+    import numpy as np
+
     import cmax_taichi as cm
-    from cmax_taichi.io.streams import StreamError, open_stream
     from cmax_taichi.solve.online import run_live
     from cmax_taichi.solve.results import SequenceResult
 
@@ -328,93 +466,63 @@ def run(args: argparse.Namespace, regs: dict, process_options: dict) -> int:
         raise CliError("--live SOURCE replaces PATH and --example")
     if args.workers is not None or args.engine is not None or args.flow_out is not None:
         raise CliError("--live estimates one stream: not with --workers, --engine or --flow-out")
-    if args.keep_tail or args.stride is not None:
-        raise CliError("--live keeps the last window when it holds enough, and has no --stride")
-    if not (math.isfinite(args.speed) and args.speed > 0):
-        raise CliError(f"--speed must be a positive number, got {args.speed}")
-    if args.loops < 1:
-        raise CliError(f"--loops must be at least 1, got {args.loops}")
-    if args.idle_timeout is not None and not (math.isfinite(args.idle_timeout) and args.idle_timeout > 0):
-        raise CliError(f"--idle-timeout must be a positive number of seconds, got {args.idle_timeout}")
     _, windows = window_rule(args)
-    display = display_available() if args.display is None else args.display
-    if args.display and not display_available():
-        raise CliError("--display: no display here ($DISPLAY unset, or a non-interactive MPLBACKEND)")
-    source = args.live
-    is_path = not (source.startswith("tcp://") or source == "camera" or source.startswith("camera:"))
-    inputs = [Path(source)] if is_path else []
-    if is_path and not Path(source).exists():
-        raise CliError(f"--live {source}: no such file or folder (nor tcp://HOST:PORT, camera)")
+    live = LiveSource(args)
     model = cm.get_warp(args.warp)
     columns = SequenceResult(model.name, model.params, model.units).columns()
-    options = {k: v for k, v in (("format", args.format), ("topic", args.topic)) if v is not None}
-    camera = None
-    if args.calib is not None:
-        from cmax_taichi.io.text import read_calib
-
-        if not Path(args.calib).is_file():
-            raise CliError(f"--calib {args.calib}: no such file")
-        camera, _ = read_calib(Path(args.calib))
-    with LiveOutput(args.out, inputs, columns) as out:  # OUT checked and locked before anything opens
+    with LiveOutput(args.out, live.inputs, columns) as out:  # OUT checked and locked before anything opens
         common_init(args)
-        try:
-            stream = open_stream(source, speed=args.speed, loops=args.loops, camera=camera, **options)
-        except (ImportError, StreamError) as exc:
-            raise CliError(str(exc)) from None
-        if model.needs_camera and stream.camera is None:
-            stream.close()
-            raise CliError(f"warp {model.name!r} needs a calibration, and {source} has none (--calib FILE)")
-        shown = LiveDisplay() if display else None
+        stream = live.open(f"warp {model.name!r}" if model.needs_camera else None)
+        shown = LiveDisplay() if live.display else None
         out.begin()
 
         def on_window(row, prob, res, latency):
             out.write(SequenceResult.csv_row(row), latency)
             if shown is not None:
-                shown.offer(row, prob, res.theta)
+                zero = np.zeros(model.n_params)
+                shown.offer(row, res.theta, model.params, model.units,
+                            lambda: (prob.iwe(zero), prob.iwe(res.theta)))  # fmt: skip
 
         def on_skipped(row):
             out.write(SequenceResult.csv_row(row), math.nan)
 
-        print(f"live: {stream.address} ({stream.sensor_size[0]}x{stream.sensor_size[1]}), warp {model.name}, "
-              f"writing {out.out / 'results.csv'}; Ctrl-C ends it", file=sys.stderr)  # fmt: skip
-        error = None
-        try:
-            with graceful_stop() as stop:
-                result = run_live(
-                    stream, model.name, objective=args.objective, regularizers=regs, camera=stream.camera,
-                    windows=windows, method=process_options["method"],
-                    warm_start=process_options["warm_start"],
-                    problem_options=process_options["problem_options"],
-                    optimize_options=process_options["optimize_options"], max_windows=args.max_windows,
-                    idle_timeout=args.idle_timeout, stop=stop, on_window=on_window, on_skipped=on_skipped,
-                )  # fmt: skip
-        except StreamError as exc:
-            error, result = exc, exc.live_result
-        finally:
-            if shown is not None:
-                shown.close()
-        summary = _summary(result, args, windows)
-        files = out.finish(summary)
-    _print_summary(result, files)
-    if error is not None:
-        raise CliError(f"{error} (the {out.rows} row(s) before it are in {files[0]})")
-    if result.stop_reason == "stopped":
-        return 143 if stop.signal == signal.SIGTERM else 130
-    return 0
+        announce(stream, f"warp {model.name}", out)
+        result, error, signum = drive(
+            lambda stop: run_live(
+                stream, model.name, objective=args.objective, regularizers=regs, camera=stream.camera,
+                windows=windows, method=process_options["method"], warm_start=process_options["warm_start"],
+                problem_options=process_options["problem_options"],
+                optimize_options=process_options["optimize_options"], max_windows=args.max_windows,
+                idle_timeout=args.idle_timeout, stop=stop, on_window=on_window, on_skipped=on_skipped,
+            ),
+            shown,
+        )  # fmt: skip
+        files = out.finish(summary(result))
+    print_summary(result, [str(p) for p in files])
+    return exit_code(result, error, signum, out.rows, files[0])
+
+
+def announce(stream, what: str, out: LiveOutput) -> None:
+    """The run's first line (stderr): the source, what is estimated, where the rows go."""
+    W, H = stream.sensor_size
+    print(f"live: {stream.address} ({W}x{H}), {what}, writing {out.out / 'results.csv'}; Ctrl-C ends it",
+          file=sys.stderr)  # fmt: skip
 
 
 def common_init(args) -> None:
     from cmax_taichi.cli import _common as common
 
-    common.init_backend(args.arch, args.precision)
+    common.init_backend(args.arch, args.precision, getattr(args, "compile", None))
 
 
-def _summary(result, args, windows) -> dict:
+def summary(result) -> dict:
+    """The summary of a live run (JSON-friendly): what was estimated, the settings, where every event
+    went, and the run's figures (``live``: real-time factor, latency median and 99th percentile)."""
     return {
         "warp": result.warp,
         "params": list(result.param_names),
         "units": list(result.units),
-        "settings": {**result.settings, "windows": result.settings["windows"]},
+        "settings": result.settings,
         "events": result.events,
         "live": {
             "stop_reason": result.stop_reason,
@@ -425,13 +533,16 @@ def _summary(result, args, windows) -> dict:
             "busy_seconds": result.busy_seconds,
             "data_seconds": result.data_seconds,
             "first_window_seconds": result.first_window_seconds,
+            "warm_up_seconds": result.warm_up_seconds,
             "latency_median_s": result.latency(50),
             "latency_p99_s": result.latency(99),
+            "last_window_latency_s": result.end_latency,
         },
     }
 
 
-def _print_summary(result, files) -> None:
+def print_summary(result, files: list[str]) -> None:
+    """What the run did (stdout): windows, real-time factor, latency, where the events went, the files."""
     from cmax_taichi.core.windows import describe_events
 
     events = result.events
@@ -449,5 +560,5 @@ def _print_summary(result, files) -> None:
     )
     note = f"; {left} not estimated ({describe_events(events)})" if left else ""
     print(f"  events: {events.get('estimated', 0)} of {events.get('total', 0)} estimated{note}")
-    print("wrote: " + ", ".join(str(p) for p in files))
+    print("wrote: " + ", ".join(files))
     sys.stdout.flush()

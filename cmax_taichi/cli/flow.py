@@ -22,6 +22,7 @@ examples:
   cmax-taichi flow recording_data.hdf5 --window 30000 --dt 0.0625 --flow-format npz --out out_mvsec
   cmax-taichi flow events.h5 --duration 0.1 --grid 32 24 --levels 4 --reg deformation=2 --out out_dsec
   cmax-taichi evaluate out_mvsec/flow --data recording_data.hdf5   # score the files afterwards
+  cmax-taichi flow --live tcp://127.0.0.1:7777 --out out_live     # while the camera records (docs/live.md)
 """
 
 from __future__ import annotations
@@ -34,9 +35,10 @@ import time
 from pathlib import Path
 
 from cmax_taichi.cli import _common as common
+from cmax_taichi.cli import _live
 
 NAME = "flow"
-HELP = "dense optical flow of every window of a recording (flow files, figures, metrics against truth)"
+HELP = "dense optical flow of every window of a recording or live stream (flow files, figures, metrics)"
 
 
 def _defaults():
@@ -140,9 +142,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="npz: 'flow' (2, H, W) px with t_start, t_end; flo: Middlebury; png: DSEC 16-bit (default npz)",
     )
     run.add_argument(
-        "--figures", type=int, default=1, metavar="K", help="figures of the first K windows (default 1)"
+        "--figures",
+        type=int,
+        default=None,
+        metavar="K",
+        help="figures of the first K windows (default 1; not with --live)",
     )
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    _live.add_arguments(parser, live_default="count")
 
 
 #: the example that is not a simulator preset: the box room of cmax_taichi.testing.flow_scenes
@@ -234,7 +241,7 @@ def _window_figure(path: Path, window, estimator) -> None:
     plt.close(fig)
 
 
-_COLUMNS = [
+COLUMNS = [
     "window",
     "status",
     "t_start",
@@ -349,13 +356,54 @@ class _ExampleTruth:
         return self._rec.events(t0, t1)
 
 
+def make_estimator(args: argparse.Namespace, regs: dict):
+    """The :class:`~cmax_taichi.flow.DenseFlowEstimator` of the command line."""
+    from cmax_taichi.flow.solver import DenseFlowEstimator
+
+    return DenseFlowEstimator(
+        tuple(args.grid),
+        levels=args.levels,
+        objective=args.objective,
+        references=args.references,
+        regularizers=regs,
+        blur_sigma=args.blur,
+        padding=args.padding,
+    )
+
+
+def run_options(args: argparse.Namespace, regs: dict) -> dict:
+    """The options of the run, as summary.json records them."""
+    return {
+        "grid": list(args.grid),
+        "levels": args.levels,
+        "objective": args.objective,
+        "references": args.references,
+        "regularizers": regs,
+        "blur": args.blur,
+        "padding": args.padding,
+        "window_events": None if args.duration is not None else args.window,
+        "window_duration": args.duration,
+        "stride": args.stride,
+        "keep_tail": args.keep_tail,
+        "dt": args.dt,
+        "flow_format": args.flow_format,
+    }
+
+
 def run(args: argparse.Namespace) -> int:
     from cmax_taichi.cli import CliError
-    from cmax_taichi.flow.solver import DenseFlowEstimator
     from cmax_taichi.io.outputs import OutputFolder
 
     regs = parse_regularizers(args.reg, args.no_reg)
     _check(args)
+    if args.live is not None:
+        from cmax_taichi.cli import _flow_live
+
+        return _flow_live.run(args, regs)
+    if args.window_mode == "adaptive":
+        raise CliError("--window-mode adaptive: with --live (a recording's flow windows: count or duration)")
+    _live.window_rule(args, live_default="count")  # the other window options, checked as for --live
+    args.figures = 1 if args.figures is None else args.figures
     if (args.path is None) == (args.example is None):
         raise CliError("give a recording PATH or --example NAME (one of them)")
     inputs = [] if args.path is None else [Path(args.path)]
@@ -366,15 +414,7 @@ def run(args: argparse.Namespace) -> int:
     folder = OutputFolder(args.out, inputs=inputs, patterns=patterns, command="flow")
     folder.check()  # an OUT that is an input, or holds files this run may not replace: before any work
     common.init_backend(args.arch, args.precision, args.compile)
-    estimator = DenseFlowEstimator(
-        tuple(args.grid),
-        levels=args.levels,
-        objective=args.objective,
-        references=args.references,
-        regularizers=regs,
-        blur_sigma=args.blur,
-        padding=args.padding,
-    )
+    estimator = make_estimator(args, regs)
     with folder:
         windows, info, truth = _estimate_into(args, estimator, folder, regs)
         written = folder.commit()  # every file moved into place whole, now that the run is complete
@@ -458,6 +498,8 @@ def _estimate_into(args, estimator, folder, regs: dict):
         options = dict(n_events=len(events), max_windows=1, truth=truth)
     else:
         size = {} if args.sensor_size is None else {"sensor_size": tuple(args.sensor_size)}
+        if args.topic is not None:
+            size["topic"] = args.topic
         events = source = io.open_recording(Path(args.path), format=args.format, **size)
         options = dict(
             n_events=args.window,
@@ -474,7 +516,7 @@ def _estimate_into(args, estimator, folder, regs: dict):
             if source is not None and args.padding is not None:  # iter_flow checks it too, naming no option
                 check_padded_sensor(source.sensor_size, args.padding, "--padding")
             with folder.path("results.csv").open("w", newline="") as fcsv:
-                writer = csv.DictWriter(fcsv, fieldnames=_COLUMNS)
+                writer = csv.DictWriter(fcsv, fieldnames=COLUMNS)
                 writer.writeheader()
                 skipped_row = lambda w: writer.writerow(_row(w))  # noqa: E731 - rows in window order
                 flows = iter_flow(events, estimator, dt=args.dt, on_skipped=skipped_row, **options)
@@ -505,21 +547,7 @@ def _estimate_into(args, estimator, folder, regs: dict):
     info = summary(windows)
     info["events"] = flows.events
     info["recording"] = flows.source if args.example is None else {"source": f"example:{args.example}"}
-    info["options"] = {
-        "grid": list(args.grid),
-        "levels": args.levels,
-        "objective": args.objective,
-        "references": args.references,
-        "regularizers": regs,
-        "blur": args.blur,
-        "padding": args.padding,
-        "window_events": None if args.duration is not None else args.window,
-        "window_duration": args.duration,
-        "stride": args.stride,
-        "keep_tail": args.keep_tail,
-        "dt": args.dt,
-        "flow_format": args.flow_format,
-    }
+    info["options"] = run_options(args, regs)
     folder.path("summary.json").write_text(json_text(info, indent=2))
     return windows, info, truth
 
@@ -544,15 +572,32 @@ def _print_first_window(window, started: float) -> None:
     sys.stdout.flush()
 
 
+def flow_name(args, window) -> str:
+    """The flow file of an estimated window, relative to OUT."""
+    return f"flow/flow_{window.index:04d}.{args.flow_format}"
+
+
+def flow_meta(args, window, source: dict) -> dict:
+    """The metadata of a window's flow file: its interval (s), unit, window, and the recording's
+    fingerprint where it has one (evaluate checks --data against it)."""
+    res = window.result
+    meta = {"t_start": res.t_start, "t_end": res.t_start + window.dt, "unit": "px", "window": window.index}
+    if args.flow_format == "npz" and source.get("fingerprint"):
+        meta["fingerprint"] = source["fingerprint"]
+    return meta
+
+
+def row_fields(window) -> list:
+    """The results.csv row of a window as a list, in the order of the columns."""
+    row = _row(window)
+    return [row.get(column, "") for column in COLUMNS]
+
+
 def _write_window(args, folder, window, estimator, source: dict) -> None:
     """The flow file of an estimated window (and its figure among the first --figures)."""
     from cmax_taichi.io.writers import write_flow
 
-    res = window.result
-    meta = {"t_start": res.t_start, "t_end": res.t_start + window.dt, "unit": "px", "window": window.index}
-    if args.flow_format == "npz" and source.get("fingerprint"):
-        meta["fingerprint"] = source["fingerprint"]  # evaluate checks --data against it
-    write_flow(folder.path(f"flow/flow_{window.index:04d}.{args.flow_format}"), window.displacement, **meta)
+    write_flow(folder.path(flow_name(args, window)), window.displacement, **flow_meta(args, window, source))
     if window.index < args.figures:
         _window_figure(folder.path(f"figures/window_{window.index:04d}.png"), window, estimator)
 

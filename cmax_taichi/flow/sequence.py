@@ -39,7 +39,7 @@ from cmax_taichi.flow.solver import AUTO_PADDING, DenseFlowEstimator, FlowResult
 from cmax_taichi.io._flow import GroundTruthRangeError
 from cmax_taichi.metrics import event_mask, flow_error
 
-__all__ = ["BEYOND_SENSOR", "FlowPass", "FlowWindow", "iter_flow"]
+__all__ = ["BEYOND_SENSOR", "FlowPass", "FlowWindow", "check_dt", "check_sensor", "displace", "iter_flow"]
 
 #: the status of an estimated window whose flow over ``dt`` would carry points beyond the sensor (no
 #: displacement, no flow file; :class:`~cmax_taichi.flow.grid.FlowBeyondSensorError`)
@@ -207,15 +207,12 @@ def iter_flow(
         estimator's padding) above ``max_sensor_pixels``, before any window is read; timestamps out of
         order; a ground truth that cannot be read (naming its file) or of another size than the sensor.
     """
-    if dt is not None and not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+    check_dt(dt)
     n_events, duration, stride, max_windows = check_window_options(n_events, duration, stride, max_windows)
     estimator = estimator if estimator is not None else DenseFlowEstimator()
     sensor = getattr(source, "sensor_size", None)
-    if sensor is not None:  # the grids and the IWE's size, before any event is read
-        estimator._finest_for(tuple(sensor)).pyramid(estimator.levels)
-        padding = estimator.padding
-        check_padded_sensor(sensor, auto_padding(sensor, AUTO_PADDING) if padding is None else padding)
+    if sensor is not None:
+        check_sensor(estimator, sensor)
     plan = plan_windows(source, n_events, duration, stride, keep_tail)
     if max_windows is not None:
         plan.total = max_windows if plan.total is None else min(plan.total, max_windows)
@@ -252,12 +249,8 @@ def iter_flow(
                     on_skipped(row)
                 continue
             row.result = estimator.estimate(used, warm=previous if warm_start else None)
-            row.dt = float(used.duration) if dt is None else float(dt)
             previous = row.result
-            try:
-                row.displacement = row.result.flow(row.dt)
-            except FlowBeyondSensorError as exc:
-                row.status, row.note = BEYOND_SENSOR, str(exc)
+            displace(row, dt)
             if score and row.displacement is not None:
                 _score(row, truth)
             yield row
@@ -266,6 +259,31 @@ def iter_flow(
         ledger.warn(plan.desc["source"], n_events if duration is None else None, max_windows, stacklevel=3)
 
     return FlowPass(plan, run)
+
+
+def check_sensor(estimator: DenseFlowEstimator, sensor_size: tuple[int, int]) -> None:
+    """ValueError, before any event is read, when ``estimator``'s grids do not fit a ``sensor_size``
+    sensor or its IWE (the sensor and the padding) exceeds ``max_sensor_pixels``."""
+    sensor = tuple(sensor_size)
+    estimator._finest_for(sensor).pyramid(estimator.levels)
+    padding = estimator.padding
+    check_padded_sensor(sensor, auto_padding(sensor, AUTO_PADDING) if padding is None else padding)
+
+
+def check_dt(dt) -> None:
+    """ValueError unless ``dt`` is None or a positive number of seconds."""
+    if dt is not None and not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+
+
+def displace(row: FlowWindow, dt: float | None) -> None:
+    """The displacement of an estimated window (``row.result``) over ``dt`` s (default its duration):
+    ``row.dt`` and ``row.displacement``, or the status :data:`BEYOND_SENSOR` with its note."""
+    row.dt = float(row.result.duration) if dt is None else float(dt)
+    try:
+        row.displacement = row.result.flow(row.dt)
+    except FlowBeyondSensorError as exc:
+        row.status, row.note = BEYOND_SENSOR, str(exc)
 
 
 def _score(row: FlowWindow, truth) -> None:

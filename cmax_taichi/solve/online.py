@@ -1,9 +1,11 @@
 """Online estimation: the windows of a live stream estimated while the events arrive.
 
-:func:`run_live` reads an :class:`~cmax_taichi.io.streams.EventStream` on a reader thread into a bounded
-buffer and estimates each window, on the machinery of :func:`~cmax_taichi.solve.sequence.process` (one
-problem for every window, the warm start and its tracking test: :class:`~cmax_taichi.solve.warm.
-WindowSolver`), as soon as the window is complete; each window's row goes to ``on_window`` at once.
+:func:`run_windows` reads an :class:`~cmax_taichi.io.streams.EventStream` on a reader thread into a
+bounded buffer and estimates each window as soon as it is complete, with a per-window estimator
+(:class:`WindowEstimator`); each window's row goes to ``on_window`` at once. :func:`run_live` estimates
+a parametric warp, on the machinery of :func:`~cmax_taichi.solve.sequence.process` (one problem for
+every window, the warm start and its tracking test: :class:`~cmax_taichi.solve.warm.WindowSolver`,
+:class:`WarpWindows`); :func:`cmax_taichi.flow.live.run_live_flow` the dense flow, on the same loop.
 
 * **The producer is never blocked**: the reader thread only copies each packet into the buffer. When the
   estimator falls behind and the buffer (``backlog_events``) is full, the reader skips *whole windows*
@@ -31,7 +33,7 @@ import warnings
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -50,7 +52,7 @@ from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_
 from cmax_taichi.solve.results import WindowResult
 from cmax_taichi.solve.warm import WindowSolver
 
-__all__ = ["LiveResult", "run_live"]
+__all__ = ["LiveResult", "WarpWindows", "WindowEstimator", "run_live", "run_windows"]
 
 #: latencies kept for the percentiles (the most recent ones; a fixed array: memory stays flat)
 LATENCY_RING = 100_000
@@ -230,6 +232,97 @@ def _rule(windows, buffer: _Buffer):
     return _DurationWindows(float(windows), buffer.time_of, buffer.search)
 
 
+class WindowEstimator(Protocol):
+    """What the live loop (:func:`run_windows`) needs of the per-window work: the reader, the buffer,
+    the window rule, the skipping, the accounting and the latencies are the loop's; solving a window and
+    making its row are this.
+
+    Attributes
+    ----------
+    name : str
+        What is estimated (the warp's name, ``"dense_flow"``): :attr:`LiveResult.warp`.
+    param_names, units : tuple of str
+        The quantities a row traces over time (a display's curves): :attr:`LiveResult.param_names`.
+    settings : dict
+        The estimator's settings, JSON-friendly (beside the loop's in :attr:`LiveResult.settings`).
+    """
+
+    name: str
+    param_names: tuple[str, ...]
+    units: tuple[str, ...]
+    settings: dict
+
+    def warm_up(self, sensor_size: tuple[int, int], n_events: int) -> float:
+        """Compile (or load) the kernels on a synthetic window; the seconds it took."""
+
+    def solve(self, used: Events, kept, planner: AdaptivePlanner | None, grow: Callable):
+        """Solve the window ``used`` (its undistortion mask ``kept`` or None). With an adaptive
+        ``planner``, the window settles by its rule: a first window may ``grow`` (``grow(duration,
+        tail_duration)``: ``(used, kept, inside)`` of the longer window, or None), and the planner learns
+        the next window's duration. Returns ``(solved, used, kept, inside)``: what :meth:`report` takes,
+        the window as solved (grown or not), and ``grow``'s ``inside`` of the last growth (None
+        without)."""
+
+    def report(self, solved, used: Events, *, index: int, status: str, n_window: int, seconds: float):
+        """``(row, prob, result)`` of a solved window (``n_window``: its events before the drops;
+        ``seconds``: its wall time): what ``on_window`` gets. ``row`` has ``t_start`` and ``t_end``."""
+
+    def skipped(self, *, index: int, t_start: float, t_end: float, n_events: int, status: str,
+                n_dropped: int):  # fmt: skip
+        """The row of a window that was not estimated (``status`` says why)."""
+
+    def advance(self, row, result) -> None:
+        """The window is done: the next one starts from it (a warm start)."""
+
+
+class WarpWindows:
+    """The per-window work of a live run with a parametric warp (a :class:`WindowEstimator`): the
+    windows of :func:`~cmax_taichi.solve.sequence.process`, on one :class:`~cmax_taichi.solve.warm.
+    WindowSolver` (one problem, the warm start and its tracking test); an adaptive window settles by
+    :func:`~cmax_taichi.solve.adaptive.settle_window` (the first one grows, searched from the identity).
+    Its rows are :class:`~cmax_taichi.solve.results.WindowResult` s; ``on_window`` gets the problem and
+    the :class:`~cmax_taichi.OptimizeResult`."""
+
+    def __init__(self, model, solver: WindowSolver, settings: dict) -> None:
+        self.solver = solver
+        self.model = model
+        self.name, self.param_names, self.units = model.name, model.params, model.units
+        self.settings = settings
+
+    def warm_up(self, sensor_size: tuple[int, int], n_events: int) -> float:
+        return self.solver.warm_up(sensor_size, n_events)
+
+    def solve(self, used: Events, kept, planner: AdaptivePlanner | None, grow):
+        first = planner is not None and planner.duration is None
+        solved = self.solver.solve(used, kept, planner.rule.first_search if first else "auto")
+        if planner is None:
+            return solved, used, kept, None
+        res, search, fwl, used, kept, extra = settle_window(planner, self.solver, solved, used, kept, grow)
+        return (res, search, fwl), used, kept, extra
+
+    def report(self, solved, used: Events, *, index: int, status: str, n_window: int, seconds: float):
+        res, search, fwl = solved
+        prob = self.solver.prob
+        row = WindowResult.of_optimization(
+            res, index=index, t_start=float(used.t[0]), t_end=float(used.t[-1]), n_events=prob.n_events,
+            fwl=fwl, seconds=seconds, search=search, status=status, n_dropped=n_window - prob.n_events,
+            kernels=prob.kernels,
+        )  # fmt: skip
+        return row, prob, res
+
+    def skipped(self, *, index: int, t_start: float, t_end: float, n_events: int, status: str,
+                n_dropped: int) -> WindowResult:  # fmt: skip
+        nan = math.nan
+        return WindowResult(
+            index=index, t_start=t_start, t_end=t_end, n_events=n_events,
+            theta=np.full(self.model.n_params, nan), value=nan, fwl=nan, iterations=0, seconds=0.0,
+            converged=False, status=status, n_dropped=n_dropped,
+        )  # fmt: skip
+
+    def advance(self, row: WindowResult, res) -> None:
+        self.solver.advance(row, res)
+
+
 def run_live(
     stream,
     warp: str = "translation2",
@@ -244,17 +337,10 @@ def run_live(
     compute_fwl: bool = False,
     problem_options: Mapping[str, Any] | None = None,
     optimize_options: Mapping[str, Any] | None = None,
-    max_windows: int | None = None,
-    backlog_events: int | None = None,
-    idle_timeout: float | None = None,
-    keep_tail: bool = True,
-    warm_up: bool = True,
-    on_ready: Callable[[], None] | None = None,
-    stop: threading.Event | None = None,
-    on_window: Callable[[WindowResult, Any, Any, float], None] | None = None,
-    on_skipped: Callable[[WindowResult], None] | None = None,
+    **run_options,
 ) -> LiveResult:
-    """Estimate the windows of ``stream`` while it plays (see the module docstring).
+    """Estimate the windows of ``stream`` with a parametric warp while it plays (see the module
+    docstring): :func:`run_windows` with :class:`WarpWindows`.
 
     Parameters
     ----------
@@ -266,6 +352,67 @@ def run_live(
         ``compute_fwl`` is off by default: it costs an evaluation per window with regularizers).
     windows : AdaptiveWindows, int or float, optional
         The window rule: motion-adaptive (default), events per window, or seconds per window.
+    **run_options
+        ``max_windows``, ``backlog_events``, ``idle_timeout``, ``keep_tail``, ``warm_up``, ``on_ready``,
+        ``stop``, ``on_window``, ``on_skipped``: as for :func:`run_windows`. ``on_window(row, prob,
+        result, latency)`` gets the :class:`~cmax_taichi.solve.results.WindowResult`, the
+        :class:`~cmax_taichi.ContrastMaximization` holding the window and the
+        :class:`~cmax_taichi.OptimizeResult`.
+
+    Returns
+    -------
+    LiveResult
+
+    Raises
+    ------
+    StreamError
+        The source failed (see :func:`run_windows`).
+    """
+    model = get_warp(warp)
+    windows = AdaptiveWindows() if windows is None or windows is True else windows
+    camera = camera if camera is not None else getattr(stream, "camera", None)
+    if model.needs_camera and camera is None:
+        raise ValueError(f"warp {model.name!r} needs a camera: the stream has none, pass camera=")
+    solver = WindowSolver(
+        model, objective=objective, regularizers=regularizers, camera=camera, problem_options=problem_options,
+        optimize_options=optimize_options, method=method, warm_method=warm_method, warm_start=warm_start,
+        compute_fwl=compute_fwl,
+    )  # fmt: skip
+    settings = {"warp": model.name, "objective": objective, "regularizers": dict(regularizers or {})}
+    return run_windows(stream, WarpWindows(model, solver, settings), camera=camera, windows=windows,
+                       **run_options)  # fmt: skip
+
+
+def run_windows(
+    stream,
+    estimator: WindowEstimator,
+    *,
+    camera: Camera | None = None,
+    windows: AdaptiveWindows | int | float,
+    max_windows: int | None = None,
+    backlog_events: int | None = None,
+    idle_timeout: float | None = None,
+    keep_tail: bool = True,
+    warm_up: bool = True,
+    on_ready: Callable[[], None] | None = None,
+    stop: threading.Event | None = None,
+    on_window: Callable[[Any, Any, Any, float], None] | None = None,
+    on_skipped: Callable[[Any], None] | None = None,
+) -> LiveResult:
+    """Estimate the windows of ``stream`` with ``estimator`` while it plays (see the module docstring):
+    the one live loop of :func:`run_live` (a parametric warp) and
+    :func:`cmax_taichi.flow.live.run_live_flow` (the dense flow).
+
+    Parameters
+    ----------
+    stream : EventStream
+        From :func:`cmax_taichi.io.streams.open_stream`; closed when the run ends.
+    estimator : WindowEstimator
+        The per-window work (:class:`WarpWindows`, :class:`cmax_taichi.flow.live.DenseFlowWindows`).
+    camera : Camera, optional
+        Undistorts each window's events when it has distortion (the losses counted).
+    windows : AdaptiveWindows, int or float
+        The window rule: motion-adaptive, events per window, or seconds per window.
     max_windows : int, optional
         Stop after this many windows (estimated or not).
     backlog_events : int, optional
@@ -278,14 +425,15 @@ def run_live(
         When the stream ends, estimate the last, partial window if it holds enough (default True).
     warm_up : bool
         Before reading, compile (or load) the kernels on a synthetic window of the stream's sensor
-        (:meth:`~cmax_taichi.solve.warm.WindowSolver.warm_up`; ``warm_up_seconds`` in the result): the
-        first window then runs on ready kernels. Events that arrive meanwhile wait in the source.
+        (``estimator.warm_up``; ``warm_up_seconds`` in the result): the first window then runs on ready
+        kernels. Events that arrive meanwhile wait in the source.
     on_ready : callable, optional
         Called once the kernels are ready and the reader runs (a replay server may start then).
     stop : threading.Event, optional
         Set it to end the run after the window in flight.
     on_window : callable, optional
-        ``on_window(row, prob, result, latency)`` after each estimated window, at once.
+        ``on_window(row, prob, result, latency)`` after each estimated window, at once (what ``row``,
+        ``prob`` and ``result`` are: the estimator's :meth:`WindowEstimator.report`).
     on_skipped : callable, optional
         ``on_skipped(row)`` for each window that is not estimated (``row.status`` says why).
 
@@ -299,11 +447,6 @@ def run_live(
         The source failed; raised after every complete window was estimated and reported (the
         summary is in the exception's ``live_result``).
     """
-    model = get_warp(warp)
-    windows = AdaptiveWindows() if windows is None or windows is True else windows
-    camera = camera if camera is not None else getattr(stream, "camera", None)
-    if model.needs_camera and camera is None:
-        raise ValueError(f"warp {model.name!r} needs a camera: the stream has none, pass camera=")
     if max_windows is not None:
         max_windows = checks.whole_number("max_windows", max_windows, 1)
     if idle_timeout is not None:
@@ -315,26 +458,19 @@ def run_live(
     capacity = checks.whole_number("backlog_events", capacity, 2)
     buffer = _Buffer(capacity)
     planner = _rule(windows, buffer)
-    solver = WindowSolver(
-        model, objective=objective, regularizers=regularizers, camera=camera, problem_options=problem_options,
-        optimize_options=optimize_options, method=method, warm_method=warm_method, warm_start=warm_start,
-        compute_fwl=compute_fwl,
-    )  # fmt: skip
     settings = {
         "source": getattr(stream, "address", repr(stream)),
-        "warp": model.name,
-        "objective": objective,
-        "regularizers": dict(regularizers or {}),
+        **estimator.settings,
         "windows": windows.as_dict() if isinstance(windows, AdaptiveWindows) else windows,
         "backlog_events": capacity,
     }
-    result = LiveResult(model.name, model.params, model.units, settings)
+    result = LiveResult(estimator.name, tuple(estimator.param_names), tuple(estimator.units), settings)
     live = _Live(stream, buffer, planner, idle_timeout, stop)
-    run = _Run(live, solver, model, camera, result, keep_tail, max_windows, on_window, on_skipped)
+    run = _Run(live, estimator, camera, result, keep_tail, max_windows, on_window, on_skipped)
     error = None
     if warm_up:
         size = windows.first_events if isinstance(windows, AdaptiveWindows) else rule_size or 10_000
-        result.warm_up_seconds = solver.warm_up(stream.sensor_size, size)
+        result.warm_up_seconds = estimator.warm_up(stream.sensor_size, size)
     live.start()
     if on_ready is not None:
         on_ready()
@@ -447,9 +583,9 @@ class _Live:
 class _Run:
     """The consumer: takes each complete window from the buffer, estimates it, reports it."""
 
-    def __init__(self, live: _Live, solver: WindowSolver, model, camera, result: LiveResult, keep_tail: bool,
+    def __init__(self, live: _Live, estimator: WindowEstimator, camera, result: LiveResult, keep_tail: bool,
                  max_windows, on_window, on_skipped) -> None:  # fmt: skip
-        self.live, self.solver, self.model, self.camera, self.result = live, solver, model, camera, result
+        self.live, self.estimator, self.camera, self.result = live, estimator, camera, result
         self.keep_tail, self.max_windows = keep_tail, max_windows
         self.on_window, self.on_skipped = on_window, on_skipped
         self.fate_camera = camera if camera is not None and camera.has_distortion else None
@@ -551,46 +687,39 @@ class _Run:
         t0 = time.perf_counter()
         self.waiting = 0.0
         used, inside, kept, status = self._fate(columns, span)
-        solver, planner = self.solver, self.live.planner
+        estimator, planner = self.estimator, self.live.planner
         if status not in ESTIMATED_STATUSES:
             self._account(span, status, inside, kept)
             t = columns[0]
             self._skipped(len(used), float(t[0]), float(t[-1]), status, len(span) - len(used))
             return
-        adaptive = isinstance(planner, AdaptivePlanner)
-        first = adaptive and planner.duration is None
-        solved = solver.solve(used, kept, planner.rule.first_search if first else "auto")
-        res, search, fwl = solved
-        if adaptive:
-            window = [columns, arrival, span, by_end]
+        window = [columns, arrival, span, by_end]
 
-            def grow(duration: float, tail_duration: float):
-                cols, at, wide, end = window
-                grown, grown_arrival, grown_by_end = self._grow(cols, start, float(cols[0][0]), duration,
-                                                                tail_duration)  # fmt: skip
-                if grown is None:
-                    window[3] = window[3] or grown_by_end  # it waited for the stream's end
-                    return None
-                wider = Span(wide.index, wide.start, wide.start + len(grown[0]), wide.tail, wide.keep)
-                more_used, more_inside, more_kept, more_status = self._fate(grown, wider)
-                if more_status not in ESTIMATED_STATUSES:
-                    return None
-                window[:] = [grown, grown_arrival, wider, grown_by_end]
-                return more_used, more_kept, more_inside
+        def grow(duration: float, tail_duration: float):
+            """The first adaptive window, longer: ``(used, kept, inside)``, or None (see :meth:`_grow`)."""
+            cols, at, wide, end = window
+            grown, grown_arrival, grown_by_end = self._grow(cols, start, float(cols[0][0]), duration,
+                                                            tail_duration)  # fmt: skip
+            if grown is None:
+                window[3] = window[3] or grown_by_end  # it waited for the stream's end
+                return None
+            wider = Span(wide.index, wide.start, wide.start + len(grown[0]), wide.tail, wide.keep)
+            more_used, more_inside, more_kept, more_status = self._fate(grown, wider)
+            if more_status not in ESTIMATED_STATUSES:
+                return None
+            window[:] = [grown, grown_arrival, wider, grown_by_end]
+            return more_used, more_kept, more_inside
 
-            res, search, fwl, used, kept, grown_inside = settle_window(
-                planner, solver, solved, used, kept, grow
-            )
-            columns, arrival, span, by_end = window
-            inside = inside if grown_inside is None else grown_inside
+        adaptive = planner if isinstance(planner, AdaptivePlanner) else None
+        solved, used, kept, grown_inside = estimator.solve(used, kept, adaptive, grow)
+        columns, arrival, span, by_end = window
+        inside = inside if grown_inside is None else grown_inside
         estimated_at = time.perf_counter()
         self._account(span, status, inside, kept)
-        prob = solver.prob
-        row = WindowResult.of_optimization(
-            res, index=self.index, t_start=float(used.t[0]), t_end=float(used.t[-1]),
-            n_events=prob.n_events, fwl=fwl, seconds=estimated_at - t0 - self.waiting, search=search,
-            status=status, n_dropped=len(span) - prob.n_events, kernels=prob.kernels,
-        )  # fmt: skip
+        seconds = estimated_at - t0 - self.waiting
+        row, prob, res = estimator.report(
+            solved, used, index=self.index, status=status, n_window=len(span), seconds=seconds
+        )
         latency = estimated_at - arrival
         if by_end:
             self.result.end_latency = latency
@@ -599,16 +728,16 @@ class _Run:
             self.n_latencies += 1
         result = self.result
         if result.windows == 0:
-            result.first_window_seconds = row.seconds
+            result.first_window_seconds = seconds
         result.windows += 1
-        result.busy_seconds += row.seconds
+        result.busy_seconds += seconds
         self.t_first = row.t_start if math.isnan(self.t_first) else self.t_first
         self.t_last = row.t_end
         result.recent.append(row)
         self.index += 1
         if self.on_window is not None:
             self.on_window(row, prob, res, latency)
-        solver.advance(row, res)
+        estimator.advance(row, res)
 
     def _account(self, span: Span, status: str, inside, kept) -> None:
         ledger = self.live.ledger
@@ -618,12 +747,9 @@ class _Run:
         self.position = span.stop
 
     def _skipped(self, n_used: int, t0: float, t1: float, status: str, n_dropped: int = 0) -> None:
-        nan = math.nan
-        row = WindowResult(
-            index=self.index, t_start=t0, t_end=t1, n_events=n_used,
-            theta=np.full(self.model.n_params, nan), value=nan, fwl=nan, iterations=0, seconds=0.0,
-            converged=False, status=status, n_dropped=n_dropped,
-        )  # fmt: skip
+        row = self.estimator.skipped(
+            index=self.index, t_start=t0, t_end=t1, n_events=n_used, status=status, n_dropped=n_dropped
+        )
         self.index += 1
         self.result.skipped += 1
         self.result.recent.append(row)

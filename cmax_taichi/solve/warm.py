@@ -22,7 +22,7 @@ from cmax_taichi.pipeline.problem import ContrastMaximization
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
 from cmax_taichi.solve.results import WindowResult
 
-__all__ = ["TRACKING_LOSS_RATIO", "WARM_XTOL", "WarmState", "WindowSolver"]
+__all__ = ["TRACKING_LOSS_RATIO", "WARM_XTOL", "WarmState", "WindowSolver", "synthetic_window"]
 
 #: a warm-started window whose refined J falls below this fraction of the previous window's J, and whose
 #: gain over the identity, J(theta) - J(0), falls below this fraction of the previous window's gain (scaled
@@ -242,16 +242,8 @@ class WindowSolver:
         from cmax_taichi.solve.adaptive import extreme_speed
 
         t0 = time.perf_counter()
-        W, H = sensor_size
-        rng = np.random.default_rng(seed)
-        n = max(16, int(n_events))
-        t = np.sort(rng.uniform(0.0, 0.02, n))
-        x0, y0 = rng.integers(0, W, 64), rng.integers(0, H, 64)  # 64 dots moving along x
-        k = rng.integers(0, 64, n)
-        x = np.clip(np.round(x0[k] + 200.0 * t), 0, W - 1)
-        events = Events(x, y0[k].astype(np.float64), t, rng.choice([-1.0, 1.0], n), (W, H))
-        if self.camera is not None and self.camera.has_distortion:
-            events = events.undistort(self.camera)
+        events = synthetic_window(sensor_size, n_events, self.camera, seed)
+        n = len(events)
         res, _, _ = self.solve(events, None, "identity")
         self.retry_from(res)
         res, _, _ = self.solve(events[: max(8, n // 2)])
@@ -272,6 +264,25 @@ class WindowSolver:
             value_identity=float(result.value_identity), duration=float(prob.duration),
             hess_inv=None if result.hess_inv is None else np.array(result.hess_inv, dtype=np.float64),
         )  # fmt: skip
+
+
+def synthetic_window(
+    sensor_size: tuple[int, int], n_events: int, camera: Camera | None = None, seed: int = 0
+) -> Events:
+    """A window of about ``n_events`` events (at least 16) of 64 dots moving along x at 200 px/s over
+    20 ms, on whole pixels of a ``sensor_size`` sensor, undistorted by ``camera`` when it has
+    distortion: what a live run's warm-up compiles its kernels on."""
+    W, H = sensor_size
+    rng = np.random.default_rng(seed)
+    n = max(16, int(n_events))
+    t = np.sort(rng.uniform(0.0, 0.02, n))
+    x0, y0 = rng.integers(0, W, 64), rng.integers(0, H, 64)
+    k = rng.integers(0, 64, n)
+    x = np.clip(np.round(x0[k] + 200.0 * t), 0, W - 1)
+    events = Events(x, y0[k].astype(np.float64), t, rng.choice([-1.0, 1.0], n), (W, H))
+    if camera is not None and camera.has_distortion:
+        events = events.undistort(camera)
+    return events
 
 
 def _fwl_problem(prob: ContrastMaximization, model, camera: Camera | None, t_ref) -> ContrastMaximization:
