@@ -466,13 +466,17 @@ class FusedPipeline:
         if launcher is not None and launcher.valid():
             ctx = launcher.ctx
             ctx.set_arg_int((0,), self.n_events)
-            launcher.set_array(1, self.events)
-            launcher.set_array(2, self._terms)
-            launcher.set_array(3, self._params)
             ctx.set_arg_int((4,), grad)
-            launcher.set_array(5, self._out)
-            # the workspace's arrays: on the CPU (host arrays, read in place) set once per launcher; a
-            # GPU launch replaces a device array in the context by its pointer, so they are set each time
+            # the arrays: on the CPU (host arrays, read in place) set when they change (the window's
+            # events and terms are new host arrays, load_window); a GPU launch replaces a device array in
+            # the context by its pointer, so there they are set each time
+            inputs = launcher.set_inputs
+            if self._atomic or inputs is None or inputs[0] is not self.events or inputs[1] is not self._terms:
+                launcher.set_array(1, self.events)
+                launcher.set_array(2, self._terms)
+                launcher.set_array(3, self._params)
+                launcher.set_array(5, self._out)
+                launcher.set_inputs = (self.events, self._terms)
             if launcher.set_for is not self._ws or self._atomic:
                 ctx.set_arg_int((6,), self._sensor[0])
                 ctx.set_arg_int((7,), self._sensor[1])
