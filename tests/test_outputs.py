@@ -152,6 +152,23 @@ def test_estimate_refuses_an_out_that_is_or_holds_the_recording(recording, tmp_p
     assert snapshot(recording) == before  # not a byte written beside the data
 
 
+def test_every_command_refuses_an_out_that_holds_any_recording(recording, tmp_path, capsys):
+    """bench has no input to protect, so `bench --out` wrote its tables beside a recording's events;
+    a folder holding a recording (any, not only the run's input) is refused by every command."""
+    other = write_recording(tmp_path / "other")
+    before = snapshot(other)
+    commands = [
+        ("bench", "--quick", "--no-solve"),
+        ("estimate", recording, *FAST),
+        ("segment", recording, "-k", "2", "--max-iterations", "1", "--no-figures"),
+        ("flow", recording, "--grid", "2", "2", "--levels", "1", "--quiet"),
+    ]
+    for argv in commands:
+        code, _, err = run(capsys, *argv, "--out", other)
+        assert code == 2 and f"--out {other} holds a recording (ecd)" in error_line(err), argv
+    assert snapshot(other) == before
+
+
 @pytest.mark.parametrize("name", ["results.h5", "results.csv"])
 def test_a_recording_named_like_an_output_is_never_overwritten(tmp_path, capsys, name):
     folder = write_recording(tmp_path / "x")

@@ -5,8 +5,9 @@ result files. One implementation, used by all of them.
 Guarantees of an :class:`OutputFolder` (``OUT``):
 
 * **inputs are never touched**: ``OUT`` must not be an input (a recording's file or folder), nor a
-  folder that holds one, nor a folder inside an input folder; it is refused before anything is
-  written (:class:`OutputConflictError`);
+  folder that holds one, nor a folder inside an input folder, nor a folder that holds any recording
+  (``bench`` has no input, and a recording's folder is no place for results); it is refused before
+  anything is written (:class:`OutputConflictError`);
 * **nothing a run did not write is replaced**: a run recognises the outputs of cmax-taichi runs by the
   manifest ``OUT/.cmax-taichi-manifest.json`` (each file's path, size, modification time, content
   digest and the command that wrote it; a copied folder's files, whose times changed, are recognised by
@@ -162,8 +163,9 @@ def _resolved(path: str | os.PathLike) -> Path:
 
 def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], option: str = "--out") -> None:
     """OutputConflictError when the output folder ``out`` is one of ``inputs`` (files or folders), a
-    folder that holds one (at any depth), a folder inside an input folder, or an existing file. Inputs
-    that do not exist have nothing to protect (the command reports them itself)."""
+    folder that holds one (at any depth), a folder inside an input folder, an existing file, or a
+    folder that holds a recording (any, not only an input: an ECD folder, MVSEC, DSEC, AEDAT4, a ROS 2
+    bag). Inputs that do not exist have nothing to protect (the command reports them itself)."""
     target = _resolved(out)
     for item in inputs:
         if not os.path.lexists(item):
@@ -186,6 +188,25 @@ def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], op
             )
     if target.exists() and not target.is_dir():
         raise OutputConflictError(f"{option} {out} is an existing file, not a folder")
+    recording = _recording_format(target)
+    if recording is not None:
+        raise OutputConflictError(
+            f"{option} {out} holds a recording ({recording}): choose an output folder outside the "
+            "recordings (their files are never overwritten)"
+        )
+
+
+def _recording_format(folder: Path) -> str | None:
+    """The format of the recording that ``folder`` holds (its events file, as :func:`cmax_taichi.io.
+    detect_format` finds it in a folder), None for a folder without one or one that does not exist."""
+    if not folder.is_dir():
+        return None
+    from cmax_taichi.io import detect_format
+
+    try:
+        return detect_format(folder)
+    except (OSError, ValueError):  # no events file there (or one that cannot be read: not a recording)
+        return None
 
 
 # --- the lock ---------------------------------------------------------------------------------------

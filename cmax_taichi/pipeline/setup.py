@@ -96,7 +96,19 @@ def check_regularizers(regularizers) -> dict[str, float]:
 
 def resolve_t_ref(t_ref, events: Events) -> float:
     """The reference time in seconds on the events' clock from ``"first"``, ``"middle"``, ``"last"``
-    or a number."""
+    or a number.
+
+    A number is a time on the events' own clock (not relative to the window). It must lie within the
+    window's span extended by its duration ``T`` on each side, ``[t_first - T, t_last + T]``: further
+    away, every event is warped over many times the window's duration and the estimate means nothing
+    (a time on another clock, e.g. microseconds or a Unix time, is the usual cause).
+
+    Raises
+    ------
+    ValueError
+        For an unknown name, a value that is not finite, or a number outside that interval (the error
+        names the value, the window's span and the allowed interval, all in seconds).
+    """
     if isinstance(t_ref, str):
         choices = {
             "first": events.t[0],
@@ -109,6 +121,15 @@ def resolve_t_ref(t_ref, events: Events) -> float:
     value = _as_float(t_ref, "t_ref must be a string or a number")
     if not math.isfinite(value):
         raise ValueError(f"t_ref must be finite, got {value}")
+    first, last = float(events.t[0]), float(events.t[-1])
+    margin = last - first
+    if not first - margin <= value <= last + margin:
+        raise ValueError(
+            f"t_ref {value:.9g} s is outside the window: its events span [{first:.9g}, {last:.9g}] s on "
+            f"their clock, and a numeric t_ref must lie within that span extended by its duration "
+            f"({margin:.3g} s) on each side, [{first - margin:.9g}, {last + margin:.9g}] s; "
+            "'first', 'middle' and 'last' follow the window"
+        )
     return value
 
 

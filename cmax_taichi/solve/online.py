@@ -48,7 +48,7 @@ from cmax_taichi.core.windows import (
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_window
 from cmax_taichi.solve.results import WindowResult
-from cmax_taichi.solve.warm import WindowSolver
+from cmax_taichi.solve.warm import WindowSolver, check_sequence_t_ref
 
 __all__ = ["LiveResult", "run_live"]
 
@@ -306,6 +306,7 @@ def run_live(
         raise ValueError(f"warp {model.name!r} needs a camera: the stream has none, pass camera=")
     if max_windows is not None:
         max_windows = checks.whole_number("max_windows", max_windows, 1)
+    check_sequence_t_ref(dict(problem_options or {}).get("t_ref", "first"), max_windows)
     if idle_timeout is not None:
         idle_timeout = checks.seconds("idle_timeout", idle_timeout, positive=True)
     rule_size = windows.max_events if isinstance(windows, AdaptiveWindows) else None

@@ -43,6 +43,20 @@ WARM_XTOL = 0.03
 _FWL_COMPATIBLE_OPTIONS = {"blur_sigma", "t_ref", "polarity"}
 
 
+def check_sequence_t_ref(t_ref, n_windows: int | None) -> None:
+    """A numeric ``t_ref`` is one time on the events' clock: every window of a sequence would be warped
+    to it, the later ones over far more than their duration. Allowed for a run of one window only (its
+    distance to that window is checked with the window, :func:`~cmax_taichi.pipeline.setup.resolve_t_ref`)."""
+    if isinstance(t_ref, str) or n_windows is not None and n_windows <= 1:
+        return
+    count = "an unknown number of" if n_windows is None else f"{n_windows}"
+    raise ValueError(
+        f"t_ref {t_ref!r} s is one time on the events' clock, and this run has {count} windows: every "
+        "window would be warped to that time, the later ones over many times their duration; use "
+        "'first', 'middle' or 'last' (each window's own time), or run one window (max_windows=1)"
+    )
+
+
 @dataclass(frozen=True)
 class WarmState:
     """What the warm start of a window takes from the window before it (see :func:`process`).
