@@ -281,6 +281,8 @@ def test_maximize_theta0_and_candidates_name_the_argument(translation_problem):
         ({"blur_sigma": 10**400}, ValueError, r"blur_sigma must be a finite number >= 0, got inf"),
         ({"blur_sigma": float("nan")}, ValueError, r"blur_sigma must be a finite number >= 0, got nan"),
         ({"t_ref": 10**400}, ValueError, r"t_ref must be finite, got inf"),
+        ({"t_ref": True}, TypeError, r"t_ref must be 'first', 'middle', 'last' or seconds, got True"),
+        ({"normalize": "no"}, TypeError, r"normalize must be True or False, got 'no'"),
         ({"regularizers": {"divergence": 10**400}}, ValueError, r"weight of regularizer 'divergence'"),
         ({"regularizers": {"divergence": "1"}}, TypeError, r"weight of regularizer 'divergence' must be"),
         ({"weights": ["a"] * 200}, TypeError, r"weights must be real numbers, got dtype <U1"),

@@ -118,6 +118,8 @@ def resolve_t_ref(t_ref, events: Events) -> float:
         if t_ref not in choices:
             raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
         return float(choices[t_ref])
+    if isinstance(t_ref, (bool, np.bool_)):  # True is not 1 s
+        raise TypeError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
     value = _as_float(t_ref, "t_ref must be a string or a number")
     if not math.isfinite(value):
         raise ValueError(f"t_ref must be finite, got {value}")
@@ -231,6 +233,8 @@ class ProblemSetup:
             if m.needs_camera and camera is None:
                 raise ValueError(f"warp {m.name!r} needs a camera (intrinsics): pass camera=")
         reg_weights = check_regularizers(regularizers)
+        if not isinstance(normalize, (bool, np.bool_)):  # normalize="no" read as True
+            raise TypeError(f"normalize must be True or False, got {normalize!r}")
         if polarity not in POLARITY_MODES:
             raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
         if not isinstance(blur_sigma, numbers.Real) or isinstance(blur_sigma, (bool, np.bool_)):
