@@ -169,6 +169,20 @@ def test_every_command_refuses_an_out_that_holds_any_recording(recording, tmp_pa
     assert snapshot(other) == before
 
 
+def test_a_symbolic_link_where_a_run_writes_a_folder_is_not_followed(recording, tmp_path, capsys):
+    """OUT/flow linked to another folder (a user's, a recording's): flow wrote its files there, outside
+    OUT, where the input checks never looked."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "keep").write_text("x")
+    out = tmp_path / "F"
+    out.mkdir()
+    (out / "flow").symlink_to(mine)
+    code, _, err = run(capsys, "flow", recording, "--grid", "2", "2", "--levels", "1", "--quiet", "--out", out)
+    assert code == 2 and "is a symbolic link where this run writes a folder" in error_line(err)
+    assert sorted(p.name for p in mine.iterdir()) == ["keep"]
+
+
 @pytest.mark.parametrize("name", ["results.h5", "results.csv"])
 def test_a_recording_named_like_an_output_is_never_overwritten(tmp_path, capsys, name):
     folder = write_recording(tmp_path / "x")

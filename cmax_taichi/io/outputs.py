@@ -439,6 +439,11 @@ class OutputFolder:
             parts = Path(pattern).parts[:-1]
             for k in range(1, len(parts) + 1):
                 folder = self.out.joinpath(*parts[:k])
+                if folder.is_symlink():  # its files would land outside OUT (in a recording, a user's folder)
+                    raise OutputConflictError(
+                        f"{folder} is a symbolic link where this run writes a folder: not followed (the "
+                        f"files would land outside {self.option}); choose another {self.option} or move it away"
+                    )
                 if (folder.exists() or folder.is_symlink()) and not folder.is_dir():
                     raise OutputConflictError(
                         f"{folder} is a file where this run writes a folder: not replaced; choose another "
