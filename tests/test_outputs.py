@@ -178,7 +178,8 @@ def test_a_symbolic_link_where_a_run_writes_a_folder_is_not_followed(recording, 
     out = tmp_path / "F"
     out.mkdir()
     (out / "flow").symlink_to(mine)
-    code, _, err = run(capsys, "flow", recording, "--grid", "2", "2", "--levels", "1", "--quiet", "--out", out)
+    argv = ["flow", recording, "--grid", "2", "2", "--levels", "1", "--quiet", "--out", out]
+    code, _, err = run(capsys, *argv)
     assert code == 2 and "is a symbolic link where this run writes a folder" in error_line(err)
     assert sorted(p.name for p in mine.iterdir()) == ["keep"]
 

@@ -442,7 +442,8 @@ class OutputFolder:
                 if folder.is_symlink():  # its files would land outside OUT (in a recording, a user's folder)
                     raise OutputConflictError(
                         f"{folder} is a symbolic link where this run writes a folder: not followed (the "
-                        f"files would land outside {self.option}); choose another {self.option} or move it away"
+                        f"files would land outside {self.option}); choose another {self.option} or move it "
+                        "away"
                     )
                 if (folder.exists() or folder.is_symlink()) and not folder.is_dir():
                     raise OutputConflictError(

@@ -371,7 +371,10 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
             settings=settings,
             events=dict(events),
         )
-        for w in data["windows"]:
+        for k, w in enumerate(data["windows"]):
+            if not isinstance(w, dict) or not isinstance(w.get("theta"), dict):
+                what = "a window" if not isinstance(w, dict) else "its 'theta'"
+                raise TypeError(f"window {k}: {what} is not an object (of the parameters {', '.join(names)})")
             row = WindowResult(
                 index=int(w["index"]),
                 t_start=_number(w["t_start"]),
@@ -392,8 +395,13 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
             _check_row(row)
             result.add(row)
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
+        raise ValueError(f"{path}: not a cmax-taichi results file ({_bad_entry(exc)})") from None
     return result
+
+
+def _bad_entry(exc: Exception) -> str:
+    """What a results file lacks or holds wrong, from the error of reading it."""
+    return f"missing entry {exc}" if isinstance(exc, KeyError) else f"bad entry: {exc}"
 
 
 def _check_row(row: WindowResult) -> None:
@@ -428,7 +436,7 @@ def _read_hdf5(path: Path) -> SequenceResult:
     except OSError as exc:
         raise OSError(f"{path}: not a readable HDF5 file ({exc})") from None
     except (KeyError, ValueError) as exc:
-        raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
+        raise ValueError(f"{path}: not a cmax-taichi results file ({_bad_entry(exc)})") from None
     try:
         if not (isinstance(result.settings, dict) and isinstance(result.events, dict)):
             raise ValueError("'settings_json' or 'events_json' is not a JSON object")
