@@ -328,6 +328,8 @@ def test_a_sequence_refuses_one_numeric_t_ref_for_many_windows(f64):
         sequence.process(
             ev, "translation2", n_events=200, max_windows=1, progress=False, problem_options={"t_ref": 1e9}
         )
+    with pytest.raises(ValueError, match="t_ref must be finite, got nan"):  # not "one time ... 3 windows"
+        sequence.process(ev, "translation2", n_events=200, progress=False, problem_options={"t_ref": np.nan})
 
 
 # --- segmentation on tiny windows -----------------------------------------------------------------------

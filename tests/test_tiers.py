@@ -287,7 +287,8 @@ def test_a_kernel_cache_that_cannot_be_written_moves_to_the_temporary_folder(tmp
         "               r.choice([-1., 1.], 500), (64, 48))\n"
         "print(cm.ContrastMaximization(ev, 'translation2').evaluate([1., 2.]).J)\n"
     )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+    argv = [sys.executable, "-c", script]
+    done = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "cannot be written: using" in done.stderr and np.isfinite(float(done.stdout.split()[-1]))
     assert (tmp_path / "tmp" / f"cmax-taichi-ticache-{os.getuid()}").is_dir()

@@ -94,6 +94,17 @@ def check_regularizers(regularizers) -> dict[str, float]:
     return out
 
 
+def numeric_t_ref(t_ref) -> float:
+    """A numeric ``t_ref`` as a float (s): TypeError for a bool or a non-number, ValueError if not
+    finite."""
+    if isinstance(t_ref, (bool, np.bool_)):  # True is not 1 s
+        raise TypeError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
+    value = _as_float(t_ref, "t_ref must be a string or a number")
+    if not math.isfinite(value):
+        raise ValueError(f"t_ref must be finite, got {value}")
+    return value
+
+
 def resolve_t_ref(t_ref, events: Events) -> float:
     """The reference time in seconds on the events' clock from ``"first"``, ``"middle"``, ``"last"``
     or a number.
@@ -118,11 +129,7 @@ def resolve_t_ref(t_ref, events: Events) -> float:
         if t_ref not in choices:
             raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
         return float(choices[t_ref])
-    if isinstance(t_ref, (bool, np.bool_)):  # True is not 1 s
-        raise TypeError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
-    value = _as_float(t_ref, "t_ref must be a string or a number")
-    if not math.isfinite(value):
-        raise ValueError(f"t_ref must be finite, got {value}")
+    value = numeric_t_ref(t_ref)
     first, last = float(events.t[0]), float(events.t[-1])
     margin = last - first
     if not first - margin <= value <= last + margin:

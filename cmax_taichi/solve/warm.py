@@ -19,6 +19,7 @@ import numpy as np
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.metrics import fwl_problem
 from cmax_taichi.pipeline.problem import ContrastMaximization
+from cmax_taichi.pipeline.setup import numeric_t_ref
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
 from cmax_taichi.solve.results import WindowResult
 
@@ -47,7 +48,10 @@ def check_sequence_t_ref(t_ref, n_windows: int | None) -> None:
     """A numeric ``t_ref`` is one time on the events' clock: every window of a sequence would be warped
     to it, the later ones over far more than their duration. Allowed for a run of one window only (its
     distance to that window is checked with the window, :func:`~cmax_taichi.pipeline.setup.resolve_t_ref`)."""
-    if isinstance(t_ref, str) or n_windows is not None and n_windows <= 1:
+    if isinstance(t_ref, str):
+        return
+    numeric_t_ref(t_ref)  # a type or a value that no window takes: that error first
+    if n_windows is not None and n_windows <= 1:
         return
     count = "an unknown number of" if n_windows is None else f"{n_windows}"
     raise ValueError(
