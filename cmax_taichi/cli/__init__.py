@@ -89,6 +89,16 @@ def _command_signals_and_warnings(command: str):
             signal.signal(signal.SIGTERM, previous_term)
 
 
+def _version() -> str:
+    """The installed package's version (without importing the library and Taichi)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("cmax-taichi")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The command's parser: every sub-command, or the one called ``only`` (a name of
     :data:`COMMAND_MODULES`)."""
@@ -99,6 +109,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
             "(Shiba, Aoki, Gallego, Sensors 2022). Run 'cmax-taichi COMMAND --help' for a command."
         ),
     )
+    parser.add_argument("--version", action="version", version=f"cmax-taichi {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES if only is None else (only,):
         module = importlib.import_module(f"cmax_taichi.cli.{name}")
