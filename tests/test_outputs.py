@@ -184,6 +184,25 @@ def test_a_symbolic_link_where_a_run_writes_a_folder_is_not_followed(recording, 
     assert sorted(p.name for p in mine.iterdir()) == ["keep"]
 
 
+def test_an_out_that_cannot_be_written_is_refused_before_the_work(recording, tmp_path, capsys, monkeypatch):
+    """segment and bench did their work (minutes for bench) and only then found that --out could not
+    be created (a read-only file system): now refused before anything runs."""
+    locked = tmp_path / "ro"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(outputs.os, "access", lambda p, mode: Path(p) != locked and real_access(p, mode))
+    commands = [
+        ("segment", recording, "-k", "2", "--max-iterations", "1", "--no-figures"),
+        ("bench", "--quick", "--no-solve"),
+    ]
+    for argv in commands:
+        code, out, err = run(capsys, *argv, "--out", locked / "new")
+        assert code == 2 and f"--out: cannot create {locked / 'new'}" in error_line(err), argv
+        assert not out and "step" not in err  # no work began
+    code, _, err = run(capsys, "segment", recording, "-k", "2", "--out", locked)
+    assert code == 2 and f"--out: cannot write in {locked}" in error_line(err)
+
+
 @pytest.mark.parametrize("name", ["results.h5", "results.csv"])
 def test_a_recording_named_like_an_output_is_never_overwritten(tmp_path, capsys, name):
     folder = write_recording(tmp_path / "x")

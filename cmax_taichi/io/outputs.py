@@ -196,6 +196,20 @@ def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], op
         )
 
 
+def _check_writable(out: Path, option: str) -> None:
+    """OSError when ``out`` cannot be written, or created (its nearest existing folder cannot be
+    written): a read-only file system or no permission, found before the run's work, not at its end."""
+    folder = _resolved(out)
+    while not folder.exists() and folder.parent != folder:
+        folder = folder.parent
+    if not folder.is_dir() or os.access(folder, os.W_OK | os.X_OK):
+        return  # not a folder: check_inputs or the creation says so
+    read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    why = "Read-only file system" if read_only else "Permission denied"
+    what = f"write in {out}" if folder == _resolved(out) else f"create {out}"
+    raise OSError(f"{option}: cannot {what} ({why})")
+
+
 def _recording_format(folder: Path) -> str | None:
     """The format of the recording that ``folder`` holds (its events file, as :func:`cmax_taichi.io.
     detect_format` finds it in a folder), None for a folder without one or one that does not exist."""
@@ -429,6 +443,7 @@ class OutputFolder:
         """The checks of entering that need no lock (inputs, an existing file as ``OUT``, files this
         run may not replace): for a command that refuses before its work and enters later."""
         check_inputs(self.out, self.inputs, self.option)
+        _check_writable(self.out, self.option)
         if self.out.is_dir():
             self._refuse_existing(read_manifest(self.out))
 
