@@ -265,12 +265,29 @@ def test_results_no_run_could_have_written_are_refused(tmp_path):
         (lambda d: d["windows"][0].update(t_start=2.0), "is not a time span"),
         (lambda d: d.update(settings=[]), "'settings' is a list"),
         (lambda d: d["windows"][0].update(status="junk"), "unknown status"),
+        (lambda d: d["windows"].append(d["windows"][0]), "window 0 follows window 0: repeated"),
     ]:
         data = json.loads(json.dumps(good))
         change(data)
         path.write_text(json.dumps(data))
         with pytest.raises(ValueError, match=message):
             read_results(path)
+
+
+def test_evaluate_scores_no_window_outside_the_recording(mvsec, tmp_path, capsys):
+    """Results whose windows were moved 100 s past the recording (an edited file, the fingerprint
+    intact) were scored against the ground truth all the same."""
+    from cmax_taichi.solve.results import SequenceResult, WindowResult
+
+    settings = {"source": str(mvsec), "format": "mvsec", "fingerprint": fingerprint_of(mvsec)}
+    res = SequenceResult("translation2", ("v_x", "v_y"), ("px/s", "px/s"), settings=settings)
+    t0 = 1500000000.0 + 100.0
+    res.add(WindowResult(0, t0, t0 + 0.05, 100, np.array([6.0, 4.0]), 1.5, 1.2, 3, 0.1, True))
+    (tmp_path / "est").mkdir()
+    res.to_json(tmp_path / "est" / "results.json")
+    code, _, err = run(capsys, "evaluate", tmp_path / "est", *SIZE_ARGS)
+    line = error_line(err)
+    assert code == 2 and "1 window(s) with a time span outside the recording's" in line
 
 
 def test_batch_tables_come_from_the_checked_results(tmp_path):

@@ -11,6 +11,7 @@ The rows of the files hold every window of the pass, the windows that were not e
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import os
@@ -341,7 +342,7 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
     """
     path = check_regular(Path(path))
     if path.suffix.lower() in (".h5", ".hdf5"):
-        return _read_hdf5(path)
+        return _check_order(path, _read_hdf5(path))
     raw = path.read_bytes()
     try:
         text = raw.decode("utf-8")
@@ -396,7 +397,24 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
             result.add(row)
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{path}: not a cmax-taichi results file ({_bad_entry(exc)})") from None
+    return _check_order(path, result)
+
+
+def _check_order(path: Path, result: SequenceResult) -> SequenceResult:
+    """``result``, or ValueError when its windows are not in the order a run writes them (a window
+    repeated, or out of order: an edited file, whose repeated window would be scored twice)."""
+    for rows in (result.windows, result.rows()):  # in the file's order; every window by index
+        _check_increasing(path, [w.index for w in rows])
     return result
+
+
+def _check_increasing(path: Path, indices: list[int]) -> None:
+    for before, after in itertools.pairwise(indices):
+        if after <= before:
+            raise ValueError(
+                f"{path}: not a cmax-taichi results file (window {after} follows window {before}: "
+                "repeated or out of order)"
+            )
 
 
 def _bad_entry(exc: Exception) -> str:
