@@ -359,6 +359,18 @@ def _never_called(state):  # pragma: no cover - the workers never start
     return state
 
 
+def test_a_missing_optional_package_and_ctrl_c_in_a_plugin_are_one_line(tmp_path, capsys, monkeypatch):
+    """`estimate x.bag` without rosbags printed an ImportError traceback (exit 1), and Ctrl-C while a
+    plugin loads a KeyboardInterrupt traceback."""
+    monkeypatch.setitem(sys.modules, "rosbags", None)  # as where it is not installed
+    (tmp_path / "x.bag").write_bytes(b"#ROSBAG V2.0\n")
+    code, _, err = run(capsys, "estimate", tmp_path / "x.bag", "--out", tmp_path / "E")
+    assert code == 2 and "needs the optional package 'rosbags'" in error_line(err)
+    (tmp_path / "slow.py").write_text("raise KeyboardInterrupt\n")
+    code, _, err = run(capsys, "info", "--plugin", tmp_path / "slow.py")
+    assert code == 130 and err.strip() == "cmax-taichi: interrupted"
+
+
 def test_count_strides_are_whole_numbers_on_every_command(capsys):
     for command in ("flow", "estimate"):
         code, _, err = run(capsys, command, "/nonexistent", "--stride", "0.5")

@@ -146,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         except CliError as exc:
             print(f"cmax-taichi: error: {exc}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:  # Ctrl-C while a plugin loads (it leaves nothing registered)
+            print("cmax-taichi: interrupted", file=sys.stderr)
+            return 130
         args_list = _plugins_after_the_command(args_list)
     named = args_list[0] if args_list and args_list[0] in COMMAND_MODULES else None
     parser = build_parser(named)
@@ -166,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
-    except (CliError, ValueError, TypeError, OSError, KeyError, MemoryError) as exc:
+    except (CliError, ValueError, TypeError, OSError, KeyError, MemoryError, ImportError) as exc:
+        # ImportError: an optional package a format needs (its message names the package and the install)
         message = str(exc) or type(exc).__name__
         if isinstance(exc, KeyError):
             message = f"missing key {message}"
