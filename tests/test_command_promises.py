@@ -371,6 +371,13 @@ def test_a_missing_optional_package_and_ctrl_c_in_a_plugin_are_one_line(tmp_path
     assert code == 130 and err.strip() == "cmax-taichi: interrupted"
 
 
+def test_an_empty_segment_window_names_the_recordings_span(tmp_path, capsys):
+    rec = write_recording(tmp_path / "rec")  # 0.1 s
+    code, _, err = run(capsys, "segment", rec, "-k", "2", "--t-start", "5", "--out", tmp_path / "S")
+    line = error_line(err)
+    assert code == 2 and "the window from --t-start 5 s is empty" in line and "recording spans 0.0" in line
+
+
 def test_count_strides_are_whole_numbers_on_every_command(capsys):
     for command in ("flow", "estimate"):
         code, _, err = run(capsys, command, "/nonexistent", "--stride", "0.5")
