@@ -231,6 +231,9 @@ def test_cli_refuses_a_gpu_arch_that_falls_back_to_the_cpu(tmp_path, capsys):
         assert not out.exists()
         assert cli_main(["bench", "--gpu-sweep", "--max-events", "999", "--out", str(out)]) == 2
         assert "leaves no configuration" in capsys.readouterr().err
+        # ignored without --gpu-sweep (a user who meant to bound the CPU plan got its full sizes)
+        assert cli_main(["bench", "--quick", "--max-events", "1000", "--out", str(out)]) == 2
+        assert "--max-events applies to --gpu-sweep only" in capsys.readouterr().err
         assert cli_main(["bench", "--arch", "vulkan", "--precision", "f64", "--out", str(out)]) == 2
         assert "no f64 support" in capsys.readouterr().err
     finally:

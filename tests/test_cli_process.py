@@ -41,6 +41,10 @@ def test_exit_codes_and_error_lines(tmp_path):
     assert missing.stderr.strip().splitlines()[-1].endswith("no such file or folder"), missing.stderr
     usage = _run([*CMD, "estimate", "--no-such-option"], tmp_path)
     assert usage.returncode == 2 and "unrecognized arguments" in usage.stderr
+    # a first day's commands: the version, and the package run as a module
+    for argv in ([*CMD, "--version"], [sys.executable, "-m", "cmax_taichi", "--version"]):
+        version = _run(argv, tmp_path)
+        assert version.returncode == 0 and version.stdout.startswith("cmax-taichi "), version.stderr
 
 
 def test_a_profiler_still_gets_its_profile(tmp_path):

@@ -265,12 +265,29 @@ def test_results_no_run_could_have_written_are_refused(tmp_path):
         (lambda d: d["windows"][0].update(t_start=2.0), "is not a time span"),
         (lambda d: d.update(settings=[]), "'settings' is a list"),
         (lambda d: d["windows"][0].update(status="junk"), "unknown status"),
+        (lambda d: d["windows"].append(d["windows"][0]), "window 0 follows window 0: repeated"),
     ]:
         data = json.loads(json.dumps(good))
         change(data)
         path.write_text(json.dumps(data))
         with pytest.raises(ValueError, match=message):
             read_results(path)
+
+
+def test_evaluate_scores_no_window_outside_the_recording(mvsec, tmp_path, capsys):
+    """Results whose windows were moved 100 s past the recording (an edited file, the fingerprint
+    intact) were scored against the ground truth all the same."""
+    from cmax_taichi.solve.results import SequenceResult, WindowResult
+
+    settings = {"source": str(mvsec), "format": "mvsec", "fingerprint": fingerprint_of(mvsec)}
+    res = SequenceResult("translation2", ("v_x", "v_y"), ("px/s", "px/s"), settings=settings)
+    t0 = 1500000000.0 + 100.0
+    res.add(WindowResult(0, t0, t0 + 0.05, 100, np.array([6.0, 4.0]), 1.5, 1.2, 3, 0.1, True))
+    (tmp_path / "est").mkdir()
+    res.to_json(tmp_path / "est" / "results.json")
+    code, _, err = run(capsys, "evaluate", tmp_path / "est", *SIZE_ARGS)
+    line = error_line(err)
+    assert code == 2 and "1 window(s) with a time span outside the recording's" in line
 
 
 def test_batch_tables_come_from_the_checked_results(tmp_path):
@@ -340,6 +357,25 @@ def _fail_to_start():
 
 def _never_called(state):  # pragma: no cover - the workers never start
     return state
+
+
+def test_a_missing_optional_package_and_ctrl_c_in_a_plugin_are_one_line(tmp_path, capsys, monkeypatch):
+    """`estimate x.bag` without rosbags printed an ImportError traceback (exit 1), and Ctrl-C while a
+    plugin loads a KeyboardInterrupt traceback."""
+    monkeypatch.setitem(sys.modules, "rosbags", None)  # as where it is not installed
+    (tmp_path / "x.bag").write_bytes(b"#ROSBAG V2.0\n")
+    code, _, err = run(capsys, "estimate", tmp_path / "x.bag", "--out", tmp_path / "E")
+    assert code == 2 and "needs the optional package 'rosbags'" in error_line(err)
+    (tmp_path / "slow.py").write_text("raise KeyboardInterrupt\n")
+    code, _, err = run(capsys, "info", "--plugin", tmp_path / "slow.py")
+    assert code == 130 and err.strip() == "cmax-taichi: interrupted"
+
+
+def test_an_empty_segment_window_names_the_recordings_span(tmp_path, capsys):
+    rec = write_recording(tmp_path / "rec")  # 0.1 s
+    code, _, err = run(capsys, "segment", rec, "-k", "2", "--t-start", "5", "--out", tmp_path / "S")
+    line = error_line(err)
+    assert code == 2 and "the window from --t-start 5 s is empty" in line and "recording spans 0.0" in line
 
 
 def test_count_strides_are_whole_numbers_on_every_command(capsys):

@@ -172,5 +172,9 @@ def test_reproduce_errors_are_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["reproduce", "table9", "--out", str(tmp_path)])
     assert main(["reproduce", "table1", "--quick", "--windows", "0", "--out", str(tmp_path)]) == 2
+    capsys.readouterr()
+    # 1e12 intervals simulated for minutes before anything said the run could never end: refused at once
+    assert main(["reproduce", "table1", "--quick", "--windows", "1000000000000", "--out", str(tmp_path)]) == 2
+    assert "windows must be a whole number from 1 to 1,000" in capsys.readouterr().err
     with pytest.raises(ValueError, match="unknown experiment"):
         ex.reproduce("table7", tmp_path)

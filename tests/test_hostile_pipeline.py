@@ -20,6 +20,7 @@ from conftest import CAMERA, SENSOR, edge_events, use_precision
 
 import cmax_taichi as cm
 from cmax_taichi.core import backend
+from cmax_taichi.pipeline.clusters import MultiClusterCMax
 
 
 def small_events(n: int = 200, seed: int = 2) -> cm.Events:
@@ -280,6 +281,8 @@ def test_maximize_theta0_and_candidates_name_the_argument(translation_problem):
         ({"blur_sigma": 10**400}, ValueError, r"blur_sigma must be a finite number >= 0, got inf"),
         ({"blur_sigma": float("nan")}, ValueError, r"blur_sigma must be a finite number >= 0, got nan"),
         ({"t_ref": 10**400}, ValueError, r"t_ref must be finite, got inf"),
+        ({"t_ref": True}, TypeError, r"t_ref must be 'first', 'middle', 'last' or seconds, got True"),
+        ({"normalize": "no"}, TypeError, r"normalize must be True or False, got 'no'"),
         ({"regularizers": {"divergence": 10**400}}, ValueError, r"weight of regularizer 'divergence'"),
         ({"regularizers": {"divergence": "1"}}, TypeError, r"weight of regularizer 'divergence' must be"),
         ({"weights": ["a"] * 200}, TypeError, r"weights must be real numbers, got dtype <U1"),
@@ -289,6 +292,44 @@ def test_problem_options_name_the_problem(f64, kwargs, error, message):
     with pytest.raises(error, match=message):
         cm.ContrastMaximization(small_events(), warp="translation2", **kwargs)
     assert_session_usable()
+
+
+def test_numeric_t_ref_must_lie_near_the_window(f64):
+    """A t_ref on another clock (1e9 s: a Unix time; microseconds) warped every event over ~1e9 s and gave
+    a meaningless estimate without a word. A number now lies within the window's span give or take its
+    duration; the error names the value, the span and the unit."""
+    ev = small_events()
+    t0, t1 = float(ev.t[0]), float(ev.t[-1])
+    T = t1 - t0
+    for inside in (t0, 0.5 * (t0 + t1), t0 - 0.99 * T, t1 + 0.99 * T):
+        prob = cm.ContrastMaximization(ev, warp="translation2", t_ref=inside)
+        assert prob.t_ref == inside
+    for outside in (1e9, t1 + 1.01 * T, t0 - 1.01 * T, -1e9):
+        with pytest.raises(ValueError, match=r"t_ref .* s is outside the window: its events span \[.*\] s"):
+            cm.ContrastMaximization(ev, warp="translation2", t_ref=outside)
+    with pytest.raises(ValueError, match="outside the window"):
+        MultiClusterCMax(ev, 2, "translation2", t_ref=1e9)
+    assert_session_usable()
+
+
+def test_a_sequence_refuses_one_numeric_t_ref_for_many_windows(f64):
+    """Every window of a sequence was warped to one numeric t_ref (the later ones over many times their
+    duration). A number is for a run of one window; the names follow each window."""
+    from cmax_taichi.solve import sequence
+
+    ev = small_events(n=600)
+    with pytest.raises(ValueError, match=r"t_ref 0.0 s is one time .* this run has 3 windows"):
+        sequence.process(ev, "translation2", n_events=200, progress=False, problem_options={"t_ref": 0.0})
+    one = sequence.process(
+        ev, "translation2", n_events=200, max_windows=1, progress=False, problem_options={"t_ref": 0.0}
+    )
+    assert [w.status for w in one.windows] == ["estimated"]
+    with pytest.raises(ValueError, match="outside the window"):
+        sequence.process(
+            ev, "translation2", n_events=200, max_windows=1, progress=False, problem_options={"t_ref": 1e9}
+        )
+    with pytest.raises(ValueError, match="t_ref must be finite, got nan"):  # not "one time ... 3 windows"
+        sequence.process(ev, "translation2", n_events=200, progress=False, problem_options={"t_ref": np.nan})
 
 
 # --- segmentation on tiny windows -----------------------------------------------------------------------

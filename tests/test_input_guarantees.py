@@ -252,6 +252,19 @@ def test_text_polarity_conventions_do_not_mix_across_chunks(tmp_path, monkeypatc
     _normal_recording(tmp_path)
 
 
+def test_an_option_the_format_does_not_take_is_named(tmp_path, capsys):
+    """`--topic` on a text recording printed "TextRecording.__init__() got an unexpected keyword
+    argument 'topic'"; a path of the wrong type printed pathlib's message."""
+    folder = _write_text(tmp_path / "seq", ["0.0 1 2 1", "0.1 3 4 0", "0.2 5 6 1"])
+    with pytest.raises(ValueError, match=r"the ecd reader takes no option topic \(it takes cache, .*sort"):
+        io.open_recording(folder, topic="/dvs/events")
+    with pytest.raises(TypeError, match=r"path must be a file or folder \(str or os.PathLike\), got int"):
+        io.open_recording(123)
+    assert main(["estimate", str(folder), "--topic", "/dvs/events", "--out", str(tmp_path / "E")]) == 2
+    err = capsys.readouterr().err
+    assert "the ecd reader takes no option topic" in err and "Traceback" not in err
+
+
 def test_cache_notices_a_rewrite_with_the_same_size_and_mtime(tmp_path):
     folder = _write_text(tmp_path / "seq", ["0.0 1 2 1", "0.1 3 4 0", "0.2 5 6 1"])
     path = folder / "events.txt"

@@ -152,6 +152,57 @@ def test_estimate_refuses_an_out_that_is_or_holds_the_recording(recording, tmp_p
     assert snapshot(recording) == before  # not a byte written beside the data
 
 
+def test_every_command_refuses_an_out_that_holds_any_recording(recording, tmp_path, capsys):
+    """bench has no input to protect, so `bench --out` wrote its tables beside a recording's events;
+    a folder holding a recording (any, not only the run's input) is refused by every command."""
+    other = write_recording(tmp_path / "other")
+    before = snapshot(other)
+    commands = [
+        ("bench", "--quick", "--no-solve"),
+        ("estimate", recording, *FAST),
+        ("segment", recording, "-k", "2", "--max-iterations", "1", "--no-figures"),
+        ("flow", recording, "--grid", "2", "2", "--levels", "1", "--quiet"),
+    ]
+    for argv in commands:
+        code, _, err = run(capsys, *argv, "--out", other)
+        assert code == 2 and f"--out {other} holds a recording (ecd)" in error_line(err), argv
+    assert snapshot(other) == before
+
+
+def test_a_symbolic_link_where_a_run_writes_a_folder_is_not_followed(recording, tmp_path, capsys):
+    """OUT/flow linked to another folder (a user's, a recording's): flow wrote its files there, outside
+    OUT, where the input checks never looked."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "keep").write_text("x")
+    out = tmp_path / "F"
+    out.mkdir()
+    (out / "flow").symlink_to(mine)
+    argv = ["flow", recording, "--grid", "2", "2", "--levels", "1", "--quiet", "--out", out]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and "is a symbolic link where this run writes a folder" in error_line(err)
+    assert sorted(p.name for p in mine.iterdir()) == ["keep"]
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_the_work(recording, tmp_path, capsys, monkeypatch):
+    """segment and bench did their work (minutes for bench) and only then found that --out could not
+    be created (a read-only file system): now refused before anything runs."""
+    locked = tmp_path / "ro"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(outputs.os, "access", lambda p, mode: Path(p) != locked and real_access(p, mode))
+    commands = [
+        ("segment", recording, "-k", "2", "--max-iterations", "1", "--no-figures"),
+        ("bench", "--quick", "--no-solve"),
+    ]
+    for argv in commands:
+        code, out, err = run(capsys, *argv, "--out", locked / "new")
+        assert code == 2 and f"--out: cannot create {locked / 'new'}" in error_line(err), argv
+        assert not out and "step" not in err  # no work began
+    code, _, err = run(capsys, "segment", recording, "-k", "2", "--out", locked)
+    assert code == 2 and f"--out: cannot write in {locked}" in error_line(err)
+
+
 @pytest.mark.parametrize("name", ["results.h5", "results.csv"])
 def test_a_recording_named_like_an_output_is_never_overwritten(tmp_path, capsys, name):
     folder = write_recording(tmp_path / "x")

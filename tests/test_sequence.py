@@ -154,7 +154,13 @@ def test_bad_inputs(events, tmp_path):
     with pytest.raises(ValueError, match="not a results JSON"):
         sequence.read_results(bad)
     bad.write_text('{"warp": "zoom1"}')
-    with pytest.raises(ValueError, match="not a cmax-taichi results file"):
+    with pytest.raises(ValueError, match=r"not a cmax-taichi results file \(missing entry 'params'\)"):
+        sequence.read_results(bad)
+    # a window whose parameters are a string: the window and the entry named, not Python's indexing error
+    window = {"index": 0, "t_start": 0.0, "t_end": 1.0, "n_events": 5, "theta": "abc"}
+    bad.write_text(json.dumps({"warp": "zoom1", "params": ["h"], "units": ["1/s"], "windows": [window]}))
+    message = r"bad entry: window 0: its 'theta' is not an object \(of the parameters h\)"
+    with pytest.raises(ValueError, match=message):
         sequence.read_results(bad)
 
 

@@ -264,3 +264,31 @@ def test_results_record_the_kernels_of_each_window(own_cache, no_background, tmp
         assert [w.kernels for w in read_results(tmp_path / name).windows] == ["fast"] * 3
     assert (tmp_path / "r.csv").read_text().splitlines()[0].endswith(",kernels")
     assert backend.info().compile_mode == "auto"
+
+
+def test_a_kernel_cache_that_cannot_be_written_moves_to_the_temporary_folder(tmp_path):
+    """Under a read-only HOME, Taichi crashed (SIGSEGV) when the program ended, after a complete run: it
+    creates its cache folder then whether the cache is on or not. The cache moves to the temporary
+    folder, said once; and with auto compilation no background compile is asked where none can write."""
+    import os
+
+    (tmp_path / "a file").write_text("x")  # the cache's parent is a file: it cannot be created
+    (tmp_path / "tmp").mkdir()
+    env = {
+        **os.environ,
+        "TI_OFFLINE_CACHE_FILE_PATH": str(tmp_path / "a file" / "ticache"),
+        "TMPDIR": str(tmp_path / "tmp"),
+        "CMAX_TAICHI_COMPILE": "fast",
+    }
+    script = (
+        "import numpy as np, cmax_taichi as cm\n"
+        "r = np.random.default_rng(0)\n"
+        "ev = cm.Events(r.uniform(0, 63, 500), r.uniform(0, 47, 500), np.sort(r.uniform(0, .05, 500)),\n"
+        "               r.choice([-1., 1.], 500), (64, 48))\n"
+        "print(cm.ContrastMaximization(ev, 'translation2').evaluate([1., 2.]).J)\n"
+    )
+    argv = [sys.executable, "-c", script]
+    done = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "cannot be written: using" in done.stderr and np.isfinite(float(done.stdout.split()[-1]))
+    assert (tmp_path / "tmp" / f"cmax-taichi-ticache-{os.getuid()}").is_dir()

@@ -89,6 +89,16 @@ def _command_signals_and_warnings(command: str):
             signal.signal(signal.SIGTERM, previous_term)
 
 
+def _version() -> str:
+    """The installed package's version (without importing the library and Taichi)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("cmax-taichi")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The command's parser: every sub-command, or the one called ``only`` (a name of
     :data:`COMMAND_MODULES`)."""
@@ -99,6 +109,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
             "(Shiba, Aoki, Gallego, Sensors 2022). Run 'cmax-taichi COMMAND --help' for a command."
         ),
     )
+    parser.add_argument("--version", action="version", version=f"cmax-taichi {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES if only is None else (only,):
         module = importlib.import_module(f"cmax_taichi.cli.{name}")
@@ -135,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         except CliError as exc:
             print(f"cmax-taichi: error: {exc}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:  # Ctrl-C while a plugin loads (it leaves nothing registered)
+            print("cmax-taichi: interrupted", file=sys.stderr)
+            return 130
         args_list = _plugins_after_the_command(args_list)
     named = args_list[0] if args_list and args_list[0] in COMMAND_MODULES else None
     parser = build_parser(named)
@@ -155,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
-    except (CliError, ValueError, TypeError, OSError, KeyError, MemoryError) as exc:
+    except (CliError, ValueError, TypeError, OSError, KeyError, MemoryError, ImportError) as exc:
+        # ImportError: an optional package a format needs (its message names the package and the install)
         message = str(exc) or type(exc).__name__
         if isinstance(exc, KeyError):
             message = f"missing key {message}"

@@ -259,7 +259,10 @@ def why_no_window(args: argparse.Namespace, events: dict) -> str:
 def add_t_ref_argument(parser) -> None:
     """``--t-ref`` (default ``first``), on a parser or an argument group; read it with :func:`parse_t_ref`."""
     parser.add_argument(
-        "--t-ref", default="first", help=f"reference time: {names(T_REF_NAMES)} or seconds (default first)"
+        "--t-ref",
+        default="first",
+        help=f"reference time: {names(T_REF_NAMES)} (of each window) or seconds on the recording's clock "
+        "(one window only, within its span give or take its duration) (default first)",
     )
 
 

@@ -47,9 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     settings = Settings.quick() if args.quick else Settings()
     changes = {}
-    if args.windows is not None:
-        if args.windows < 1:
-            raise ValueError(f"--windows must be at least 1, got {args.windows}")
+    if args.windows is not None:  # checked by Settings (1 to MAX_INTERVALS)
         changes["windows"] = args.windows
         changes["sensitivity_windows"] = min(settings.sensitivity_windows, args.windows)
     if args.lam is not None:

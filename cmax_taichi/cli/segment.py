@@ -102,7 +102,11 @@ def _read_window(rec, args):
             raise CliError(f"--start {args.start} is outside the recording's {rec.n_events} events")
         events = rec.read(args.start, args.start + args.events)
     if len(events) == 0:
-        raise CliError(f"{rec.path}: the window is empty (no events there)")
+        where = "" if args.t_start is None else f" from --t-start {args.t_start:g} s"
+        raise CliError(
+            f"{rec.path}: the window{where} is empty (no events there; the recording spans "
+            f"{rec.t_start:.6f} .. {rec.t_end:.6f} s)"
+        )
     return events
 
 

@@ -12,6 +12,7 @@ import contextlib
 import io
 import os
 import sys
+import tempfile
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -152,8 +153,8 @@ def init(
             default_fp=fp,
             default_ip=ti.i32,
             log_level=log_level,
-            offline_cache=True,
             kernel_profiler=kernel_profiler,
+            **_offline_cache_options(),
         )
     used = _running_arch_name()
     if arch != "cpu" and used == "cpu":
@@ -171,6 +172,34 @@ def init(
     )
     _options.update(quiet=quiet, kernel_profiler=kernel_profiler, compile_mode=compile_mode)
     return _state
+
+
+def _offline_cache_options() -> dict:
+    """Where Taichi keeps its offline cache: its own folder where it can be written, else a folder in
+    the temporary directory (said once). Taichi creates that folder when the program ends, whether the
+    cache is on or not, and crashes (SIGSEGV, after a complete run) where it cannot, e.g. under a
+    read-only HOME."""
+    path = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or ti.lang.impl.default_cfg().offline_cache_file_path
+    if _writable(path):
+        return {"offline_cache": True}
+    fallback = os.path.join(tempfile.gettempdir(), f"cmax-taichi-ticache-{os.getuid()}")
+    usable = _writable(fallback)
+    warnings.warn(
+        f"cmax_taichi: Taichi's kernel cache {path} cannot be written: "
+        + (f"using {fallback}" if usable else "kernels are compiled in every process")
+        + " (set TI_OFFLINE_CACHE_FILE_PATH to a writable folder)",
+        RuntimeWarning,
+        stacklevel=4,
+    )
+    return {"offline_cache": usable, "offline_cache_file_path": fallback}
+
+
+def _writable(path: str) -> bool:
+    """Whether ``path`` (a folder) can be written, or created where it does not exist yet."""
+    folder = os.path.abspath(os.path.expanduser(path))
+    while not os.path.exists(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)
+    return os.path.isdir(folder) and os.access(folder, os.W_OK | os.X_OK)
 
 
 def recover() -> BackendInfo:

@@ -20,6 +20,7 @@ rosbag   ROS1 ``.bag`` / ROS2 bag folder, an event topic (rosbags)    :mod:`.ros
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 from pathlib import Path
 
@@ -152,6 +153,8 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
     ImportError
         The optional package a format needs is not installed (the message names it).
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a file or folder (str or os.PathLike), got {type(path).__name__}")
     path = Path(path).expanduser()
     if options.get("sensor_size") is not None:
         # before any decoder sees it (faery would answer "out of range integral type conversion")
@@ -166,7 +169,30 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
         raise ValueError(f"unknown format {format!r}; supported formats: {', '.join(FORMATS)}")
     module_name, class_name = _READERS[format]
     module = importlib.import_module(f"{__name__}.{module_name}")
-    return getattr(module, class_name)(path, **options)
+    reader = getattr(module, class_name)
+    _check_options(reader, format, path, options)
+    return reader(path, **options)
+
+
+def _check_options(reader, format: str, path: Path, options: dict) -> None:
+    """ValueError naming the options that the format's reader does not take (``topic=`` for a text
+    file), rather than Python's "unexpected keyword argument" from inside the reader."""
+    for cls in reader.__mro__:  # the first __init__ that names its options (ECD passes them to text's)
+        init = cls.__dict__.get("__init__")
+        if init is None:
+            continue
+        parameters = inspect.signature(init).parameters
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+            break
+    else:
+        return
+    unknown = sorted(set(options) - set(parameters))
+    if unknown:
+        takes = sorted(name for name in parameters if name not in ("self", "path"))
+        raise ValueError(
+            f"{path}: the {format} reader takes no option {', '.join(unknown)} (it takes "
+            f"{', '.join(takes)})"
+        )
 
 
 def read_events(

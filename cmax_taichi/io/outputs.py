@@ -5,8 +5,9 @@ result files. One implementation, used by all of them.
 Guarantees of an :class:`OutputFolder` (``OUT``):
 
 * **inputs are never touched**: ``OUT`` must not be an input (a recording's file or folder), nor a
-  folder that holds one, nor a folder inside an input folder; it is refused before anything is
-  written (:class:`OutputConflictError`);
+  folder that holds one, nor a folder inside an input folder, nor a folder that holds any recording
+  (``bench`` has no input, and a recording's folder is no place for results); it is refused before
+  anything is written (:class:`OutputConflictError`);
 * **nothing a run did not write is replaced**: a run recognises the outputs of cmax-taichi runs by the
   manifest ``OUT/.cmax-taichi-manifest.json`` (each file's path, size, modification time, content
   digest and the command that wrote it; a copied folder's files, whose times changed, are recognised by
@@ -162,8 +163,9 @@ def _resolved(path: str | os.PathLike) -> Path:
 
 def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], option: str = "--out") -> None:
     """OutputConflictError when the output folder ``out`` is one of ``inputs`` (files or folders), a
-    folder that holds one (at any depth), a folder inside an input folder, or an existing file. Inputs
-    that do not exist have nothing to protect (the command reports them itself)."""
+    folder that holds one (at any depth), a folder inside an input folder, an existing file, or a
+    folder that holds a recording (any, not only an input: an ECD folder, MVSEC, DSEC, AEDAT4, a ROS 2
+    bag). Inputs that do not exist have nothing to protect (the command reports them itself)."""
     target = _resolved(out)
     for item in inputs:
         if not os.path.lexists(item):
@@ -186,6 +188,39 @@ def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], op
             )
     if target.exists() and not target.is_dir():
         raise OutputConflictError(f"{option} {out} is an existing file, not a folder")
+    recording = _recording_format(target)
+    if recording is not None:
+        raise OutputConflictError(
+            f"{option} {out} holds a recording ({recording}): choose an output folder outside the "
+            "recordings (their files are never overwritten)"
+        )
+
+
+def _check_writable(out: Path, option: str) -> None:
+    """OSError when ``out`` cannot be written, or created (its nearest existing folder cannot be
+    written): a read-only file system or no permission, found before the run's work, not at its end."""
+    folder = _resolved(out)
+    while not folder.exists() and folder.parent != folder:
+        folder = folder.parent
+    if not folder.is_dir() or os.access(folder, os.W_OK | os.X_OK):
+        return  # not a folder: check_inputs or the creation says so
+    read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    why = "Read-only file system" if read_only else "Permission denied"
+    what = f"write in {out}" if folder == _resolved(out) else f"create {out}"
+    raise OSError(f"{option}: cannot {what} ({why})")
+
+
+def _recording_format(folder: Path) -> str | None:
+    """The format of the recording that ``folder`` holds (its events file, as :func:`cmax_taichi.io.
+    detect_format` finds it in a folder), None for a folder without one or one that does not exist."""
+    if not folder.is_dir():
+        return None
+    from cmax_taichi.io import detect_format
+
+    try:
+        return detect_format(folder)
+    except (OSError, ValueError):  # no events file there (or one that cannot be read: not a recording)
+        return None
 
 
 # --- the lock ---------------------------------------------------------------------------------------
@@ -408,6 +443,7 @@ class OutputFolder:
         """The checks of entering that need no lock (inputs, an existing file as ``OUT``, files this
         run may not replace): for a command that refuses before its work and enters later."""
         check_inputs(self.out, self.inputs, self.option)
+        _check_writable(self.out, self.option)
         if self.out.is_dir():
             self._refuse_existing(read_manifest(self.out))
 
@@ -418,6 +454,12 @@ class OutputFolder:
             parts = Path(pattern).parts[:-1]
             for k in range(1, len(parts) + 1):
                 folder = self.out.joinpath(*parts[:k])
+                if folder.is_symlink():  # its files would land outside OUT (in a recording, a user's folder)
+                    raise OutputConflictError(
+                        f"{folder} is a symbolic link where this run writes a folder: not followed (the "
+                        f"files would land outside {self.option}); choose another {self.option} or move it "
+                        "away"
+                    )
                 if (folder.exists() or folder.is_symlink()) and not folder.is_dir():
                     raise OutputConflictError(
                         f"{folder} is a file where this run writes a folder: not replaced; choose another "

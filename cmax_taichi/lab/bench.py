@@ -554,7 +554,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--max-events",
         type=int,
-        default=10_000_000,
+        default=None,
         help="largest N of --gpu-sweep (default 1e7; smaller for a software-Vulkan check)",
     )
     parser.add_argument(
@@ -599,7 +599,9 @@ def start_backend(arch: str | None, precision: str) -> str:
 def run_from_args(args: argparse.Namespace) -> int:
     """Run the plan the options of :func:`add_arguments` describe and print the report; exit code 1
     when an implementation disagrees with the others. Bad options raise ValueError."""
-    if args.max_events < 1:
+    if args.max_events is not None and not args.gpu_sweep:  # the other plans' sizes are fixed
+        raise ValueError("--max-events applies to --gpu-sweep only")
+    if args.max_events is not None and args.max_events < 1:
         raise ValueError(f"--max-events must be at least 1, got {args.max_events}")
     requested = (args.arch or os.environ.get(backend.ARCH_ENV) or "cpu").strip().lower()
     precision = args.precision or ("f64" if requested == "cpu" else "f32")
@@ -614,7 +616,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(markdown(rows))
         return 0
     if args.gpu_sweep:
-        plan = gpu_plan(precision, max_events=args.max_events)
+        plan = gpu_plan(precision, max_events=args.max_events or 10_000_000)
         if not plan.configs:
             raise ValueError(
                 f"--max-events {args.max_events} leaves no configuration (the smallest N is 1000)"

@@ -93,6 +93,10 @@ EXPERIMENTS = ("table1", "table2", "table3", "sensitivity", "complexity")
 N_EVENTS = 30_000  # the paper's MVSEC window
 
 
+#: the most evaluation intervals of a preset (``Settings.windows``): refused above, before simulating
+MAX_INTERVALS = 1000
+
+
 @dataclass(frozen=True)
 class Settings:
     """Sizes and budgets of the experiments.
@@ -142,6 +146,16 @@ class Settings:
     rotation_cuts: tuple[str, ...] = ROTATION_CUTS
     scale: float = 1.0
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("windows", "sensitivity_windows"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and 1 <= value <= MAX_INTERVALS):
+                raise ValueError(
+                    f"{name} must be a whole number from 1 to {MAX_INTERVALS:,}, got {value!r}: each "
+                    "interval lengthens the simulated recording (held whole in memory) and runs every "
+                    "objective's optimisations, so more would take days"
+                )
 
     @property
     def n_events(self) -> int:

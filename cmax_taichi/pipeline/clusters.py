@@ -71,7 +71,8 @@ class MultiClusterCMax(psetup.SetupView):
         Intrinsics (centre of the zoom/rotation models; needed by ``rotation3``). Distorted events are
         undistorted with it; ``kept`` says which input events remain.
     t_ref : {"first", "middle", "last"} or float
-        Reference time (a float is seconds on the events' clock).
+        Reference time (a float is seconds on the events' clock, within the window's span give or
+        take its duration: :func:`~cmax_taichi.pipeline.setup.resolve_t_ref`).
     blur_sigma : float
         Gaussian blur of the IWEs, px (0 = none).
     normalize : bool

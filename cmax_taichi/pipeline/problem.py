@@ -110,7 +110,8 @@ class ContrastMaximization(SetupView):
         Intrinsics (required by ``rotation3``). Its principal point is the centre of the zoom /
         rotation models; events are undistorted with it unless ``events.undistorted``.
     t_ref : {"first", "middle", "last"} or float
-        Reference time (a float is seconds on the events' clock).
+        Reference time (a float is seconds on the events' clock, within the window's span give or
+        take its duration: :func:`~cmax_taichi.pipeline.setup.resolve_t_ref`).
     blur_sigma : float
         Gaussian blur of the IWE, px (0 = none).
     polarity : {"ignore", "signed", "split"}

@@ -94,9 +94,32 @@ def check_regularizers(regularizers) -> dict[str, float]:
     return out
 
 
+def numeric_t_ref(t_ref) -> float:
+    """A numeric ``t_ref`` as a float (s): TypeError for a bool or a non-number, ValueError if not
+    finite."""
+    if isinstance(t_ref, (bool, np.bool_)):  # True is not 1 s
+        raise TypeError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
+    value = _as_float(t_ref, "t_ref must be a string or a number")
+    if not math.isfinite(value):
+        raise ValueError(f"t_ref must be finite, got {value}")
+    return value
+
+
 def resolve_t_ref(t_ref, events: Events) -> float:
     """The reference time in seconds on the events' clock from ``"first"``, ``"middle"``, ``"last"``
-    or a number."""
+    or a number.
+
+    A number is a time on the events' own clock (not relative to the window). It must lie within the
+    window's span extended by its duration ``T`` on each side, ``[t_first - T, t_last + T]``: further
+    away, every event is warped over many times the window's duration and the estimate means nothing
+    (a time on another clock, e.g. microseconds or a Unix time, is the usual cause).
+
+    Raises
+    ------
+    ValueError
+        For an unknown name, a value that is not finite, or a number outside that interval (the error
+        names the value, the window's span and the allowed interval, all in seconds).
+    """
     if isinstance(t_ref, str):
         choices = {
             "first": events.t[0],
@@ -106,9 +129,16 @@ def resolve_t_ref(t_ref, events: Events) -> float:
         if t_ref not in choices:
             raise ValueError(f"t_ref must be 'first', 'middle', 'last' or seconds, got {t_ref!r}")
         return float(choices[t_ref])
-    value = _as_float(t_ref, "t_ref must be a string or a number")
-    if not math.isfinite(value):
-        raise ValueError(f"t_ref must be finite, got {value}")
+    value = numeric_t_ref(t_ref)
+    first, last = float(events.t[0]), float(events.t[-1])
+    margin = last - first
+    if not first - margin <= value <= last + margin:
+        raise ValueError(
+            f"t_ref {value:.9g} s is outside the window: its events span [{first:.9g}, {last:.9g}] s on "
+            f"their clock, and a numeric t_ref must lie within that span extended by its duration "
+            f"({margin:.3g} s) on each side, [{first - margin:.9g}, {last + margin:.9g}] s; "
+            "'first', 'middle' and 'last' follow the window"
+        )
     return value
 
 
@@ -210,6 +240,8 @@ class ProblemSetup:
             if m.needs_camera and camera is None:
                 raise ValueError(f"warp {m.name!r} needs a camera (intrinsics): pass camera=")
         reg_weights = check_regularizers(regularizers)
+        if not isinstance(normalize, (bool, np.bool_)):  # normalize="no" read as True
+            raise TypeError(f"normalize must be True or False, got {normalize!r}")
         if polarity not in POLARITY_MODES:
             raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
         if not isinstance(blur_sigma, numbers.Real) or isinstance(blur_sigma, (bool, np.bool_)):

@@ -427,14 +427,17 @@ def request_background_compile(config: KernelConfig) -> bool:
     """Start a detached low-priority process that compiles ``config``'s optimized kernels into the
     offline cache, unless one runs for it already; returns whether one was started."""
     pending = _pending_file(config)
-    pending.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        pending.parent.mkdir(parents=True, exist_ok=True)
+    except OSError:  # a cache that cannot be written (read-only HOME): the quick kernels serve the run
+        return False
     if pending.exists() and _pending_alive(pending):
         return False
     with contextlib.suppress(FileNotFoundError):
         pending.unlink()
     try:
         fd = os.open(pending, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-    except FileExistsError:  # another process asked in the same instant
+    except OSError:  # another process asked in the same instant (FileExistsError), or not writable
         return False
     env = dict(os.environ)
     env["TI_OFFLINE_CACHE_FILE_PATH"] = str(cache_folder().parent)

@@ -50,7 +50,7 @@ from cmax_taichi.core.windows import (
 from cmax_taichi.models.warps import get_warp
 from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_window
 from cmax_taichi.solve.results import WindowResult
-from cmax_taichi.solve.warm import WindowSolver
+from cmax_taichi.solve.warm import WindowSolver, check_sequence_t_ref
 
 __all__ = ["LiveResult", "WarpWindows", "WindowEstimator", "run_live", "run_windows"]
 
@@ -449,6 +449,7 @@ def run_windows(
     """
     if max_windows is not None:
         max_windows = checks.whole_number("max_windows", max_windows, 1)
+    check_sequence_t_ref(dict(problem_options or {}).get("t_ref", "first"), max_windows)
     if idle_timeout is not None:
         idle_timeout = checks.seconds("idle_timeout", idle_timeout, positive=True)
     rule_size = windows.max_events if isinstance(windows, AdaptiveWindows) else None

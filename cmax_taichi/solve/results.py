@@ -11,6 +11,7 @@ The rows of the files hold every window of the pass, the windows that were not e
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import os
@@ -341,7 +342,7 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
     """
     path = check_regular(Path(path))
     if path.suffix.lower() in (".h5", ".hdf5"):
-        return _read_hdf5(path)
+        return _check_order(path, _read_hdf5(path))
     raw = path.read_bytes()
     try:
         text = raw.decode("utf-8")
@@ -371,7 +372,10 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
             settings=settings,
             events=dict(events),
         )
-        for w in data["windows"]:
+        for k, w in enumerate(data["windows"]):
+            if not isinstance(w, dict) or not isinstance(w.get("theta"), dict):
+                what = "a window" if not isinstance(w, dict) else "its 'theta'"
+                raise TypeError(f"window {k}: {what} is not an object (of the parameters {', '.join(names)})")
             row = WindowResult(
                 index=int(w["index"]),
                 t_start=_number(w["t_start"]),
@@ -392,8 +396,30 @@ def read_results(path: str | os.PathLike) -> SequenceResult:
             _check_row(row)
             result.add(row)
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
+        raise ValueError(f"{path}: not a cmax-taichi results file ({_bad_entry(exc)})") from None
+    return _check_order(path, result)
+
+
+def _check_order(path: Path, result: SequenceResult) -> SequenceResult:
+    """``result``, or ValueError when its windows are not in the order a run writes them (a window
+    repeated, or out of order: an edited file, whose repeated window would be scored twice)."""
+    for rows in (result.windows, result.rows()):  # in the file's order; every window by index
+        _check_increasing(path, [w.index for w in rows])
     return result
+
+
+def _check_increasing(path: Path, indices: list[int]) -> None:
+    for before, after in itertools.pairwise(indices):
+        if after <= before:
+            raise ValueError(
+                f"{path}: not a cmax-taichi results file (window {after} follows window {before}: "
+                "repeated or out of order)"
+            )
+
+
+def _bad_entry(exc: Exception) -> str:
+    """What a results file lacks or holds wrong, from the error of reading it."""
+    return f"missing entry {exc}" if isinstance(exc, KeyError) else f"bad entry: {exc}"
 
 
 def _check_row(row: WindowResult) -> None:
@@ -428,7 +454,7 @@ def _read_hdf5(path: Path) -> SequenceResult:
     except OSError as exc:
         raise OSError(f"{path}: not a readable HDF5 file ({exc})") from None
     except (KeyError, ValueError) as exc:
-        raise ValueError(f"{path}: not a cmax-taichi results file (missing or bad entry {exc})") from None
+        raise ValueError(f"{path}: not a cmax-taichi results file ({_bad_entry(exc)})") from None
     try:
         if not (isinstance(result.settings, dict) and isinstance(result.events, dict)):
             raise ValueError("'settings_json' or 'events_json' is not a JSON object")

@@ -363,7 +363,8 @@ def segment(
         Intrinsics: centre of the zoom/rotation models (``rotation3`` needs them); distorted events
         are undistorted with it.
     t_ref : {"first", "middle", "last"} or float
-        Reference time of the warps.
+        Reference time of the warps (a float: seconds on the events' clock, within the window's span
+        give or take its duration).
     blur_sigma : float
         Gaussian blur of the IWEs, px.
     temperature : float

@@ -43,7 +43,13 @@ from cmax_taichi.pipeline.problem import ContrastMaximization
 from cmax_taichi.solve.adaptive import AdaptivePlanner, AdaptiveWindows, settle_window
 from cmax_taichi.solve.optimize import OptimizeResult
 from cmax_taichi.solve.results import SequenceResult, WindowResult, read_results
-from cmax_taichi.solve.warm import TRACKING_LOSS_RATIO, WARM_XTOL, WarmState, WindowSolver
+from cmax_taichi.solve.warm import (
+    TRACKING_LOSS_RATIO,
+    WARM_XTOL,
+    WarmState,
+    WindowSolver,
+    check_sequence_t_ref,
+)
 
 __all__ = [
     "TRACKING_LOSS_RATIO",
@@ -322,7 +328,8 @@ def process(
         elsewhere (:class:`ProgressBar`); False shows nothing.
     problem_options : mapping, optional
         More keyword arguments of ``ContrastMaximization`` (``blur_sigma``, ``t_ref``, ``polarity``,
-        ``whitening``, ...).
+        ``whitening``, ...). A numeric ``t_ref`` (seconds on the events' clock) is refused unless the
+        run has one window: the windows after it would all be warped to that one time.
     optimize_options : mapping, optional
         More keyword arguments of ``maximize`` (``init``, ``n_init``, ``lr``, ...). An ``init`` given
         here applies to every window (no warm-start search).
@@ -413,6 +420,7 @@ def process(
         total = min(total, int(max_windows)) if total is not None else int(max_windows)
     if total is not None:
         total = max(0, total - first_window)
+    check_sequence_t_ref(popts.get("t_ref", "first"), total)
     by_count = duration is None and adaptive is None
     settings = {
         **desc,

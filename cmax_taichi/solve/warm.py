@@ -19,6 +19,7 @@ import numpy as np
 from cmax_taichi.core.events import Camera, Events
 from cmax_taichi.metrics import fwl_problem
 from cmax_taichi.pipeline.problem import ContrastMaximization
+from cmax_taichi.pipeline.setup import numeric_t_ref
 from cmax_taichi.solve.optimize import OptimizeResult, maximize
 from cmax_taichi.solve.results import WindowResult
 
@@ -41,6 +42,23 @@ WARM_XTOL = 0.03
 #: problem options under which the estimate's own problem measures the FWL (variance, normalised, no
 #: weights or whitening): then its J at the estimate is the FWL and no second problem is built
 _FWL_COMPATIBLE_OPTIONS = {"blur_sigma", "t_ref", "polarity"}
+
+
+def check_sequence_t_ref(t_ref, n_windows: int | None) -> None:
+    """A numeric ``t_ref`` is one time on the events' clock: every window of a sequence would be warped
+    to it, the later ones over far more than their duration. Allowed for a run of one window only (its
+    distance to that window is checked with the window, :func:`~cmax_taichi.pipeline.setup.resolve_t_ref`)."""
+    if isinstance(t_ref, str):
+        return
+    numeric_t_ref(t_ref)  # a type or a value that no window takes: that error first
+    if n_windows is not None and n_windows <= 1:
+        return
+    count = "an unknown number of" if n_windows is None else f"{n_windows}"
+    raise ValueError(
+        f"t_ref {t_ref!r} s is one time on the events' clock, and this run has {count} windows: every "
+        "window would be warped to that time, the later ones over many times their duration; use "
+        "'first', 'middle' or 'last' (each window's own time), or run one window (max_windows=1)"
+    )
 
 
 @dataclass(frozen=True)
