@@ -330,6 +330,12 @@ def test_a_sequence_refuses_one_numeric_t_ref_for_many_windows(f64):
         )
     with pytest.raises(ValueError, match="t_ref must be finite, got nan"):  # not "one time ... 3 windows"
         sequence.process(ev, "translation2", n_events=200, progress=False, problem_options={"t_ref": np.nan})
+    # a live run: refused before the stream is read (its number of windows is not known)
+    from cmax_taichi.io.streams import ReplayStream
+    from cmax_taichi.solve.online import run_live
+
+    with ReplayStream(ev) as stream, pytest.raises(ValueError, match=r"t_ref 0.0 s is one time .* an unknown"):
+        run_live(stream, "translation2", windows=200, problem_options={"t_ref": 0.0}, warm_up=False)
 
 
 # --- segmentation on tiny windows -----------------------------------------------------------------------

@@ -369,6 +369,10 @@ def run_live(
         The source failed (see :func:`run_windows`).
     """
     model = get_warp(warp)
+    max_windows = run_options.get("max_windows")
+    if max_windows is not None:
+        max_windows = checks.whole_number("max_windows", max_windows, 1)
+    check_sequence_t_ref(dict(problem_options or {}).get("t_ref", "first"), max_windows)
     windows = AdaptiveWindows() if windows is None or windows is True else windows
     camera = camera if camera is not None else getattr(stream, "camera", None)
     if model.needs_camera and camera is None:
@@ -449,7 +453,6 @@ def run_windows(
     """
     if max_windows is not None:
         max_windows = checks.whole_number("max_windows", max_windows, 1)
-    check_sequence_t_ref(dict(problem_options or {}).get("t_ref", "first"), max_windows)
     if idle_timeout is not None:
         idle_timeout = checks.seconds("idle_timeout", idle_timeout, positive=True)
     rule_size = windows.max_events if isinstance(windows, AdaptiveWindows) else None
