@@ -334,7 +334,8 @@ def test_a_sequence_refuses_one_numeric_t_ref_for_many_windows(f64):
     from cmax_taichi.io.streams import ReplayStream
     from cmax_taichi.solve.online import run_live
 
-    with ReplayStream(ev) as stream, pytest.raises(ValueError, match=r"t_ref 0.0 s is one time .* an unknown"):
+    refused = pytest.raises(ValueError, match=r"t_ref 0.0 s is one time .* an unknown")
+    with ReplayStream(ev) as stream, refused:
         run_live(stream, "translation2", windows=200, problem_options={"t_ref": 0.0}, warm_up=False)
 
 
