@@ -6,7 +6,7 @@ over a long looped replay, and a multi-GB ROS bag read with bounded memory.
 * **tcp**: each ECD rotation cut (rotation3) and slider_depth (translation2; at 1x and 2x) is served by
   :func:`cmax_taichi.io.streams.start_replay_server` on 127.0.0.1 at its recorded speed (times
   ``speed``) and estimated by :func:`cmax_taichi.solve.online.run_live` with motion-adaptive windows,
-  the kernels compiled by the warm-up before the replay starts. Per run: the real-time factor (data
+  the optimized kernels compiled (``compile_mode="full"``) by the warm-up before the replay starts. Per run: the real-time factor (data
   seconds of the windows / wall seconds spent on them, the first window included), the latency from a
   window's last event's arrival to its estimate (median, 99th percentile; the last window, which the
   stream's end closes, apart), the windows, and the accuracy: rotation3 against the gyro of
@@ -481,7 +481,10 @@ def main(argv=None) -> int:
     from cmax_taichi.core import backend
     from cmax_taichi.solve.adaptive import AdaptiveWindows
 
-    backend.init_if_needed(None, None)
+    # the optimized kernels (compiled, or loaded from the cache, by each run's warm-up before its replay):
+    # with the default "auto" a sensor whose optimized kernels are not cached yet would run its few
+    # seconds of replay on the quick ones, while they compile in the background
+    backend.init_if_needed(None, None, "full")
     data, out = Path(args.data), Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rule = AdaptiveWindows() if args.target_px is None else AdaptiveWindows(target_px=args.target_px)
