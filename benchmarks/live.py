@@ -6,8 +6,9 @@ over a long looped replay, and a multi-GB ROS bag read with bounded memory.
 * **tcp**: each ECD rotation cut (rotation3) and slider_depth (translation2; at 1x and 2x) is served by
   :func:`cmax_taichi.io.streams.start_replay_server` on 127.0.0.1 at its recorded speed (times
   ``speed``) and estimated by :func:`cmax_taichi.solve.online.run_live` with motion-adaptive windows,
-  the optimized kernels compiled (``compile_mode="full"``) by the warm-up before the replay starts. Per run: the real-time factor (data
-  seconds of the windows / wall seconds spent on them, the first window included), the latency from a
+  the optimized kernels compiled (``compile_mode="full"``) by the warm-up before the replay starts. Per
+  run: the real-time factor (data seconds of the windows / wall seconds spent on them, the first window
+  included), the latency from a
   window's last event's arrival to its estimate (median, 99th percentile; the last window, which the
   stream's end closes, apart), the windows, and the accuracy: rotation3 against the gyro of
   ``motion.txt`` (relative error of the angular velocity, median over the windows, and of the
