@@ -8,13 +8,12 @@ over a long looped replay, and a multi-GB ROS bag read with bounded memory.
   ``speed``) and estimated by :func:`cmax_taichi.solve.online.run_live` with motion-adaptive windows,
   the optimized kernels compiled (``compile_mode="full"``) by the warm-up before the replay starts. Per
   run: the real-time factor (data seconds of the windows / wall seconds spent on them, the first window
-  included), the latency from a
-  window's last event's arrival to its estimate (median, 99th percentile; the last window, which the
-  stream's end closes, apart), the windows, and the accuracy: rotation3 against the gyro of
-  ``motion.txt`` (relative error of the angular velocity, median over the windows, and of the
-  duration-weighted mean over the windows), beside ``sequence.process`` with 30,000-event windows (the
-  whole cut of 20,000 for shapes_rotation); slider_depth against (-110, 0) px/s. ``--rounds`` rounds,
-  the cases alternating; medians over the rounds.
+  included), the latency from a window's last event's arrival to its estimate (median, 99th percentile;
+  the last window, which the stream's end closes, apart), the windows, and the accuracy: rotation3
+  against the gyro of ``motion.txt`` (relative error of the angular velocity, median over the windows,
+  and of the duration-weighted mean over the windows), beside ``sequence.process`` with 30,000-event
+  windows (the whole cut of 20,000 for shapes_rotation); slider_depth against (-110, 0) px/s.
+  ``--rounds`` rounds, the cases alternating; medians over the rounds.
 * **hd**: a simulated 1280x720 stream of about 1 million events per second (a textured plane translating
   at (50, -30) px/s, ``--hd-seconds`` long, simulated once into ``OUT/hd_stream.npz``) replayed in the
   process at its recorded speed (:class:`~cmax_taichi.io.streams.ReplayStream`), translation2.
