@@ -177,7 +177,7 @@ class LiveResult:
     first_window_seconds : float
         Wall time of the first window, s.
     warm_up_seconds : float
-        Wall time of the warm-up before the first window (kernels compiled or loaded), s.
+        Wall time of the warm-up before the stream was read (kernels compiled or loaded), s.
     latencies : ndarray
         Seconds from each window's last event's arrival to its estimate (the most recent
         :data:`LATENCY_RING`), for the windows that their own events closed (not the last window,
@@ -428,10 +428,9 @@ def run_windows(
     keep_tail : bool
         When the stream ends, estimate the last, partial window if it holds enough (default True).
     warm_up : bool
-        Before the first window, compile (or load) the kernels on a synthetic window of the stream's
-        sensor (``estimator.warm_up``; ``warm_up_seconds`` in the result): the first window then runs on
-        ready kernels. The reader runs meanwhile: events that arrive go into the buffer (the windows
-        they fill are estimated after, or skipped as ``behind`` when the buffer fills).
+        Before reading, compile (or load) the kernels on a synthetic window of the stream's sensor
+        (``estimator.warm_up``; ``warm_up_seconds`` in the result): the first window then runs on ready
+        kernels. Events that arrive meanwhile wait in the source.
     on_ready : callable, optional
         Called once the kernels are ready and the reader runs (a replay server may start then).
     stop : threading.Event, optional
@@ -473,13 +472,10 @@ def run_windows(
     live = _Live(stream, buffer, planner, idle_timeout, stop)
     run = _Run(live, estimator, camera, result, keep_tail, max_windows, on_window, on_skipped)
     error = None
-    # the reader first: what the source sends during the warm-up goes into the buffer (the source is
-    # never left waiting on a full pipe, where a source that then fails would lose it), and the windows
-    # it fills are estimated or skipped as behind, counted either way
-    live.start()
     if warm_up:
         size = windows.first_events if isinstance(windows, AdaptiveWindows) else rule_size or 10_000
         result.warm_up_seconds = estimator.warm_up(stream.sensor_size, size)
+    live.start()
     if on_ready is not None:
         on_ready()
     try:
