@@ -533,3 +533,61 @@ def test_a_recording_shorter_than_a_window_is_one_error_line(tmp_path, capsys, c
     code, _, err = run(capsys, *argv)
     assert code == 2 and err.count("\n") == 1, err
     assert "600 events, fewer than one window of --window 1000" in error_line(err)
+
+
+# --- the fourth sweep's cases ------------------------------------------------------------------------
+def test_a_live_run_refuses_another_commands_outputs_and_leaves_out_as_it_was(tmp_path, capsys):
+    """flow --live into an estimate's folder replaced its results.csv (exit 0, a mixed folder); a live run
+    refused after its source opened (a numeric --t-ref) left a header-only results.csv without a manifest,
+    which every later run then refused."""
+    rec = write_recording(tmp_path / "rec")
+    out = tmp_path / "est"
+    out.mkdir()
+    (out / "results.csv").write_text("estimate's rows\n")
+    outputs.write_manifest(out, ["results.csv"], "estimate")
+    code, _, err = run(capsys, "flow", "--live", rec, "--speed", 50, "--window", 1000, "--no-display",
+                       "--quiet", "--grid", 4, 4, "--levels", 1, "--out", out)  # fmt: skip
+    assert code == 2 and "is an output of 'cmax-taichi estimate'" in error_line(err)
+    assert (out / "results.csv").read_text() == "estimate's rows\n"
+
+    live = tmp_path / "live"
+    code, _, err = run(capsys, "estimate", "--live", rec, "--speed", 50, "--window-mode", "count",
+                       "--window", 1000, "--t-ref", 0.01, "--no-display", "--out", live)  # fmt: skip
+    assert code == 2 and "one time on the events' clock" in error_line(err)
+    assert not live.exists()  # nothing written, not even the folder
+
+
+def test_live_options_that_would_be_ignored_are_refused(tmp_path, capsys):
+    """--window with the live default (adaptive windows) was ignored without a word; --figures -3 and an
+    empty --out were accepted (the latter wrote into the current folder)."""
+    rec = write_recording(tmp_path / "rec")
+    code, _, err = run(capsys, "estimate", "--live", rec, "--window", 500, "--no-display",
+                       "--out", tmp_path / "a")  # fmt: skip
+    assert code == 2 and "not with --window" in error_line(err) and not (tmp_path / "a").exists()
+    code, _, err = run(capsys, "estimate", rec, "--figures", -3, "--out", tmp_path / "b")
+    assert code == 2 and "--figures must be" in error_line(err)
+    code, _, err = run(capsys, "estimate", rec, "--out", "")
+    assert code == 2 and "--out is empty" in error_line(err)
+
+
+def test_segment_window_options_that_would_be_ignored_are_refused(tmp_path, capsys):
+    rec = write_recording(tmp_path / "rec")
+    code, _, err = run(capsys, "segment", rec, "--start", 300, "--t-start", 0.01, "--out", tmp_path / "s")
+    assert code == 2 and "--start gives the window by event index" in error_line(err)
+    code, _, err = run(capsys, "segment", "--example", "two-objects", "--t-start", 0.01,
+                       "--out", tmp_path / "e")  # fmt: skip
+    assert code == 2 and "--t-start: options of a recording's window" in error_line(err)
+
+
+def test_reproduce_refuses_a_negative_seed_before_simulating(tmp_path, capsys):
+    code, out, err = run(capsys, "reproduce", "table1", "--quick", "--seed", -1, "--windows", 1,
+                         "--out", tmp_path / "r")  # fmt: skip
+    assert code == 2 and "seed must be" in error_line(err) and "simulating" not in out + err
+
+
+def test_open_recording_sort_must_be_a_bool(tmp_path):
+    from cmax_taichi import io
+
+    rec = write_recording(tmp_path / "rec")
+    with pytest.raises(TypeError, match="sort must be True or False, got 'x'"):
+        io.open_recording(rec, sort="x")

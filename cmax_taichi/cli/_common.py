@@ -23,6 +23,9 @@ from cmax_taichi.models.objectives import objective_names
 from cmax_taichi.models.regularizers import regularizer_names
 from cmax_taichi.models.warps import get_warp, warp_names
 
+#: events per window of the count windows when --window is not given
+DEFAULT_WINDOW_EVENTS = 30000
+
 __all__ = [
     "PLUGIN_HELP",
     "T_REF_NAMES",
@@ -181,7 +184,7 @@ def add_window_arguments(parser):
     window options. :func:`check_windows` checks them."""
     win = parser.add_argument_group("windows")
     win.add_argument(
-        "--window", type=int, default=30000, metavar="N", help="events per window (default 30000)"
+        "--window", type=int, default=None, metavar="N", help="events per window (default 30000)"
     )
     win.add_argument(
         "--duration", type=float, default=None, metavar="S", help="window length in seconds instead"
@@ -202,6 +205,9 @@ def check_windows(args: argparse.Namespace) -> None:
     """The options of :func:`add_window_arguments`, before any data is read (CliError)."""
     from cmax_taichi.cli import CliError
 
+    args.window_given = args.window is not None  # (adaptive windows refuse it: they choose their length)
+    if args.window is None:
+        args.window = DEFAULT_WINDOW_EVENTS
     if args.window < 2:
         raise CliError(f"--window must be at least 2 events, got {args.window}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):

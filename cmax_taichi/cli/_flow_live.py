@@ -51,7 +51,6 @@ def run(args: argparse.Namespace, regs: dict) -> int:
             stream.close()
             raise CliError(f"--live {live.source}: {exc}") from None
         shown = _live.LiveDisplay() if live.display else None
-        out.begin()
 
         def on_window(row, est, res, latency):
             if row.estimated:

@@ -107,8 +107,11 @@ def window_rule(args: argparse.Namespace, live_default: str = "adaptive"):
         if mode == "count" and args.duration is not None:
             raise CliError("--duration gives windows by time: not with --window-mode count")
         return None, (args.window if mode == "count" else args.duration)
-    if args.duration is not None or args.stride is not None:
-        raise CliError("adaptive windows choose their own length: not with --duration or --stride")
+    if args.duration is not None or args.stride is not None or getattr(args, "window_given", False):
+        raise CliError(
+            "adaptive windows choose their own length: not with --window, --duration or --stride "
+            "(--window-mode count for windows of --window events)"
+        )
     try:
         rule = AdaptiveWindows(**given)
     except (TypeError, ValueError) as exc:
@@ -158,7 +161,7 @@ class LiveOutput:
         self._stack.callback(self._remove_if_unused)
         try:
             self._stack.enter_context(outputs.hold_lock(self.out, self.command))
-            outputs.refuse_foreign(self.out, self._existing())
+            outputs.refuse_foreign(self.out, self._existing(), command=self.command)
         except BaseException:
             self._stack.close()
             raise
@@ -170,8 +173,12 @@ class LiveOutput:
         return sorted(found)
 
     def begin(self) -> None:
-        """Start results.csv (the header): the source is open, rows will come."""
-        for relative in self._existing():  # a previous run's (ours: checked on entry)
+        """Start results.csv (the header) and remove a previous run's files (ours: checked on entry).
+        Called by the first output of the run (a row, a file, the summary): a run that fails before
+        it leaves OUT as it was."""
+        if self._file is not None:
+            return
+        for relative in self._existing():
             if relative != "results.csv":
                 (self.out / relative).unlink(missing_ok=True)
         self._file = self._stack.enter_context((self.out / "results.csv").open("w", newline=""))
@@ -190,6 +197,7 @@ class LiveOutput:
 
     def write(self, fields: list, latency: float) -> None:
         """One row, flushed at once."""
+        self.begin()
         self._writer.writerow([*fields, "" if math.isnan(latency) else f"{latency:.6f}"])
         self._file.flush()
         self.rows += 1
@@ -197,6 +205,7 @@ class LiveOutput:
     def write_file(self, relative: str, write) -> None:
         """A whole file ``OUT/relative``: ``write(path)`` writes it under a hidden name beside it (with
         its suffix), renamed into place when complete (a crash leaves no partial file)."""
+        self.begin()
         target = self.out / relative
         target.parent.mkdir(parents=True, exist_ok=True)
         partial = target.with_name(f".{target.stem}.partial{target.suffix}")
@@ -208,6 +217,7 @@ class LiveOutput:
 
     def append(self, relative: str, text: str) -> None:
         """``text`` appended to ``OUT/relative`` (created by the first call of the run) and flushed."""
+        self.begin()
         fh = self._appended.get(relative)
         if fh is None:
             fh = self._appended[relative] = self._stack.enter_context((self.out / relative).open("w"))
@@ -220,6 +230,7 @@ class LiveOutput:
         their paths, results.csv and the summary first."""
         from cmax_taichi.io import outputs
 
+        self.begin()  # (a run that ended before its first row: the header alone)
         self._file.flush()
         for fh in self._appended.values():
             fh.flush()
@@ -409,6 +420,7 @@ class LiveSource:
     def open(self, needs_camera: str | None = None):
         """The stream (CliError when it does not open; ``needs_camera``: what needs a calibration, when
         the stream must have one)."""
+        from cmax_taichi.core import limits
         from cmax_taichi.io.streams import StreamError, open_stream
 
         args = self.args
@@ -424,6 +436,11 @@ class LiveSource:
         if needs_camera is not None and stream.camera is None:
             stream.close()
             raise CliError(f"{needs_camera} needs a calibration, and {self.source} has none (--calib FILE)")
+        try:  # a sensor above the limits: before the banner (the run would fail at its warm-up)
+            limits.check_sensor(*stream.sensor_size, f"the stream {self.source}")
+        except ValueError as exc:
+            stream.close()
+            raise CliError(str(exc)) from None
         return stream
 
 
@@ -461,6 +478,7 @@ def run(args: argparse.Namespace, regs: dict, process_options: dict) -> int:
     import cmax_taichi as cm
     from cmax_taichi.solve.online import run_live
     from cmax_taichi.solve.results import SequenceResult
+    from cmax_taichi.solve.warm import check_sequence_t_ref
 
     if args.path or args.example is not None:
         raise CliError("--live SOURCE replaces PATH and --example")
@@ -473,8 +491,12 @@ def run(args: argparse.Namespace, regs: dict, process_options: dict) -> int:
     with LiveOutput(args.out, live.inputs, columns) as out:  # OUT checked and locked before anything opens
         common_init(args)
         stream = live.open(f"warp {model.name!r}" if model.needs_camera else None)
+        try:  # a numeric t_ref is for one window: refused before the banner and the first row
+            check_sequence_t_ref(process_options["problem_options"].get("t_ref", "first"), args.max_windows)
+        except ValueError as exc:
+            stream.close()
+            raise CliError(f"--t-ref: {exc}") from None
         shown = LiveDisplay() if live.display else None
-        out.begin()
 
         def on_window(row, prob, res, latency):
             out.write(SequenceResult.csv_row(row), latency)
@@ -552,12 +574,13 @@ def print_summary(result, files: list[str]) -> None:
         latency = f"latency median {median:.1f} ms, 99th percentile {p99:.1f} ms"
     else:  # the end of the stream closed the only window: its wait for the end is no latency
         latency = "no latency measured (no window was closed by its own events)"
-    print(
-        f"{result.windows} window(s) estimated, {result.skipped} not ({result.stop_reason}); "
-        "real-time factor "
-        f"{result.real_time_factor():.2f} (first window included: {result.first_window_seconds:.3f} s); "
-        + latency
-    )
+    if result.windows:
+        pace = (f"real-time factor {result.real_time_factor():.2f} (first window included: "
+                f"{result.first_window_seconds:.3f} s); ")  # fmt: skip
+    else:
+        pace = "no real-time factor (no window estimated); "
+    done = f"{result.windows} window(s) estimated, {result.skipped} not ({result.stop_reason}); "
+    print(done + pace + latency)
     note = f"; {left} not estimated ({describe_events(events)})" if left else ""
     print(f"  events: {events.get('estimated', 0)} of {events.get('total', 0)} estimated{note}")
     print("wrote: " + ", ".join(files))

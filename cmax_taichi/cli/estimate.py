@@ -135,6 +135,8 @@ def check_choices(args: argparse.Namespace) -> None:
         raise CliError(f"--init: unknown init {args.init!r}; valid: {', '.join(INITS)}")
     common.check_windows(args)
     common.parse_t_ref(args.t_ref)
+    if args.figures < 0:
+        raise CliError(f"--figures must be a number of windows >= 0, got {args.figures}")
 
 
 #: what a single run may write into OUT (paths relative to it; see cmax_taichi.io.outputs)

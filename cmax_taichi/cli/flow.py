@@ -404,6 +404,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--window-mode adaptive: with --live (a recording's flow windows: count or duration)")
     _live.window_rule(args, live_default="count")  # the other window options, checked as for --live
     args.figures = 1 if args.figures is None else args.figures
+    if args.figures < 0:
+        raise CliError(f"--figures must be a number of windows >= 0, got {args.figures}")
     if (args.path is None) == (args.example is None):
         raise CliError("give a recording PATH or --example NAME (one of them)")
     inputs = [] if args.path is None else [Path(args.path)]

@@ -56,7 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     win.add_argument(
         "--events", type=int, default=30000, metavar="N", help="events in the window (default 30000)"
     )
-    win.add_argument("--start", type=int, default=0, metavar="I", help="index of the window's first event")
+    win.add_argument(
+        "--start", type=int, default=None, metavar="I", help="index of the window's first event (default 0)"
+    )
     win.add_argument(
         "--t-start", type=float, default=None, metavar="S", help="start time in seconds instead of --start"
     )
@@ -88,6 +90,9 @@ def _read_window(rec, args):
         raise CliError(f"--events must be at least 2, got {args.events}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise CliError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.start is not None and (args.t_start is not None or args.duration is not None):
+        raise CliError("--start gives the window by event index: not with --t-start or --duration (times)")
+    args.start = 0 if args.start is None else args.start
     if args.t_start is not None and not math.isfinite(args.t_start):
         raise CliError(f"--t-start must be a finite number of seconds, got {args.t_start}")
     if args.t_start is not None or args.duration is not None:
@@ -198,6 +203,10 @@ def run(args: argparse.Namespace) -> int:
 
         if args.path is not None:
             raise CliError("give a recording PATH or --example NAME, not both")
+        window = ("start", "t_start", "duration")
+        chosen = [f"--{n.replace('_', '-')}" for n in window if getattr(args, n) is not None]
+        if chosen:
+            raise CliError(f"{', '.join(chosen)}: options of a recording's window (an example is one window)")
         if args.example not in SEGMENT_EXAMPLES:
             valid = ", ".join(SEGMENT_EXAMPLES)
             raise CliError(f"--example: unknown example {args.example!r}; valid: {valid}")

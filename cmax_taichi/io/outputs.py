@@ -165,7 +165,10 @@ def check_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], op
     """OutputConflictError when the output folder ``out`` is one of ``inputs`` (files or folders), a
     folder that holds one (at any depth), a folder inside an input folder, an existing file, or a
     folder that holds a recording (any, not only an input: an ECD folder, MVSEC, DSEC, AEDAT4, a ROS 2
-    bag). Inputs that do not exist have nothing to protect (the command reports them itself)."""
+    bag). Inputs that do not exist have nothing to protect (the command reports them itself). An empty
+    name is refused too (it would be the current folder, unsaid)."""
+    if not str(out).strip():
+        raise OutputConflictError(f"{option} is empty: name an output folder")
     target = _resolved(out)
     for item in inputs:
         if not os.path.lexists(item):

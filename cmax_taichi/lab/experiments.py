@@ -156,6 +156,8 @@ class Settings:
                     "interval lengthens the simulated recording (held whole in memory) and runs every "
                     "objective's optimisations, so more would take days"
                 )
+        if not (isinstance(self.seed, int) and 0 <= self.seed < 2**32):
+            raise ValueError(f"seed must be a whole number from 0 to 2**32 - 1, got {self.seed!r}")
 
     @property
     def n_events(self) -> int:
