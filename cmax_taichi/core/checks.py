@@ -60,6 +60,14 @@ def _is_real_number(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
+def flag(name: str, value) -> bool:
+    """``value`` as a bool, refusing anything but True and False (a string such as ``"no"`` would read
+    as True): TypeError naming ``name``."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def whole_number(name: str, value, minimum: int = 0) -> int:
     """``value`` as an int, refusing what is not a whole number ``>= minimum``.
 

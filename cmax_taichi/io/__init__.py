@@ -156,8 +156,8 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path must be a file or folder (str or os.PathLike), got {type(path).__name__}")
     path = Path(path).expanduser()
-    if "sort" in options and type(options["sort"]).__name__ not in ("bool", "bool_"):
-        raise TypeError(f"sort must be True or False, got {options['sort']!r}")
+    if "sort" in options:
+        options["sort"] = checks.flag("sort", options["sort"])
     if options.get("sensor_size") is not None:
         # before any decoder sees it (faery would answer "out of range integral type conversion")
         options["sensor_size"] = checks.sensor_size(options["sensor_size"])

@@ -240,8 +240,7 @@ class ProblemSetup:
             if m.needs_camera and camera is None:
                 raise ValueError(f"warp {m.name!r} needs a camera (intrinsics): pass camera=")
         reg_weights = check_regularizers(regularizers)
-        if not isinstance(normalize, (bool, np.bool_)):  # normalize="no" read as True
-            raise TypeError(f"normalize must be True or False, got {normalize!r}")
+        checks.flag("normalize", normalize)  # (normalize="no" read as True)
         if polarity not in POLARITY_MODES:
             raise ValueError(f"unknown polarity mode {polarity!r}; valid: {', '.join(POLARITY_MODES)}")
         if not isinstance(blur_sigma, numbers.Real) or isinstance(blur_sigma, (bool, np.bool_)):
