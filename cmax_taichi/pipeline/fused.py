@@ -467,22 +467,21 @@ class FusedPipeline:
             ctx = launcher.ctx
             ctx.set_arg_int((0,), self.n_events)
             ctx.set_arg_int((4,), grad)
-            # the arrays: on the CPU (host arrays, read in place) set when they change (the window's
-            # events and terms are new host arrays, load_window); a GPU launch replaces a device array in
-            # the context by its pointer, so there they are set each time
-            inputs = launcher.set_inputs
-            if self._atomic or inputs is None or inputs[0] is not self.events or inputs[1] is not self._terms:
+            # the arrays and sizes: on the CPU (host arrays, read in place) set when they change (a new
+            # window's events and terms are new host arrays, load_window; the workspace's arrays go with
+            # the sensor); a GPU launch replaces a device array in the context by its pointer, so there
+            # they are set each time
+            arrays = (self._ws, self.events, self._terms)  # (compared by identity: none defines ==)
+            if self._atomic or launcher.set_for != arrays:
                 launcher.set_array(1, self.events)
                 launcher.set_array(2, self._terms)
                 launcher.set_array(3, self._params)
                 launcher.set_array(5, self._out)
-                launcher.set_inputs = (self.events, self._terms)
-            if launcher.set_for is not self._ws or self._atomic:
                 ctx.set_arg_int((6,), self._sensor[0])
                 ctx.set_arg_int((7,), self._sensor[1])
                 for index, array in enumerate(self._ws.arrays.values(), start=8):
                     launcher.set_array(index, array)
-                launcher.set_for = self._ws
+                launcher.set_for = arrays
             launcher.launch()
             return self._out.array
         self._compiling = True  # (or loading from the offline cache: not a measure of the window)

@@ -37,8 +37,7 @@ class DirectLaunch:
         prog = self._prog = ti_impl.get_runtime().prog
         self._data = prog.compile_kernel(prog.config(), prog.get_device_caps(), self._t_kernel)
         self.ctx = self._t_kernel.make_launch_context()
-        self.set_for = None  # (the caller's records of what its arrays were last set for)
-        self.set_inputs = None
+        self.set_for = None  # (the caller's record of what its arrays were last set for)
 
     @classmethod
     def make(cls, kernel, args: tuple) -> DirectLaunch | None:
